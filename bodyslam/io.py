@@ -1,0 +1,197 @@
+"""File formats, in one place (SPEC.md "Files").
+
+- Trajectories: TUM text, ``t x y z qx qy qz qw`` (t in s, position in m, unit quaternion scalar-last), readable by
+  the public ``evo`` tools. Quaternion order is converted here and nowhere else.
+- Sequence metadata: ``meta.json``.
+- Images: PNG; colour images are RGB ``uint8 (h, w, 3)`` inside the code, BGR only inside this module.
+- Every file is written atomically (temporary file in the same directory, then ``os.replace``), so a killed run
+  never leaves a half-written file that looks whole.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodyslam.errors import InputError
+
+__all__ = [
+    "atomic_path",
+    "write_bytes_atomic",
+    "write_text_atomic",
+    "write_json",
+    "read_json",
+    "write_tum",
+    "read_tum",
+    "write_image",
+    "read_image",
+    "write_csv",
+    "read_meta",
+    "frame_name",
+]
+
+FRAME_INDEX_DIGITS = 6
+
+
+def frame_name(index: int) -> str:
+    """Zero-padded PNG name of frame ``index`` (``000123.png``)."""
+    return f"{index:0{FRAME_INDEX_DIGITS}d}.png"
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success it is renamed onto ``path``, on error removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+
+
+def read_meta(seq_dir: str | os.PathLike) -> dict[str, Any]:
+    """``meta.json`` of a sequence directory, checked for the keys every stage relies on."""
+    path = Path(seq_dir) / "meta.json"
+    meta = read_json(path)
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: expected a JSON object")
+    for key in ("frame_rate_hz", "camera", "n_frames"):
+        if key not in meta:
+            raise InputError(f"{path}: missing key {key!r}")
+    return meta
+
+
+def write_tum(
+    path: str | os.PathLike, stamps_s: np.ndarray, positions_w_m: np.ndarray, rotations_w_c: Rotation
+) -> None:
+    """Write poses ``T_w_c`` as TUM lines ``t x y z qx qy qz qw``."""
+    stamps_s = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+    pos = np.asarray(positions_w_m, dtype=np.float64).reshape(-1, 3)
+    q_xyzw = rotations_w_c.as_quat(canonical=True).reshape(-1, 4)  # scipy order is scalar-last (x y z w)
+    if not (len(stamps_s) == len(pos) == len(q_xyzw)):
+        raise ValueError("stamps, positions and rotations must have the same length")
+    buf = io.StringIO()
+    buf.write("# timestamp_s x_m y_m z_m qx qy qz qw (T_w_c, world = body frame)\n")
+    for t, p, q in zip(stamps_s, pos, q_xyzw):
+        buf.write(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
+    write_text_atomic(path, buf.getvalue())
+
+
+def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Rotation]:
+    """Read a TUM trajectory: ``(stamps_s (n,), positions_w_m (n, 3), rotations_w_c)``.
+
+    Raises
+    ------
+    InputError
+        Missing file, or a line that is not 8 numbers or has a non-unit quaternion (file and line are named).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    rows = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise InputError(f"{path}:{lineno}: not a number in {s!r}") from None
+        if len(vals) != 8:
+            raise InputError(f"{path}:{lineno}: expected 8 values 't x y z qx qy qz qw', got {len(vals)}")
+        n = np.linalg.norm(vals[4:])
+        if not np.isfinite(vals).all() or abs(n - 1.0) > 1e-3:
+            raise InputError(f"{path}:{lineno}: quaternion is not of unit length (|q| = {n:.6f})")
+        rows.append(vals)
+    if not rows:
+        raise InputError(f"{path}: no poses")
+    a = np.array(rows)
+    return a[:, 0], a[:, 1:4], Rotation.from_quat(a[:, 4:8])
+
+
+def write_csv(path: str | os.PathLike, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+    """Write a CSV with a header row, atomically. Floats are written with full precision."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for r in rows:
+        w.writerow([f"{x:.9g}" if isinstance(x, (float, np.floating)) else x for x in r])
+    write_text_atomic(path, buf.getvalue())
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write an RGB ``uint8 (h, w, 3)``, grey ``(h, w)`` or ``uint16`` image as PNG, atomically."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise InputError(f"{path}: could not encode image of shape {image.shape} dtype {image.dtype}")
+    write_bytes_atomic(path, buf.tobytes())
+
+
+def read_image(path: str | os.PathLike, unchanged: bool = False) -> np.ndarray:
+    """Read an image file as RGB ``uint8 (h, w, 3)`` (or as stored with ``unchanged=True``).
+
+    Raises
+    ------
+    InputError
+        Missing, empty or undecodable file (the path is named).
+    """
+    path = Path(path)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a directory, not an image") from None
+    if data.size == 0:
+        raise InputError(f"{path}: empty file (0 bytes)")
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED if unchanged else cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(f"{path}: not a decodable image (corrupt or truncated?)")
+    if not unchanged:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img
