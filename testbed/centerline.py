@@ -217,7 +217,8 @@ class _VectorSpline:
         return _VectorSpline(self.spl.derivative())
 
 
-def _lattice_walk(shape: tuple[int, int, int], n_nodes: int, rng: np.random.Generator) -> list[tuple[int, int, int]]:
+def _lattice_walk(shape: tuple[int, int, int], n_nodes: int, rng: np.random.Generator,
+                  straight_bonus: float = 2.5) -> list[tuple[int, int, int]]:
     """A self-avoiding walk of ``n_nodes`` nodes on a 3D lattice (randomised DFS with Warnsdorff's rule)."""
     dirs = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
 
@@ -240,9 +241,15 @@ def _lattice_walk(shape: tuple[int, int, int], n_nodes: int, rng: np.random.Gene
             return False
         cand = free_neighbours(path[-1], used)
         rng.shuffle(cand)
-        # Warnsdorff: visit the neighbour with the fewest onward moves first; prefer going straight on ties
-        # less often than turning, which gives coils rather than long straight runs.
-        cand.sort(key=lambda q: len(free_neighbours(q, used)))
+        # Warnsdorff (fewest onward moves first) finds long walks; a bonus for going straight on keeps the number
+        # of bends (and so the capsule's tilt per step) near a real small bowel's instead of turning at every node.
+        prev = path[-2] if len(path) > 1 else None
+
+        def key(q):
+            straight = prev is not None and all(q[i] - path[-1][i] == path[-1][i] - prev[i] for i in range(3))
+            return len(free_neighbours(q, used)) - (straight_bonus if straight else 0.0)
+
+        cand.sort(key=key)
         for q in cand:
             path.append(q)
             used.add(q)

@@ -1,0 +1,52 @@
+"""Shared CLI plumbing: one-line errors, logging set-up and a progress bar on stderr (CLIs only)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import Callable
+
+from bodyslam.errors import BodySlamError
+
+
+class Progress:
+    """A text progress bar on stderr: redrawn in place on a terminal, a line every 10% otherwise."""
+
+    def __init__(self, label: str, stream=None):
+        self.label = label
+        self.stream = stream or sys.stderr
+        self.t0 = time.monotonic()
+        self.tty = self.stream.isatty()
+        self._last_decile = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        frac = done / max(total, 1)
+        el = time.monotonic() - self.t0
+        rate = done / el if el > 0 else 0.0
+        eta = (total - done) / rate if rate > 0 else 0.0
+        if self.tty:
+            bar = "#" * int(frac * 30)
+            self.stream.write(f"\r{self.label} [{bar:<30}] {done}/{total} {rate:5.1f}/s eta {eta:4.0f}s")
+            if done >= total:
+                self.stream.write("\n")
+            self.stream.flush()
+        else:
+            dec = int(frac * 10)
+            if dec != self._last_decile or done >= total:
+                self._last_decile = dec
+                self.stream.write(f"{self.label}: {done}/{total} ({rate:.1f}/s)\n")
+                self.stream.flush()
+
+
+def run_cli(main: Callable[[list[str] | None], int], argv: list[str] | None, verbose: bool = False) -> int:
+    """Run a CLI body: a :class:`BodySlamError` becomes one line on stderr and exit code 1."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return main(argv)
+    except BodySlamError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,212 @@
+"""Scenarios: TOML files that fully determine a testbed run given a seed (SPEC.md "Standard scenarios").
+
+Shipped scenarios live in ``testbed/scenarios/NAME.toml``; a scenario argument is either such a name or a path to a
+TOML file. ``--set section.key=value`` overrides one field (the value is parsed as TOML, so ``0.012``, ``true``,
+``[1, 2]`` and ``"text"`` work; a bare word is taken as a string).
+
+:func:`build_world` turns a scenario and a seed into the objects the testbed renders. Independent random streams
+(path, texture, motion, sensor noise) are spawned from the seed, so changing e.g. the motion settings does not
+change the path of the same seed.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bodyslam.camera import CameraModel, camera_from_dict
+from bodyslam.errors import ConfigError, InputError
+from testbed.centerline import Centerline, procedural_centerline
+from testbed.motion import MotionConfig
+from testbed.render import Lighting, SensorNoise
+from testbed.texture import Texture, procedural_mucosa, texture_from_image
+from testbed.tube import Folds, Tube
+
+__all__ = ["load_scenario", "apply_overrides", "build_world", "World", "scenario_names"]
+
+
+def scenario_names() -> list[str]:
+    d = resources.files("testbed") / "scenarios"
+    return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict[str, Any]:
+    """Read a scenario by shipped name or file path and apply ``section.key=value`` overrides.
+
+    Raises
+    ------
+    ConfigError
+        Unknown scenario, malformed TOML or a bad override (the message names it).
+    """
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise ConfigError(f"scenario file {p} not found")
+        text, origin = p.read_text(encoding="utf-8"), str(p)
+    else:
+        res = resources.files("testbed") / "scenarios" / f"{name_or_path}.toml"
+        if not res.is_file():
+            raise ConfigError(f"unknown scenario {name_or_path!r} (shipped: {', '.join(scenario_names())})")
+        text, origin = res.read_text(encoding="utf-8"), f"testbed/scenarios/{name_or_path}.toml"
+    try:
+        scn = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{origin}: malformed TOML ({exc})") from None
+    scn.setdefault("name", p.stem)
+    scn["_origin"] = origin
+    return apply_overrides(scn, overrides or [])
+
+
+def apply_overrides(scn: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    out = copy.deepcopy(scn)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set expects section.key=value, got {item!r}")
+        key, raw = item.split("=", 1)
+        parts = key.strip().split(".")
+        if len(parts) < 2 or not all(parts):
+            raise ConfigError(f"--set key must be section.key, got {key!r}")
+        try:
+            value = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {key}: {part!r} is not a section")
+        node[parts[-1]] = value
+    return out
+
+
+def _section(scn: dict, name: str) -> dict:
+    sec = scn.get(name, {})
+    if not isinstance(sec, dict):
+        raise ConfigError(f"scenario section [{name}] must be a table")
+    return sec
+
+
+def _dataclass_from(cls, sec: dict, section: str):
+    names = {f.name for f in fields(cls)}
+    unknown = set(sec) - names
+    if unknown:
+        raise ConfigError(f"[{section}] has unknown key(s) {sorted(unknown)}; known: {sorted(names)}")
+    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in sec.items()}
+    try:
+        return cls(**kw)
+    except TypeError as exc:
+        raise ConfigError(f"[{section}]: {exc}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """Everything a testbed run renders from, built from a scenario and a seed."""
+
+    scenario: dict
+    seed: int
+    n_frames: int
+    camera: CameraModel
+    tube: Tube
+    texture: Texture
+    lighting: Lighting
+    noise: SensorNoise
+    motion: MotionConfig
+    write_depth: bool
+    rngs: dict
+
+
+def _radius_fn(sec: dict, rng: np.random.Generator):
+    r0 = float(sec.get("radius_m", 0.015))
+    r1 = float(sec.get("radius_end_m", r0))
+    var = float(sec.get("radius_variation_m", 0.0))
+    wl = float(sec.get("radius_wavelength_m", 0.15))
+    if not (0.002 <= min(r0, r1) and max(r0, r1) <= 0.05):
+        raise ConfigError(f"tube radius must be within 2-50 mm, got {r0} .. {r1} m")
+    ph = rng.uniform(0, 2 * math.pi, size=3)
+
+    def fn(s):
+        s = np.asarray(s, dtype=np.float64)
+        frac = s / max(s[-1], 1e-9) if s.size > 1 else np.zeros_like(s)
+        wave = (np.sin(2 * math.pi * s / wl + ph[0]) + 0.5 * np.sin(2 * math.pi * s / (0.37 * wl) + ph[1])) / 1.5
+        return r0 + (r1 - r0) * frac + var * wave
+
+    return fn, max(r0, r1) + var
+
+
+def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> World:
+    """Build camera, tube, texture, lighting and motion settings of a scenario for one seed."""
+    if not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
+    ss = np.random.SeedSequence(seed)
+    rngs = dict(zip(("path", "texture", "motion", "noise", "rf"), (np.random.default_rng(s) for s in ss.spawn(5))))
+    seq = _section(scn, "sequence")
+    n = int(n_frames if n_frames is not None else seq.get("frames", 100))
+    if n < 2:
+        raise ConfigError(f"need at least 2 frames, got {n}")
+    camera = camera_from_dict(_section(scn, "camera"))
+
+    tube_sec = dict(_section(scn, "tube"))
+    radius_fn, r_max = _radius_fn(tube_sec, rngs["path"])
+    path = _section(scn, "path")
+    kind = path.get("kind", "procedural")
+    if kind == "procedural":
+        cl = procedural_centerline(
+            float(path.get("length_m", 2.5)),
+            rngs["path"],
+            radius_fn=radius_fn,
+            radius_max_m=r_max,
+            abdomen_box_m=tuple(path.get("abdomen_box_m", (0.32, 0.24, 0.34))),
+            min_self_distance_diameters=float(path.get("min_self_distance_diameters", 2.0)),
+        )
+    elif kind == "file":
+        f = path.get("file")
+        if not f:
+            raise ConfigError("[path] kind = 'file' needs file = 'centerline.csv'")
+        fp = Path(f)
+        if not fp.is_absolute() and "_origin" in scn and Path(scn["_origin"]).exists():
+            fp = Path(scn["_origin"]).parent / fp
+        cl = Centerline.read_csv(fp)
+        if "radius_m" in tube_sec:  # the scenario's radius profile replaces the file's
+            cl = Centerline(cl.s_m, cl.points_w, cl.tangents_w, cl.normals_w, cl.binormals_w, radius_fn(cl.s_m))
+    else:
+        raise ConfigError(f"[path] kind must be 'procedural' or 'file', got {kind!r}")
+    folds = Folds(
+        depth_frac=float(tube_sec.get("fold_depth_frac", 0.0)),
+        spacing_m=float(tube_sec.get("fold_spacing_m", 0.008)),
+        width_m=float(tube_sec.get("fold_width_m", 0.002)),
+        coverage=float(tube_sec.get("fold_coverage", 0.7)),
+    )
+    tube = Tube(cl, folds=folds, sections=int(tube_sec.get("sections", 96)),
+                ring_spacing_m=float(tube_sec.get("ring_spacing_m", 0.0015)))
+
+    tex = dict(_section(scn, "texture"))
+    tkind = tex.pop("kind", "procedural")
+    if tkind == "procedural":
+        try:
+            texture = procedural_mucosa(rngs["texture"], **tex)
+        except TypeError as exc:
+            raise ConfigError(f"[texture]: {exc}") from None
+    elif tkind == "image":
+        if "file" not in tex:
+            raise ConfigError("[texture] kind = 'image' needs file = 'texture.png'")
+        try:
+            texture = texture_from_image(tex["file"], float(tex.get("length_m", 0.1)))
+        except InputError as exc:
+            raise ConfigError(f"[texture]: {exc}") from None
+    else:
+        raise ConfigError(f"[texture] kind must be 'procedural' or 'image', got {tkind!r}")
+
+    lighting = _dataclass_from(Lighting, _section(scn, "lighting"), "lighting")
+    noise = _dataclass_from(SensorNoise, _section(scn, "noise"), "noise")
+    msec = dict(_section(scn, "motion"))
+    msec.setdefault("frame_rate_hz", float(seq.get("frame_rate_hz", 2.0)))
+    motion = _dataclass_from(MotionConfig, msec, "motion")
+    out = _section(scn, "output")
+    return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs)

@@ -1,0 +1,153 @@
+"""Render a scenario into a sequence directory (SPEC.md "Files").
+
+What the pipeline may read (what a capsule gives):
+    frames/NNNNNN.png   capsule video, RGB
+    meta.json           frame rate, image size, camera model, nominal tube radius, provenance
+What only scoring may read (ground truth):
+    groundtruth.tum     T_w_c per frame (TUM, readable by evo)
+    motion_truth.csv    per-step truth: frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,label
+    labels.csv          per-frame FT/FL label and phase
+    centerline.csv      the path's centre line (the "map")
+    truth.json          sequence statistics of the truth
+    depth/NNNNNN.png    optional: range along each pixel's ray, uint16 in 0.1 mm (0 = no wall)
+
+``meta.json`` is written last, so a run that was killed leaves no ``meta.json`` and is visibly incomplete.
+Frames render in parallel worker processes (``jobs``), each with its own renderer.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from bodyslam import __version__
+from bodyslam.errors import InputError
+from bodyslam.geometry import relative_motion
+from bodyslam.io import frame_name, write_csv, write_image, write_json, write_tum
+from testbed.motion import PHASES, CapsuleTrajectory, generate_motion, label_frames
+from testbed.render import RANGE_SCALE_M, RaycastRenderer, encode_range
+from testbed.scenario import World, build_world
+
+log = logging.getLogger(__name__)
+
+__all__ = ["simulate", "prepare_output_dir"]
+
+_W: dict = {}  # per-process state of render workers (set before fork / in the initializer)
+
+
+def prepare_output_dir(out_dir: Path, force: bool) -> None:
+    """Refuse to write into a non-empty directory unless ``force``."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a directory")
+    if out_dir.exists() and any(out_dir.iterdir()) and not force:
+        raise InputError(f"{out_dir}: directory is not empty (use --force to overwrite)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _init_worker() -> None:
+    w: World = _W["world"]
+    _W["renderer"] = RaycastRenderer(w.tube, w.texture, w.camera, w.lighting, mesh=_W.get("mesh"))
+
+
+def _render_one(k: int) -> int:
+    w: World = _W["world"]
+    traj: CapsuleTrajectory = _W["traj"]
+    out: Path = _W["out"]
+    res = _W["renderer"].render(traj.rotations_w_c[k], traj.positions_w_m[k])
+    rng = np.random.default_rng([w.seed, 7919, k])  # per-frame noise stream: same output for any job count
+    write_image(out / "frames" / frame_name(k), w.noise.apply(res.rgb, rng))
+    if w.write_depth:
+        write_image(out / "depth" / frame_name(k), encode_range(res.range_m))
+    return k
+
+
+def simulate(
+    scenario: dict,
+    seed: int,
+    out_dir: str | os.PathLike,
+    n_frames: int | None = None,
+    jobs: int = 2,
+    force: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Render ``scenario`` with ``seed`` into ``out_dir``; returns the truth statistics written to truth.json."""
+    out = Path(out_dir)
+    world = build_world(scenario, seed, n_frames)
+    prepare_output_dir(out, force)
+    traj = generate_motion(world.tube, world.n_frames, world.motion, world.rngs["motion"])
+    mesh = world.tube.mesh()
+    labeller = RaycastRenderer(world.tube, world.texture, world.camera, world.lighting, mesh=mesh)
+    labels = label_frames(world.tube, traj, world.camera.fov_deg, labeller.cast)
+    del labeller
+    (out / "frames").mkdir(exist_ok=True)
+    if world.write_depth:
+        (out / "depth").mkdir(exist_ok=True)
+
+    _W.update(world=world, traj=traj, out=out, mesh=mesh)
+    n = world.n_frames
+    jobs = max(1, min(int(jobs), n))
+    try:
+        if jobs == 1:
+            _init_worker()
+            for i, k in enumerate(range(n)):
+                _render_one(k)
+                if progress:
+                    progress(i + 1, n)
+        else:
+            with mp.get_context("fork").Pool(jobs, initializer=_init_worker) as pool:
+                for i, _ in enumerate(pool.imap_unordered(_render_one, range(n), chunksize=2)):
+                    if progress:
+                        progress(i + 1, n)
+    finally:
+        _W.clear()
+
+    write_tum(out / "groundtruth.tum", traj.stamps_s, traj.positions_w_m, traj.rotations_w_c)
+    m = relative_motion(traj.rotations_w_c, traj.positions_w_m)
+    rows = [
+        [k, traj.stamps_s[k], m["distance_m"][k - 1], m["roll_rad"][k - 1], m["pitch_rad"][k - 1],
+         m["yaw_rad"][k - 1], m["tilt_rad"][k - 1], labels[k]]
+        for k in range(1, n)
+    ]
+    write_csv(out / "motion_truth.csv",
+              ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "label"], rows)
+    write_csv(out / "labels.csv", ["frame", "t", "label", "phase", "s_m"],
+              [[k, traj.stamps_s[k], labels[k], PHASES[traj.phase[k]], traj.s_m[k]] for k in range(n)])
+    world.tube.centerline.write_csv(out / "centerline.csv")
+    truth = {
+        "n_frames": n,
+        "n_steps": n - 1,
+        "mean_step_cm": float(np.mean(np.abs(m["distance_m"])) * 100),
+        "mean_roll_deg": float(np.degrees(np.mean(np.abs(m["roll_rad"])))),
+        "mean_tilt_deg": float(np.degrees(np.mean(m["tilt_rad"]))),
+        "path_travelled_m": float(np.sum(np.abs(m["distance_m"]))),
+        "n_ft": int(np.sum(labels == "FT")),
+        "n_fl": int(np.sum(labels == "FL")),
+        "path_length_m": world.tube.centerline.length_m,
+    }
+    write_json(out / "truth.json", truth)
+    cam = world.camera
+    meta = {
+        "format": "bodyslam-sequence/1",
+        "n_frames": n,
+        "frame_rate_hz": world.motion.frame_rate_hz,
+        "image_width": cam.width,
+        "image_height": cam.height,
+        "camera": cam.to_dict(),
+        "tube_radius_m": float(np.mean(world.tube.centerline.radius_m)),
+        "frames": {"dir": "frames", "pattern": "{index:06d}.png", "color": "RGB"},
+        "depth": (
+            {"dir": "depth", "kind": "range_along_ray", "scale_m_per_unit": RANGE_SCALE_M, "invalid_value": 0}
+            if world.write_depth else None
+        ),
+        "units": {"length": "m", "angle": "rad", "time": "s"},
+        "source": {"generator": "testbed", "version": __version__, "scenario": scenario.get("name"),
+                   "seed": seed},
+    }
+    write_json(out / "meta.json", meta)
+    log.info("wrote %d frames to %s", n, out)
+    return truth
