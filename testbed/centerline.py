@@ -335,7 +335,7 @@ def procedural_centerline(
         if kappa.max() * 1.2 * radius_max_m >= 1.0:
             log.debug("draw %d bends too tightly (min bend radius %.4f m)", attempt, 1 / kappa.max())
             continue
-        dmin = min_self_distance(pts[::4], s[::4], d_min * math.pi / 2.0)
+        dmin = min_self_distance(pts, s, d_min * math.pi / 2.0)
         if dmin < d_min:
             log.debug("draw %d comes %.4f m close to itself (< %.4f m)", attempt, dmin, d_min)
             continue

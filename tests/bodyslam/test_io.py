@@ -1,0 +1,55 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bodyslam.errors import InputError
+from bodyslam.io import atomic_path, read_image, read_tum, write_image, write_tum
+
+
+def test_tum_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    t = np.arange(5) * 0.5
+    p = rng.normal(size=(5, 3)) * 0.1
+    R = Rotation.random(5, random_state=1)
+    write_tum(tmp_path / "a.tum", t, p, R)
+    t2, p2, R2 = read_tum(tmp_path / "a.tum")
+    np.testing.assert_allclose(t2, t)
+    np.testing.assert_allclose(p2, p, atol=1e-9)  # written with 9 decimals
+    assert np.max((R2.inv() * R).magnitude()) < 1e-8
+    # order in the file is qx qy qz qw (scalar last)
+    line = (tmp_path / "a.tum").read_text().splitlines()[1].split()
+    np.testing.assert_allclose([float(x) for x in line[4:]], R[0].as_quat(canonical=True), atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [("0 1 2 3 0 0 0 1 9\n", "a.tum:1: expected 8 values"), ("# c\n0 1 2 x 0 0 0 1\n", "a.tum:2: not a number"),
+     ("0 1 2 3 0 0 0 2\n", "not of unit length"), ("# only a comment\n", "no poses")],
+)
+def test_tum_errors_name_the_line(tmp_path, text, match):
+    (tmp_path / "a.tum").write_text(text)
+    with pytest.raises(InputError, match=match):
+        read_tum(tmp_path / "a.tum")
+
+
+def test_image_round_trip_and_bad_files(tmp_path):
+    img = np.random.default_rng(0).integers(0, 255, (20, 30, 3), dtype=np.uint8)
+    write_image(tmp_path / "x.png", img)
+    np.testing.assert_array_equal(read_image(tmp_path / "x.png"), img)  # RGB in, RGB out (BGR only on disk)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(InputError, match="empty file"):
+        read_image(tmp_path / "empty.png")
+    (tmp_path / "junk.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    with pytest.raises(InputError, match="not a decodable image"):
+        read_image(tmp_path / "junk.png")
+    with pytest.raises(InputError, match="file not found"):
+        read_image(tmp_path / "missing.png")
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.txt"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert list(tmp_path.iterdir()) == []
