@@ -165,7 +165,7 @@ def generate_motion(tube: Tube, n_frames: int, cfg: MotionConfig, rng: np.random
         fl_mask = np.zeros(n_frames, dtype=bool)
         for k0, k1, tilt, off in eps:
             fl_tilt[k0:k1] += tilt
-            fl_mask[k0:k1] = np.linalg.norm(tilt, axis=1) > 0.5 * np.linalg.norm(tilt, axis=1).max()
+            fl_mask[k0:k1] = np.linalg.norm(tilt, axis=1) >= 0.999 * np.linalg.norm(tilt, axis=1).max()  # held part
             speed_rel[k0:k1] = np.minimum(speed_rel[k0:k1], 0.1)
             offset[k0:k1] = offset[k0:k1] * (1 - 0.7 * off.any(axis=1, keepdims=True)) + off
 
