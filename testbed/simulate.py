@@ -50,6 +50,9 @@ def prepare_output_dir(out_dir: Path, force: bool) -> None:
 
 
 def _init_worker() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)  # one render process per core: OpenCV's own threads would only oversubscribe the cores
     w: World = _W["world"]
     _W["renderer"] = RaycastRenderer(w.tube, w.texture, w.camera, w.lighting, mesh=_W.get("mesh"))
 
@@ -94,6 +97,9 @@ def simulate(
     try:
         if jobs == 1:
             _init_worker()
+            import cv2
+
+            cv2.setNumThreads(-1)  # restore OpenCV's default in this (the caller's) process
             for i, k in enumerate(range(n)):
                 _render_one(k)
                 if progress:
