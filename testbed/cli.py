@@ -11,7 +11,6 @@ scenarios      list the shipped scenarios
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 from bodyslam.cliutil import Progress, run_cli

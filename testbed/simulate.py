@@ -100,10 +100,10 @@ def simulate(
             import cv2
 
             cv2.setNumThreads(-1)  # restore OpenCV's default in this (the caller's) process
-            for i, k in enumerate(range(n)):
+            for k in range(n):
                 _render_one(k)
                 if progress:
-                    progress(i + 1, n)
+                    progress(k + 1, n)
         else:
             with mp.get_context("fork").Pool(jobs, initializer=_init_worker) as pool:
                 for i, _ in enumerate(pool.imap_unordered(_render_one, range(n), chunksize=2)):
