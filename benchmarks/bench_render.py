@@ -1,6 +1,6 @@
 """Rendered frames per second: fisheye 320x320, colour + range, on this machine.
 
-Prints one process's render time per frame (ray cast vs shading) and the throughput of `testbed simulate`'s
+Prints one process's render time per frame (ray cast vs shading), the pyrender backend's, and the throughput of `testbed simulate`'s
 parallel renderer with 1 and 2 worker processes (frames rendered, noised and written as PNG).
 
     .venv/bin/python benchmarks/bench_render.py [--frames 120]
@@ -48,6 +48,20 @@ def main() -> None:
     print(f"mesh {len(r.mesh.faces)} triangles, scene set-up {setup * 1000:.0f} ms")
     print(f"one process: render {t_all / n * 1000:.1f} ms/frame ({n / t_all:.1f} frames/s), "
           f"of which ray cast {t_cast / n * 1000:.1f} ms")
+    try:
+        from testbed.render_gl import PyrenderRenderer
+
+        g = PyrenderRenderer(world.tube, world.texture, world.camera, world.lighting, mesh=r.mesh)
+        g.render(traj.rotations_w_c[0], traj.positions_w_m[0])
+        m = min(n, 30)
+        a = time.perf_counter()
+        for k in range(m):
+            g.render(traj.rotations_w_c[k], traj.positions_w_m[k])
+        el = time.perf_counter() - a
+        print(f"pyrender backend (OpenGL/EGL, {len(g._face_of)} cube faces of {g.face_px} px): "
+              f"{el / m * 1000:.1f} ms/frame ({m / el:.1f} frames/s)")
+    except Exception as exc:  # noqa: BLE001 - report, do not stop the benchmark
+        print(f"pyrender backend unavailable: {exc}")
     for jobs in (1, 2):
         with tempfile.TemporaryDirectory() as d:
             a = time.perf_counter()

@@ -28,8 +28,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output sequence directory (must be empty unless --force)")
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override a scenario field, e.g. --set tube.radius_m=0.0125 (repeatable)")
-    s.add_argument("--jobs", type=int, default=1,
-                   help="render processes (default 1: measured faster than 2 on 2 cores, see README)")
+    s.add_argument("--jobs", type=int, default=None,
+                   help="render processes (default: one per core for 60+ frames, else 1: starting workers "
+                        "costs ~2 s)")
     s.add_argument("--force", action="store_true", help="write into a non-empty directory")
 
     c = sub.add_parser("contact-sheet", help="write a PNG grid of a sequence's frames")

@@ -26,8 +26,9 @@ from bodyslam.camera import CameraModel
 from testbed.texture import Texture
 from testbed.tube import Tube, TubeMesh
 
-__all__ = ["Lighting", "RenderResult", "RaycastRenderer", "SensorNoise", "encode_range", "decode_range"]
+__all__ = ["RENDER_BACKENDS", "make_renderer", "Lighting", "RenderResult", "RaycastRenderer", "TubeRenderer", "SensorNoise", "encode_range", "decode_range"]
 
+RENDER_BACKENDS = ("raycast", "pyrender")
 RANGE_SCALE_M = 1e-4  # 16-bit range PNGs store units of 0.1 mm: 0.05 mm quantisation, 6.5 m span; 0 = no hit
 
 
@@ -80,36 +81,22 @@ def decode_range(png16: np.ndarray) -> np.ndarray:
     return r
 
 
-class RaycastRenderer:
-    """Exact per-pixel ray casting of a :class:`~testbed.tube.Tube`.
+class TubeRenderer:
+    """Shared part of the tube renderers: per-pixel rays of the camera model and the shading model.
 
-    Parameters
-    ----------
-    tube : Tube
-    texture : Texture
-    camera : CameraModel
-    lighting : Lighting
-    mesh : TubeMesh, optional, reuse an already built mesh.
+    Subclasses decide visibility (which triangle each pixel's ray meets first) in :meth:`_visible`; the colour of
+    a hit is computed here from the exact ray, so every backend shades identically.
     """
 
     def __init__(self, tube: Tube, texture: Texture, camera: CameraModel, lighting: Lighting = Lighting(),
                  mesh: TubeMesh | None = None):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
         self.tube = tube
         self.texture = texture
         self.camera = camera
         self.lighting = lighting
         self.mesh = mesh if mesh is not None else tube.mesh()
-        # Embree works in float32: express vertices relative to the mesh centre to keep precision (~10 nm here).
+        # Work relative to the mesh centre: Embree and OpenGL are float32 (~10 nm here instead of ~0.1 um).
         self._origin = self.mesh.vertices_w.mean(axis=0)
-        self._scene = rtcore_scene.EmbreeScene()
-        self._tm = TriangleMesh(
-            self._scene,
-            np.ascontiguousarray(self.mesh.vertices_w - self._origin, dtype=np.float32),
-            np.ascontiguousarray(self.mesh.faces, dtype=np.int32),
-        )
         rays_c, valid = camera.pixel_rays()
         self._pix = np.nonzero(valid.ravel())[0]
         self._rays_c = rays_c.reshape(-1, 3)[self._pix]
@@ -127,6 +114,86 @@ class RaycastRenderer:
         a2 = np.arccos(np.clip(np.sum(r0 * r2, axis=1), -1, 1))
         return np.maximum(a1, a2)
 
+    def _visible(self, R_w_c: np.ndarray, t_w_c: np.ndarray, dirs_w: np.ndarray):
+        raise NotImplementedError
+
+    def render(self, R_w_c: Rotation | np.ndarray, t_w_c: np.ndarray) -> RenderResult:
+        """Render the view of a camera with pose ``T_w_c = (R_w_c, t_w_c)`` (``p_w = R_w_c p_c + t_w_c``)."""
+        R = R_w_c.as_matrix() if isinstance(R_w_c, Rotation) else np.asarray(R_w_c, dtype=np.float64)
+        t_w_c = np.asarray(t_w_c, dtype=np.float64).reshape(3)
+        dirs_w = self._rays_c @ R.T
+        rng_m, prim, bu, bv = self._visible(R, t_w_c, dirs_w)
+        return self._shade(dirs_w, rng_m, prim, bu, bv)
+
+    def _shade(self, dirs_w, rng_m, prim, bu, bv) -> RenderResult:
+        """Colour and range images from per-ray hits (shared by every visibility backend)."""
+        cam = self.camera
+        hit = np.nonzero(prim >= 0)[0]
+        h, w = cam.height, cam.width
+        rgb = np.zeros((h * w, 3), np.uint8)
+        range_img = np.full(h * w, np.nan, np.float32)
+        if len(hit):
+            attr = self._vertex_attributes()
+            tri = self.mesh.faces[prim[hit]]
+            w1 = bu[hit].astype(np.float32)[:, None]
+            w2 = bv[hit].astype(np.float32)[:, None]
+            # barycentric interpolation of (s, phi, normal) in float32 (s to ~0.2 um over 2.5 m: ample here)
+            a = attr[tri[:, 0]]
+            a += w1 * (attr[tri[:, 1]] - a) + w2 * (attr[tri[:, 2]] - a)
+            s, phi, n = a[:, 0], a[:, 1], a[:, 2:5]
+            d = dirs_w[hit].astype(np.float32)
+            t = rng_m[hit].astype(np.float32)
+            n_len = np.sqrt(np.einsum("ij,ij->i", n, n))
+            cos_i = np.clip(-np.einsum("ij,ij->i", n, d) / n_len, 0.0, 1.0)
+            footprint = t * self._pix_angle[hit] / np.maximum(cos_i, 0.2)
+            albedo = self.texture.sample(s, phi, footprint)
+            L = self.lighting
+            irr = np.float32(L.intensity * L.ref_distance_m**2) / (t * t) * self._led[hit]
+            diffuse = irr * cos_i
+            col = albedo * diffuse[:, None]
+            if L.specular > 0:
+                col += (np.float32(L.specular) * irr * cos_i ** np.float32(L.shininess))[:, None]
+            np.clip(col, 0.0, 1.0, out=col)
+            np.power(col, np.float32(1.0 / L.gamma), out=col)
+            rgb[self._pix[hit]] = np.rint(col * np.float32(255.0)).astype(np.uint8)
+            range_img[self._pix[hit]] = t
+        return RenderResult(rgb.reshape(h, w, 3), range_img.reshape(h, w))
+
+    def _vertex_attributes(self) -> np.ndarray:
+        """Per-vertex ``(s_m, phi_rad, nx, ny, nz)`` float32, for one gather per triangle corner."""
+        if not hasattr(self, "_attr"):
+            m = self.mesh
+            self._attr = np.ascontiguousarray(np.c_[m.s_m, m.phi_rad, m.normals_w], dtype=np.float32)
+            self._led = (self._cos_axis ** self.lighting.led_exponent).astype(np.float32)
+            self._pix_angle = self._pix_angle.astype(np.float32)
+        return self._attr
+
+
+class RaycastRenderer(TubeRenderer):
+    """Exact per-pixel ray casting of a :class:`~testbed.tube.Tube` with Embree (the default backend).
+
+    Parameters
+    ----------
+    tube : Tube
+    texture : Texture
+    camera : CameraModel
+    lighting : Lighting
+    mesh : TubeMesh, optional, reuse an already built mesh.
+    """
+
+    def __init__(self, tube: Tube, texture: Texture, camera: CameraModel, lighting: Lighting = Lighting(),
+                 mesh: TubeMesh | None = None):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        super().__init__(tube, texture, camera, lighting, mesh)
+        self._scene = rtcore_scene.EmbreeScene()
+        self._tm = TriangleMesh(
+            self._scene,
+            np.ascontiguousarray(self.mesh.vertices_w - self._origin, dtype=np.float32),
+            np.ascontiguousarray(self.mesh.faces, dtype=np.int32),
+        )
+
     def cast(self, origins_w: np.ndarray, dirs_w: np.ndarray):
         """Cast rays; returns ``(range_m (n,), prim (n,) int, u (n,), v (n,))`` with ``prim = -1`` on a miss."""
         o = np.ascontiguousarray(origins_w - self._origin, dtype=np.float32)
@@ -139,36 +206,18 @@ class RaycastRenderer:
         t[miss] = np.nan
         return t, prim, res["u"].astype(np.float64), res["v"].astype(np.float64)
 
-    def render(self, R_w_c: Rotation | np.ndarray, t_w_c: np.ndarray) -> RenderResult:
-        """Render the view of a camera with pose ``T_w_c = (R_w_c, t_w_c)`` (``p_w = R_w_c p_c + t_w_c``)."""
-        R = R_w_c.as_matrix() if isinstance(R_w_c, Rotation) else np.asarray(R_w_c, dtype=np.float64)
-        t_w_c = np.asarray(t_w_c, dtype=np.float64).reshape(3)
-        cam = self.camera
-        dirs_w = self._rays_c @ R.T
-        rng_m, prim, bu, bv = self.cast(np.broadcast_to(t_w_c, dirs_w.shape), dirs_w)
-        hit = prim >= 0
-        h, w = cam.height, cam.width
-        rgb = np.zeros((h * w, 3), np.uint8)
-        range_img = np.full(h * w, np.nan, np.float32)
-        if hit.any():
-            pix = self._pix[hit]
-            tri = self.mesh.faces[prim[hit]]
-            w1, w2 = bu[hit], bv[hit]
-            w0 = 1.0 - w1 - w2
-            bary = np.stack([w0, w1, w2], axis=1)[:, :, None]
-            s = np.sum(bary[:, :, 0] * self.mesh.s_m[tri], axis=1)
-            phi = np.sum(bary[:, :, 0] * self.mesh.phi_rad[tri], axis=1)
-            n = np.sum(bary * self.mesh.normals_w[tri], axis=1)
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-            d = dirs_w[hit]
-            t = rng_m[hit]
-            cos_i = np.clip(-np.sum(n * d, axis=1), 0.0, 1.0)
-            footprint = t * self._pix_angle[hit] / np.maximum(cos_i, 0.2)
-            albedo = self.texture.sample(s, phi, footprint)
-            L = self.lighting
-            irr = L.intensity * (L.ref_distance_m / t) ** 2 * self._cos_axis[hit] ** L.led_exponent
-            col = albedo * (irr * cos_i)[:, None] + (L.specular * irr * cos_i**L.shininess)[:, None]
-            col = np.clip(col, 0.0, 1.0) ** (1.0 / L.gamma)
-            rgb[pix] = np.rint(col * 255.0).astype(np.uint8)
-            range_img[pix] = t
-        return RenderResult(rgb.reshape(h, w, 3), range_img.reshape(h, w))
+    def _visible(self, R_w_c: np.ndarray, t_w_c: np.ndarray, dirs_w: np.ndarray):
+        """Which triangle each valid pixel's ray hits first: ``(range_m, prim, u, v)`` (``prim = -1``: none)."""
+        return self.cast(np.broadcast_to(t_w_c, dirs_w.shape), dirs_w)
+
+
+def make_renderer(backend: str, tube: Tube, texture: Texture, camera: CameraModel, lighting: Lighting = Lighting(),
+                  mesh: TubeMesh | None = None) -> TubeRenderer:
+    """A renderer by backend name: ``"raycast"`` (Embree, CPU, default) or ``"pyrender"`` (OpenGL through EGL)."""
+    if backend == "raycast":
+        return RaycastRenderer(tube, texture, camera, lighting, mesh)
+    if backend == "pyrender":
+        from testbed.render_gl import PyrenderRenderer
+
+        return PyrenderRenderer(tube, texture, camera, lighting, mesh)
+    raise ValueError(f"unknown render backend {backend!r}; choose from {RENDER_BACKENDS}")

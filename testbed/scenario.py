@@ -25,7 +25,7 @@ from bodyslam.camera import CameraModel, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from testbed.centerline import Centerline, procedural_centerline
 from testbed.motion import MotionConfig
-from testbed.render import Lighting, SensorNoise
+from testbed.render import RENDER_BACKENDS, Lighting, SensorNoise
 from testbed.texture import Texture, procedural_mucosa, texture_from_image
 from testbed.tube import Folds, Tube
 
@@ -120,6 +120,7 @@ class World:
     motion: MotionConfig
     write_depth: bool
     rngs: dict
+    render_backend: str = "raycast"
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -209,4 +210,8 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     msec.setdefault("frame_rate_hz", float(seq.get("frame_rate_hz", 2.0)))
     motion = _dataclass_from(MotionConfig, msec, "motion")
     out = _section(scn, "output")
-    return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs)
+    backend = str(_section(scn, "render").get("backend", "raycast"))
+    if backend not in RENDER_BACKENDS:
+        raise ConfigError(f"[render] backend must be one of {', '.join(RENDER_BACKENDS)}, got {backend!r}")
+    return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
+                 backend)

@@ -49,28 +49,30 @@ class Texture:
         shape = np.shape(s_m)
         s = np.asarray(s_m, dtype=np.float32).reshape(-1)
         ph = np.asarray(phi_rad, dtype=np.float32).reshape(-1)
-        n_around, n_along = self.albedo.shape[:2]
-        # Maps as 1-row images (cv2.remap needs 2-D maps); wrap in both directions.
+        n_along = self.albedo.shape[1]
+        n_levels = len(self.pyramid)
         if footprint_m is None:
-            level = np.zeros_like(s)
-        else:
-            texel_m = self.length_m / n_along
-            level = np.log2(np.maximum(np.asarray(footprint_m, np.float32).reshape(-1) / texel_m, 1.0))
-            level = np.minimum(level, len(self.pyramid) - 1.001)
-        lo = np.floor(level).astype(np.int32)
-        out = np.zeros((len(s), 3), np.float32)
-        for lv in range(int(lo.min()) if len(lo) else 0, int(lo.max()) + 2 if len(lo) else 0):
-            w = np.where(lo == lv, 1.0 - (level - lv), np.where(lo == lv - 1, level - (lv - 1), 0.0))
-            sel = np.nonzero(w > 0)[0]
-            if len(sel) == 0 or lv >= len(self.pyramid):
-                continue
-            tex = self.pyramid[lv]
-            h, wd = tex.shape[:2]
-            mx = np.mod((s[sel] / self.length_m) * wd - 0.5, wd).astype(np.float32)
-            my = np.mod((ph[sel] / (2 * np.pi)) * h - 0.5, h).astype(np.float32)
-            val = _remap_points(tex, mx, my)
-            out[sel] += w[sel, None].astype(np.float32) * val
+            return self._sample_level(0, s, ph).reshape(shape + (3,))
+        texel_m = self.length_m / n_along
+        level = np.log2(np.maximum(np.asarray(footprint_m, np.float32).reshape(-1) / np.float32(texel_m), 1.0))
+        level = np.minimum(level, np.float32(n_levels - 1.001))
+        lo = level.astype(np.int32)  # level >= 0: truncation is floor
+        frac = (level - lo)[:, None]
+        out = np.empty((len(s), 3), np.float32)
+        # Each point blends its two nearest mip levels (trilinear); points are grouped by their lower level.
+        for lv in np.unique(lo):
+            sel = np.nonzero(lo == lv)[0] if lo.min() != lo.max() else slice(None)
+            a0 = self._sample_level(lv, s[sel], ph[sel])
+            a1 = self._sample_level(lv + 1, s[sel], ph[sel])
+            out[sel] = a0 + frac[sel] * (a1 - a0)
         return out.reshape(shape + (3,))
+
+    def _sample_level(self, lv: int, s: np.ndarray, ph: np.ndarray) -> np.ndarray:
+        tex = self.pyramid[min(int(lv), len(self.pyramid) - 1)]
+        h, wd = tex.shape[:2]
+        mx = np.mod(s * np.float32(wd / self.length_m) - np.float32(0.5), np.float32(wd))
+        my = np.mod(ph * np.float32(h / (2 * np.pi)) - np.float32(0.5), np.float32(h))
+        return _remap_points(tex, mx, my)
 
 
 def _remap_points(tex: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.camera import FisheyeCamera
 from testbed.centerline import Centerline
-from testbed.render import Lighting, RaycastRenderer, decode_range, encode_range
+from testbed.render import RENDER_BACKENDS, Lighting, RaycastRenderer, decode_range, encode_range, make_renderer
 from testbed.texture import Texture
 from testbed.tube import Tube
 
@@ -49,10 +49,11 @@ POSES = [
 ]
 
 
+@pytest.mark.parametrize("backend", RENDER_BACKENDS)
 @pytest.mark.parametrize("R, p", POSES)
-def test_range_equals_ray_cylinder_intersection(straight_tube, R, p):
+def test_range_equals_ray_cylinder_intersection(straight_tube, R, p, backend):
     cam = FisheyeCamera.equidistant(160, 160, 156.0)
-    r = RaycastRenderer(straight_tube, uniform_texture(), cam)
+    r = make_renderer(backend, straight_tube, uniform_texture(), cam)
     res = r.render(R, p)
     rays_c, valid = cam.pixel_rays()
     d = R.apply(rays_c.reshape(-1, 3))
@@ -64,6 +65,11 @@ def test_range_equals_ray_cylinder_intersection(straight_tube, R, p):
         t = (-b + np.sqrt(b * b - 4 * a * c)) / (2 * a)
     z_hit = p[2] + t * d[:, 2]
     inside = valid.ravel() & np.isfinite(t) & (z_hit > 0.01) & (z_hit < 0.39)
+    if backend == "pyrender":
+        # Rasterised visibility is decided at cube-face pixel centres, not on the exact ray: at the silhouette
+        # of the far tube end (>15 cm, where a pixel spans ~3 mm of wall seen edge-on and the image is black)
+        # it may pick a triangle the exact ray misses. Nearer, it is as exact as ray casting.
+        inside &= t < 0.15
     got = res.range_m.ravel()[inside]
     assert np.isfinite(got).all()
     err = np.abs(got - t[inside])
@@ -77,8 +83,9 @@ def test_range_equals_ray_cylinder_intersection(straight_tube, R, p):
     assert np.abs(back - t[inside]).max() <= 1e-3
 
 
+@pytest.mark.parametrize("backend", RENDER_BACKENDS)
 @pytest.mark.parametrize("R, p", POSES)
-def test_wall_point_renders_at_the_projected_pixel(straight_tube, R, p):
+def test_wall_point_renders_at_the_projected_pixel(straight_tube, R, p, backend):
     cam = FisheyeCamera.equidistant(320, 320, 156.0)
     rng = np.random.default_rng(0)
     # spots on the wall 1.5-4 cm ahead of the camera, at random angles, inside the field of view
@@ -91,8 +98,8 @@ def test_wall_point_renders_at_the_projected_pixel(straight_tube, R, p):
         if ok[0] and np.hypot(*(uv[0] - [cam.cx, cam.cy])) < 140:
             spots.append((s0, phi0, uv[0]))
     light = Lighting(specular=0.0)
-    plain = RaycastRenderer(straight_tube, uniform_texture(), cam, light).render(R, p).rgb.astype(float)
-    dotted = RaycastRenderer(straight_tube, uniform_texture([(s, f) for s, f, _ in spots]), cam, light)
+    plain = make_renderer(backend, straight_tube, uniform_texture(), cam, light).render(R, p).rgb.astype(float)
+    dotted = make_renderer(backend, straight_tube, uniform_texture([(s, f) for s, f, _ in spots]), cam, light)
     img = dotted.render(R, p).rgb.astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
         weight = np.nan_to_num(1.0 - img[..., 1] / plain[..., 1]).clip(0, 1)  # shading cancels in the ratio
@@ -111,3 +118,16 @@ def test_outside_the_field_of_view_is_black(straight_tube):
     assert res.rgb[~cam.fov_mask()].max() == 0
     assert np.isnan(res.range_m[~cam.fov_mask()]).all()
     assert res.rgb[cam.fov_mask()].max() > 50  # and the wall inside is lit
+
+
+def test_pyrender_backend_matches_the_ray_caster(straight_tube):
+    """Both backends shade the same exact rays; they may differ only where rasterised visibility picks the
+    neighbouring triangle (occlusion edges far down the tube)."""
+    cam = FisheyeCamera.equidistant(160, 160, 156.0)
+    a = RaycastRenderer(straight_tube, uniform_texture(), cam).render(*POSES[1])
+    b = make_renderer("pyrender", straight_tube, uniform_texture(), cam).render(*POSES[1])
+    near = a.range_m < 0.15  # see test_range_equals_ray_cylinder_intersection for the far silhouette
+    assert np.isfinite(b.range_m[near]).all()
+    diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int))
+    assert (diff.max(axis=-1) > 2).mean() < 0.01
+    assert np.abs(a.range_m - b.range_m)[near].max() < 1e-3
