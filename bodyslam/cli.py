@@ -2,7 +2,14 @@
 
 Subcommands
 -----------
-check SEQDIR   read a sequence directory's meta.json and every frame (streamed), report bad frames by name.
+check SEQDIR                         read meta.json and every frame (streamed), report bad frames by name
+match A.png B.png --out vis.png     verified feature matches as motion vectors, in the image and unrolled
+unroll FRAME --out unrolled.png     inverse cylindrical projection (L x H), exact or the thesis's Eq. 3.11
+motion SEQDIR --out motion.csv      per-step distance, roll, pitch, yaw, tilt (SPEC.md columns)
+track SEQDIR --out trajectory.tum   dead reckoning of the per-step motion (TUM)
+
+The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
+sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
 """
 
 from __future__ import annotations
@@ -11,6 +18,8 @@ import argparse
 import sys
 
 from bodyslam.cliutil import Progress, run_cli
+from bodyslam.matching import MATCH_MODES
+from bodyslam.motion import ESTIMATORS
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -19,7 +28,119 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("check", help="validate a sequence directory (meta.json, every frame)")
     c.add_argument("seqdir")
+
+    def motion_opts(q, estimator=True):
+        q.add_argument("--mode", default="sift", choices=MATCH_MODES,
+                       help="feature matcher: asift (thesis), sift (default), fast")
+        if estimator:
+            q.add_argument("--estimator", default="tube", choices=ESTIMATORS,
+                           help="tube: 6-DOF tube-constrained solve (default); thesis: Eq. 3.14-3.22")
+            q.add_argument("--unroll-mode", default="exact", choices=("exact", "thesis"),
+                           help="angular depth for the thesis estimator: camera model or linear Eq. 3.11")
+            q.add_argument("--radius-m", type=float, default=None,
+                           help="lumen radius in metres (default: meta.json tube_radius_m)")
+
+    m = sub.add_parser("match", help="match two frames; draw motion vectors in the image and unrolled domain")
+    m.add_argument("a")
+    m.add_argument("b")
+    m.add_argument("--out", required=True)
+    m.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
+    motion_opts(m, estimator=False)
+    u = sub.add_parser("unroll", help="unroll a frame (inverse cylindrical projection)")
+    u.add_argument("frame")
+    u.add_argument("--out", required=True)
+    u.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
+    u.add_argument("--size", type=int, nargs=2, default=(500, 300), metavar=("L", "H"))
+    u.add_argument("--unroll-mode", default="exact", choices=("exact", "thesis"))
+    for name, hlp, out in (("motion", "per-step motion of a sequence", "motion.csv"),
+                           ("track", "dead-reckoned trajectory of a sequence", "trajectory.tum")):
+        q = sub.add_parser(name, help=hlp)
+        q.add_argument("seqdir")
+        q.add_argument("--out", required=True, help=f"output {out}")
+        q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
+        motion_opts(q)
     return p
+
+
+def _camera_for(image, meta_arg):
+    from pathlib import Path
+
+    from bodyslam.camera import FisheyeCamera, camera_from_dict
+    from bodyslam.io import read_json
+
+    if meta_arg:
+        p = Path(meta_arg)
+        meta = read_json(p / "meta.json" if p.is_dir() else p)
+        return camera_from_dict(meta["camera"])
+    h, w = image.shape[:2]
+    return FisheyeCamera.equidistant(w, h, 156.0)
+
+
+def _match(args) -> int:
+    import cv2
+    import numpy as np
+
+    from bodyslam.io import read_image, write_image
+    from bodyslam.matching import Matcher
+    from bodyslam.unroll import Unroller
+
+    a, b = read_image(args.a), read_image(args.b)
+    cam = _camera_for(a, args.meta)
+    matcher = Matcher(cam, args.mode)
+    m = matcher.match(a, b)
+    un = Unroller(cam)
+    left = a.copy()
+    right = un.unroll(a)
+    u1, u2 = un.to_unrolled(m.pts1_px), un.to_unrolled(m.pts2_px)
+    for p, q in zip(m.pts1_px, m.pts2_px):
+        cv2.circle(left, tuple(np.rint(p).astype(int)), 2, (60, 120, 255), -1)
+        cv2.line(left, tuple(np.rint(p).astype(int)), tuple(np.rint(q).astype(int)), (255, 40, 40), 1, cv2.LINE_AA)
+    for p, q in zip(u1, u2):
+        if abs(q[0] - p[0]) > un.L / 2:  # wrapped around the seam: draw to the nearer copy
+            q = q + [un.L if p[0] > q[0] else -un.L, 0]
+        cv2.circle(right, tuple(np.rint(p).astype(int)), 2, (60, 120, 255), -1)
+        cv2.line(right, tuple(np.rint(p).astype(int)), tuple(np.rint(q).astype(int)), (255, 40, 40), 1, cv2.LINE_AA)
+    h = max(left.shape[0], right.shape[0])
+    pad = lambda im: np.pad(im, ((0, h - im.shape[0]), (0, 0), (0, 0)))  # noqa: E731
+    write_image(args.out, np.hstack([pad(left), pad(right)]))
+    print(f"{len(m)} verified matches of {m.n_candidates} candidates ({args.mode}); wrote {args.out}")
+    return 0 if len(m) else 1
+
+
+def _unroll(args) -> int:
+    from bodyslam.io import read_image, write_image
+    from bodyslam.unroll import Unroller
+
+    img = read_image(args.frame)
+    un = Unroller(_camera_for(img, args.meta), args.size[0], args.size[1], mode=args.unroll_mode)
+    write_image(args.out, un.unroll(img))
+    print(f"wrote {args.out} ({args.size[0]}x{args.size[1]}, {args.unroll_mode})")
+    return 0
+
+
+def _motion_or_track(args) -> int:
+    from collections import Counter
+
+    import numpy as np
+
+    from bodyslam.io import write_csv, write_tum
+    from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, dead_reckon, motion_rows, sequence_motion
+
+    settings = MotionSettings(args.mode, args.estimator, args.unroll_mode)
+    seq = Sequence.open(args.seqdir, args.radius_m)
+    steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
+                            progress=Progress(args.cmd))
+    counts = Counter(s.status for s in steps)
+    if args.cmd == "motion":
+        write_csv(args.out, MOTION_COLUMNS, motion_rows(steps, seq.frame_rate_hz))
+    else:
+        pos, rot = dead_reckon(steps)
+        write_tum(args.out, np.arange(len(pos)) / seq.frame_rate_hz, pos, rot)
+    ok = [s for s in steps if s.ok]
+    travelled = sum(abs(s.distance_m) for s in ok)
+    print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
+          f"path travelled {travelled * 100:.1f} cm ({args.mode}, {args.estimator})")
+    return 0
 
 
 def _check(args) -> int:
@@ -54,7 +175,8 @@ def _check(args) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
-    return {"check": _check}[args.cmd](args)
+    return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
+            "track": _motion_or_track}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

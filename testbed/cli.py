@@ -5,6 +5,7 @@ Subcommands
 simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--force]
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
 centerline MESH --out centerline.csv [--voxel-size X Y Z] [--pitch-mm P] [--reference CSV]
+score-motion SEQDIR motion.csv [--json report.json]   Table 4.1: per-step motion errors against the truth
 scenarios      list the shipped scenarios
 """
 
@@ -38,6 +39,11 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True)
     c.add_argument("--count", type=int, default=24, help="frames shown, evenly spaced (default 24)")
     c.add_argument("--cols", type=int, default=6)
+
+    sm = sub.add_parser("score-motion", help="score a motion.csv against the sequence's truth (Table 4.1)")
+    sm.add_argument("seqdir")
+    sm.add_argument("motion_csv")
+    sm.add_argument("--json", default=None, help="write the report as JSON (default: next to motion.csv)")
 
     e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY)")
     e.add_argument("mesh")
@@ -73,6 +79,20 @@ def _contact(args) -> int:
     return 0
 
 
+def _score_motion(args) -> int:
+    from pathlib import Path
+
+    from bodyslam.io import write_json
+    from testbed.score import format_table, score_motion
+
+    rep = score_motion(args.seqdir, args.motion_csv)
+    out = Path(args.json) if args.json else Path(args.motion_csv).with_suffix(".score.json")
+    write_json(out, rep)
+    print(format_table(rep))
+    print(f"wrote {out}")
+    return 0
+
+
 def _centerline(args) -> int:
     from testbed.anatomy import extract_centerline, load_reference_csv, score_centerline
 
@@ -98,7 +118,7 @@ def _scenarios(args) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
-    return {"simulate": _simulate, "contact-sheet": _contact, "centerline": _centerline,
+    return {"score-motion": _score_motion, "simulate": _simulate, "contact-sheet": _contact, "centerline": _centerline,
             "scenarios": _scenarios}[args.cmd](args)
 
 

@@ -1,0 +1,196 @@
+"""Per-step capsule motion from matched features (dissertation Sec. 3.2.4-3.2.5).
+
+Two estimators, same output (:class:`StepMotion`, conventions of :mod:`bodyslam.geometry`):
+
+``thesis`` -- the dissertation's equations, with their signs derived:
+  - distance (Eq. 3.12-3.15): a wall point at axial distance ``D`` has angular depth ``theta1 = atan(R / D)``;
+    after moving forward by ``d`` it has ``theta2 = atan(R / (D - d))``. Hence ``d = R / tan(theta1) -
+    R / tan(theta2)``. Eq. 3.14 as printed, ``R / tan(theta2) (1 - tan(theta2) / tan(theta1))``, equals
+    ``R / tan(theta2) - R / tan(theta1) = -d``: its sign is wrong (forward motion would come out negative).
+    The step is the mean over features (Eq. 3.15).
+  - roll (Eq. 3.22): the mean change of the features' azimuth around the image centre. When the capsule rolls
+    by ``+gamma`` about its optical axis the scene turns by ``-gamma`` in its image, so ``gamma = -mean(dphi)``;
+    Eq. 3.22 as printed returns the scene's turn (opposite sign).
+  - tilt (Eq. 3.19-3.21): features are grouped by azimuth (8 sectors); ``P`` is the sector whose angular depth
+    grew most, ``Q`` the one that grew least (the capsule tilted toward ``Q``); ``phi_t = (dQ - dP) /
+    max(dP, dQ)`` (Eq. 3.20, a ratio used as an angle in radians, as printed: it has no derivation) and its
+    magnitude is the tilt. Tilting toward image azimuth ``psi`` turns the optical axis about
+    ``(-sin psi, cos psi, 0)``, so pitch = ``-|phi_t| sin psi``, yaw = ``|phi_t| cos psi``; Eq. 3.21 as printed
+    (``alpha = phi cos psi, beta = phi sin psi``) swaps the axes.
+  ``literal_signs=True`` reproduces the printed signs and axes exactly.
+
+``tube`` -- the project's estimator: a full 6-DOF solve that uses what the thesis assumes but does not exploit,
+  that matched points lie on a tube of known radius ``R``. Unknowns: the motion ``T_c1_c2`` (6) and the tube's
+  axis in frame 1 (direction: 2, offset: 2). Each feature's ray in frame 1 meets the cylinder at a point ``X``
+  (closed form); ``X`` seen from frame 2 must lie along the feature's ray there. Robust (soft-L1) nonlinear least
+  squares on the ray-angle residuals, weak priors keep the axis near the optical axis when motion does not
+  determine it (a stopped capsule). Scale comes from ``R``; the capsule can be off-centre and tilted.
+
+Status values (``StepMotion.status``): ``ok``; ``too_few_matches`` (fewer than ``min_matches`` verified
+matches); ``no_lumen`` (the frame faces the wall: no tube geometry to use; set by the caller's classifier);
+``solver_failed``; ``bad_frame`` (a frame of the pair could not be read; set by the sequence reader). Rows that are not ``ok`` carry NaN, never an invented number.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from bodyslam.camera import CameraModel
+from bodyslam.errors import ConfigError
+from bodyslam.geometry import swing_twist_z
+from bodyslam.matching import Matches
+from bodyslam.unroll import Unroller
+
+__all__ = ["ESTIMATORS", "StepMotion", "estimate_thesis", "estimate_tube", "motion_from_transform"]
+
+ESTIMATORS = ("tube", "thesis")
+NAN = float("nan")
+
+
+@dataclass(frozen=True)
+class StepMotion:
+    distance_m: float = NAN
+    roll_rad: float = NAN
+    pitch_rad: float = NAN
+    yaw_rad: float = NAN
+    tilt_rad: float = NAN
+    n_matches: int = 0
+    status: str = "ok"
+    R_c1_c2: np.ndarray | None = field(default=None, repr=False)  # 3x3, when the estimator gives a full pose
+    t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def motion_from_transform(R_c1_c2: Rotation, t_c1_c2_m: np.ndarray, n_matches: int) -> StepMotion:
+    """Report a relative pose with the conventions of :mod:`bodyslam.geometry`."""
+    t = np.asarray(t_c1_c2_m, float)
+    roll, swing = swing_twist_z(R_c1_c2)
+    dist = float(np.linalg.norm(t)) * (1.0 if t[2] >= 0 else -1.0)
+    return StepMotion(dist, float(roll[0]), float(swing[0, 0]), float(swing[0, 1]), float(np.linalg.norm(swing[0])),
+                      n_matches, "ok", R_c1_c2.as_matrix(), t)
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def estimate_thesis(m: Matches, unroller: Unroller, radius_m: float, min_matches: int = 8,
+                    literal_signs: bool = False, sectors: int = 8) -> StepMotion:
+    """The dissertation's estimator (module docstring), angles from ``unroller`` (its mode picks Eq. 3.11)."""
+    n = len(m)
+    if n < min_matches:
+        return StepMotion(n_matches=n, status="too_few_matches")
+    phi1, th1 = unroller.angles(m.pts1_px)
+    phi2, th2 = unroller.angles(m.pts2_px)
+    ok = (th1 > 1e-3) & (th2 > 1e-3) & (th1 < np.pi / 2) & (th2 < np.pi / 2)
+    if ok.sum() < min_matches:
+        return StepMotion(n_matches=int(ok.sum()), status="too_few_matches")
+    phi1, th1, phi2, th2 = phi1[ok], th1[ok], phi2[ok], th2[ok]
+    d_i = radius_m / np.tan(th1) - radius_m / np.tan(th2)  # derived; Eq. 3.14 as printed is -d_i
+    distance = float(np.mean(d_i)) * (-1.0 if literal_signs else 1.0)
+    dphi = _wrap(phi2 - phi1)
+    roll = float(np.mean(dphi)) * (1.0 if literal_signs else -1.0)
+    dth = th2 - th1
+    sector = np.floor(np.mod(phi1, 2 * np.pi) / (2 * np.pi / sectors)).astype(int)
+    means = np.array([dth[sector == k].mean() if np.any(sector == k) else np.nan for k in range(sectors)])
+    if np.sum(np.isfinite(means)) < 2:
+        return StepMotion(distance_m=distance, roll_rad=roll, n_matches=int(ok.sum()), status="ok")
+    kP, kQ = int(np.nanargmax(means)), int(np.nanargmin(means))
+    dP, dQ = means[kP], means[kQ]
+    denom = max(dP, dQ)
+    phi_t = (dQ - dP) / denom if abs(denom) > 1e-12 else 0.0  # Eq. 3.20
+    psi = (kQ + 0.5) * 2 * np.pi / sectors  # direction of tilting: the group with the smallest change
+    mag = abs(phi_t)
+    if literal_signs:
+        pitch, yaw = phi_t * math.cos(psi), phi_t * math.sin(psi)  # Eq. 3.21 as printed
+    else:
+        pitch, yaw = -mag * math.sin(psi), mag * math.cos(psi)
+    return StepMotion(distance, roll, float(pitch), float(yaw), float(math.hypot(pitch, yaw)), int(ok.sum()), "ok")
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (n, 3) arrays (np.cross's axis handling costs more than the arithmetic here)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def _cylinder_depth(b: np.ndarray, axis: np.ndarray, origin: np.ndarray, radius: float, max_depth: float):
+    """Distance along unit rays ``b`` (from the camera centre) to a cylinder (unit ``axis`` through ``origin``)."""
+    w = _cross(b, axis[None, :])
+    u = np.cross(origin, axis)
+    ww = np.einsum("ij,ij->i", w, w)
+    wu = w @ u
+    disc = wu * wu - ww * (u @ u - radius * radius)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (wu + np.sqrt(np.maximum(disc, 0.0))) / ww
+    return np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth), max_depth)
+
+
+def _unpack(p):
+    R = Rotation.from_rotvec(p[0:3])
+    t = p[3:6]
+    axis = np.array([p[6], p[7], 1.0])
+    axis /= np.linalg.norm(axis)
+    origin = np.array([p[8], p[9], 0.0])
+    return R, t, axis, origin
+
+
+def _kabsch(b1: np.ndarray, b2: np.ndarray) -> Rotation:
+    """Rotation ``R_c1_c2`` with ``b1 ~= R b2`` (pure rotation), least squares."""
+    Rot, _ = Rotation.align_vectors(b1, b2)
+    return Rot
+
+
+def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 8,
+                  noise_rad: float = 0.003, max_depth_m: float = 0.3, init: np.ndarray | None = None,
+                  max_points: int = 150) -> StepMotion:
+    """The tube-constrained 6-DOF estimator (module docstring). ``init``: optional 10-vector to start from."""
+    n = len(m)
+    if n < min_matches:
+        return StepMotion(n_matches=n, status="too_few_matches")
+    if not radius_m > 0:
+        raise ConfigError(f"tube radius must be positive, got {radius_m}")
+    b1, v1 = camera.unproject(m.pts1_px)
+    b2, v2 = camera.unproject(m.pts2_px)
+    ok = v1 & v2
+    b1, b2 = b1[ok], b2[ok]
+    if len(b1) < min_matches:
+        return StepMotion(n_matches=len(b1), status="too_few_matches")
+    n_used = len(b1)
+    if len(b1) > max_points:  # 150 well-spread rays fix 10 parameters; more only costs time
+        sel = np.linspace(0, len(b1) - 1, max_points).astype(int)
+        b1, b2 = b1[sel], b2[sel]
+    R_max = radius_m
+    prior_sigma = np.array([0.35, 0.35, 0.5 * R_max, 0.5 * R_max])  # axis tilt (rad), axis offset (m)
+
+    def residuals(p):
+        R, t, axis, origin = _unpack(p)
+        lam = _cylinder_depth(b1, axis, origin, R_max, max_depth_m)
+        X2 = (lam[:, None] * b1 - t) @ R.as_matrix()  # R^T (X - t), row-wise
+        X2 /= np.sqrt(np.einsum("ij,ij->i", X2, X2))[:, None]
+        r = _cross(b2, X2).ravel() / noise_rad
+        prior = np.array([p[6], p[7], p[8], p[9]]) / prior_sigma
+        return np.concatenate([r, prior])
+
+    if init is None:
+        p0 = np.zeros(10)
+        p0[0:3] = _kabsch(b1, b2).as_rotvec()
+    else:
+        p0 = np.asarray(init, float).copy()
+    try:
+        sol = least_squares(residuals, p0, loss="soft_l1", f_scale=2.0, x_scale=np.r_[[0.05] * 3, [0.003] * 3,
+                            [0.2] * 2, [0.005] * 2], max_nfev=200, method="trf")
+    except (ValueError, np.linalg.LinAlgError):
+        return StepMotion(n_matches=len(b1), status="solver_failed")
+    if not np.all(np.isfinite(sol.x)):
+        return StepMotion(n_matches=len(b1), status="solver_failed")
+    R, t, _, _ = _unpack(sol.x)
+    return motion_from_transform(R, t, n_used)

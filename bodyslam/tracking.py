@@ -1,0 +1,188 @@
+"""Visual motion over a whole sequence (streamed, both cores) and dead reckoning (dissertation Eq. 3.16-3.18).
+
+:func:`sequence_motion` reads a sequence directory frame by frame and estimates the motion of every consecutive
+pair. Work is split into contiguous chunks of frames processed in parallel worker processes; each frame's
+features are computed once per chunk and only the previous frame's features are kept, so memory does not grow
+with the exam's length. Rows come back in frame order.
+
+:func:`dead_reckon` accumulates per-step motion into poses ``T_w_c``. The world frame of a dead-reckoned
+trajectory is the first frame's camera frame. Composition (written correctly): ``R_w_k = R_w_(k-1) R_(k-1)_k`` and
+``p_w_k = p_w_(k-1) + R_w_(k-1) t_(k-1)_k``. The dissertation's Eq. 3.17, ``R = R R_t R^-1``, is a similarity
+transform of the previous orientation, not an accumulation: with it the orientation never changes when the step
+rotation commutes with it, so it is not used. The thesis estimator gives no translation direction, so its step
+is ``d`` along the first frame's optical axis and its rotation ``R_swing(pitch, yaw) R_z(roll)`` (the convention
+of :mod:`bodyslam.geometry`, which Eq. 3.18's matrix approximates for small angles). A step with no estimate
+(``status != ok``: facing the wall, too few matches) contributes no motion -- a capsule facing the wall is mostly
+stopped against it -- and is counted in the summary, never hidden.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodyslam.camera import CameraModel, camera_from_dict
+from bodyslam.errors import ConfigError, InputError
+from bodyslam.io import frame_name, read_image, read_meta
+from bodyslam.matching import Matcher
+from bodyslam.motion import ESTIMATORS, StepMotion, estimate_thesis, estimate_tube
+from bodyslam.unroll import Unroller
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MotionSettings", "sequence_motion", "dead_reckon", "MOTION_COLUMNS", "motion_rows"]
+
+MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status"]
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    match_mode: str = "sift"
+    estimator: str = "tube"
+    unroll_mode: str = "exact"  # for the thesis estimator: "exact" angles or the linear Eq. 3.11 ("thesis")
+    min_matches: int = 8
+
+    def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ConfigError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """What the pipeline may read of a sequence directory: frames, timestamps, calibration, tube radius."""
+
+    path: Path
+    camera: CameraModel
+    n_frames: int
+    frame_rate_hz: float
+    radius_m: float
+    frames_dir: Path
+
+    @classmethod
+    def open(cls, seq_dir: str | os.PathLike, radius_m: float | None = None) -> "Sequence":
+        seq = Path(seq_dir)
+        meta = read_meta(seq)
+        cam = camera_from_dict(meta["camera"])
+        r = radius_m if radius_m is not None else meta.get("tube_radius_m")
+        if r is None:
+            raise InputError(f"{seq}/meta.json: no tube_radius_m; give the lumen radius (--radius-m)")
+        frames_dir = seq / meta.get("frames", {}).get("dir", "frames")
+        if not frames_dir.is_dir():
+            raise InputError(f"{frames_dir}: frames directory not found")
+        return cls(seq, cam, int(meta["n_frames"]), float(meta["frame_rate_hz"]), float(r), frames_dir)
+
+    def frame(self, k: int) -> np.ndarray:
+        img = read_image(self.frames_dir / frame_name(k))
+        if img.shape[:2] != (self.camera.height, self.camera.width):
+            raise InputError(f"{self.frames_dir / frame_name(k)}: size {img.shape[1]}x{img.shape[0]} is not the "
+                             f"camera's {self.camera.width}x{self.camera.height}")
+        return img
+
+    def stamp(self, k: int) -> float:
+        return k / self.frame_rate_hz
+
+
+def _estimate(settings: MotionSettings, matches, camera, unroller, radius_m) -> StepMotion:
+    if settings.estimator == "tube":
+        return estimate_tube(matches, camera, radius_m, min_matches=settings.min_matches)
+    return estimate_thesis(matches, unroller, radius_m, min_matches=settings.min_matches)
+
+
+def _chunk_motion(args) -> list[tuple[int, StepMotion]]:
+    """Steps ``a+1 .. b`` (pairs (k-1, k)) of one chunk, features computed once per frame."""
+    seq_dir, radius_m, settings, a, b = args
+    import cv2
+
+    cv2.setNumThreads(1)  # one worker per core
+    seq = Sequence.open(seq_dir, radius_m)
+    matcher = Matcher(seq.camera, settings.match_mode)
+    unroller = Unroller(seq.camera, mode=settings.unroll_mode)
+    out = []
+    prev = None
+    for k in range(a, b + 1):
+        try:
+            feats = matcher.features(seq.frame(k))
+        except InputError as exc:
+            log.warning("%s", exc)
+            feats = None
+        if k > a:
+            if prev is None or feats is None:
+                out.append((k, StepMotion(status="bad_frame")))
+            else:
+                m = matcher.match_features(prev, feats)
+                out.append((k, _estimate(settings, m, seq.camera, unroller, seq.radius_m)))
+        prev = feats
+    return out
+
+
+def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = MotionSettings(),
+                    jobs: int | None = None, radius_m: float | None = None, chunk_frames: int = 50,
+                    progress: Callable[[int, int], None] | None = None) -> list[StepMotion]:
+    """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order)."""
+    seq = Sequence.open(seq_dir, radius_m)
+    n = seq.n_frames
+    if n < 2:
+        raise InputError(f"{seq_dir}: need at least 2 frames, meta.json says {n}")
+    bounds = list(range(0, n - 1, chunk_frames)) + [n - 1]
+    tasks = [(str(seq.path), seq.radius_m, settings, bounds[i], bounds[i + 1]) for i in range(len(bounds) - 1)]
+    if jobs is None:
+        jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    jobs = max(1, min(int(jobs), len(tasks)))
+    steps: list[StepMotion] = []
+    done = 0
+    if jobs == 1:
+        results = map(_chunk_motion, tasks)
+        pool = None
+    else:
+        # spawn: a forked child of a process running OpenCV's thread pool can deadlock
+        pool = mp.get_context("spawn").Pool(jobs)
+        results = pool.imap(_chunk_motion, tasks)
+    try:
+        for chunk in results:
+            steps.extend(s for _, s in chunk)
+            done += len(chunk)
+            if progress:
+                progress(done, n - 1)
+    finally:
+        if pool is not None:
+            pool.close()
+            pool.join()
+    return steps
+
+
+def motion_rows(steps: list[StepMotion], frame_rate_hz: float) -> list[list]:
+    """Rows of ``motion.csv`` (SPEC.md): step ``k`` is the motion from frame ``k-1`` to frame ``k``."""
+    return [[k, k / frame_rate_hz, s.distance_m, s.roll_rad, s.pitch_rad, s.yaw_rad, s.tilt_rad, s.n_matches,
+             s.status] for k, s in enumerate(steps, start=1)]
+
+
+def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
+    if not s.ok:
+        return Rotation.identity(), np.zeros(3)
+    if s.R_c1_c2 is not None and s.t_c1_c2_m is not None:
+        return Rotation.from_matrix(s.R_c1_c2), np.asarray(s.t_c1_c2_m, float)
+    pitch = 0.0 if np.isnan(s.pitch_rad) else s.pitch_rad
+    yaw = 0.0 if np.isnan(s.yaw_rad) else s.yaw_rad
+    R = Rotation.from_rotvec([pitch, yaw, 0.0]) * Rotation.from_rotvec([0.0, 0.0, s.roll_rad])
+    return R, np.array([0.0, 0.0, s.distance_m])
+
+
+def dead_reckon(steps: list[StepMotion]) -> tuple[np.ndarray, Rotation]:
+    """Poses ``T_w_c`` of frames ``0..n`` from ``n`` steps (module docstring); world = first camera frame."""
+    pos = np.zeros((len(steps) + 1, 3))
+    quats = np.zeros((len(steps) + 1, 4))
+    R = Rotation.identity()
+    quats[0] = R.as_quat()
+    for k, s in enumerate(steps, start=1):
+        dR, dt = _step_transform(s)
+        pos[k] = pos[k - 1] + R.apply(dt)
+        R = R * dR
+        quats[k] = R.as_quat()
+    return pos, Rotation.from_quat(quats)

@@ -1,0 +1,133 @@
+"""Scoring per-step motion against the testbed's ground truth (dissertation Table 4.1, SPEC.md "How accuracy is
+scored").
+
+Table 4.1 figures: mean true value and mean absolute error per step of the distance travelled (cm), the roll
+(deg) and the tilt (deg, the angle between consecutive optical axes: ``|tilt_est - tilt_true|``). Beside them:
+the error of the tilt as a vector (pitch, yaw: the swing rotation's x, y components), which also checks its
+direction, and the coverage (steps with an estimate). Errors are over the steps that have an estimate; the
+``ft_only`` block restricts them to steps whose two frames are both labelled FT (facing the tunnel) by the truth.
+Steps without an estimate are counted, never scored as zero.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from bodyslam.errors import InputError
+
+__all__ = ["read_motion_csv", "score_motion", "format_table"]
+
+REQUIRED = ("frame", "distance_m", "roll_rad", "pitch_rad", "yaw_rad")
+
+
+def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:
+    """Rows of a ``motion.csv`` keyed by frame; malformed lines are named by file and line."""
+    path = Path(path)
+    try:
+        f = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    with f:
+        r = csv.DictReader(f)
+        missing = [c for c in REQUIRED if c not in (r.fieldnames or [])]
+        if missing:
+            raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {r.fieldnames}")
+        rows = {}
+        for lineno, row in enumerate(r, start=2):
+            try:
+                k = int(row["frame"])
+                vals = {c: float(row[c]) if row[c] not in ("", None) else math.nan
+                        for c in ("distance_m", "roll_rad", "pitch_rad", "yaw_rad")}
+                vals["tilt_rad"] = float(row["tilt_rad"]) if row.get("tilt_rad") not in ("", None) else math.hypot(
+                    vals["pitch_rad"], vals["yaw_rad"])
+            except (TypeError, ValueError):
+                raise InputError(f"{path}:{lineno}: not a number in {row}") from None
+            vals["status"] = row.get("status") or "ok"  # truth files have no status: every step is known
+            vals["label"] = row.get("label") or ""
+            rows[k] = vals
+    return rows
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
+    if len(idx) == 0:
+        return {"n_steps_scored": 0}
+    e_d = np.abs(es["distance_m"][idx] - tr["distance_m"][idx])
+    e_r = np.abs(_wrap(es["roll_rad"][idx] - tr["roll_rad"][idx]))
+    e_t = np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx])
+    e_v = np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx])
+    return {
+        "n_steps_scored": int(len(idx)),
+        "mean_true_distance_cm": float(np.mean(np.abs(tr["distance_m"][idx])) * 100),
+        "mae_distance_cm": float(np.mean(e_d) * 100),
+        "mean_true_roll_deg": float(np.degrees(np.mean(np.abs(tr["roll_rad"][idx])))),
+        "mae_roll_deg": float(np.degrees(np.mean(e_r))),
+        "mean_true_tilt_deg": float(np.degrees(np.mean(tr["tilt_rad"][idx]))),
+        "mae_tilt_deg": float(np.degrees(np.mean(e_t))),
+        "mae_tilt_vector_deg": float(np.degrees(np.mean(e_v))),
+        "p90_distance_error_cm": float(np.percentile(e_d, 90) * 100),
+        "p90_roll_error_deg": float(np.degrees(np.percentile(e_r, 90))),
+        "p90_tilt_error_deg": float(np.degrees(np.percentile(e_t, 90))),
+    }
+
+
+def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> dict:
+    """Table 4.1 of an estimated ``motion.csv`` against ``SEQDIR/motion_truth.csv``."""
+    seq_dir = Path(seq_dir)
+    truth = read_motion_csv(seq_dir / "motion_truth.csv") if (seq_dir / "motion_truth.csv").exists() else None
+    if truth is None:
+        raise InputError(f"{seq_dir}: no motion_truth.csv (only testbed sequences have ground truth)")
+    est = read_motion_csv(motion_csv)
+    frames = np.array(sorted(truth))
+    missing = [k for k in frames if k not in est]
+    keys = ("distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad")
+    tr = {c: np.array([truth[k][c] for k in frames]) for c in keys}
+    es = {c: np.array([est[k][c] if k in est else math.nan for k in frames]) for c in keys}
+    status = np.array([est[k]["status"] if k in est else "missing" for k in frames])
+    label = np.array([truth[k]["label"] for k in frames])
+    has = (status == "ok") & np.isfinite(es["distance_m"]) & np.isfinite(es["roll_rad"])
+    has &= np.isfinite(es["tilt_rad"])
+    labels_prev = np.r_[label[:1], label[:-1]]
+    ft = (label == "FT") & (labels_prev == "FT")
+    counts = {s: int(np.sum(status == s)) for s in sorted(set(status.tolist()))}
+    return {
+        "sequence": str(seq_dir),
+        "motion_csv": str(motion_csv),
+        "n_steps": int(len(frames)),
+        "n_steps_missing_rows": len(missing),
+        "status_counts": counts,
+        "coverage": float(np.mean(has)),
+        "all": _block(tr, es, np.nonzero(has)[0]),
+        "ft_only": _block(tr, es, np.nonzero(has & ft)[0]),
+    }
+
+
+def format_table(rep: dict) -> str:
+    """The report as dissertation Table 4.1 (plain text)."""
+    a = rep["all"]
+    if not a.get("n_steps_scored"):
+        return f"{rep['sequence']}: no step has an estimate ({rep['status_counts']})"
+    lines = [
+        f"{rep['sequence']}: {a['n_steps_scored']}/{rep['n_steps']} steps with an estimate "
+        f"(coverage {rep['coverage']:.3f}; {rep['status_counts']})",
+        f"{'':10s} {'mean true':>12s} {'mean abs error':>15s} {'p90 error':>10s}",
+        f"{'distance':10s} {a['mean_true_distance_cm']:9.3f} cm {a['mae_distance_cm']:12.4f} cm "
+        f"{a['p90_distance_error_cm']:7.4f} cm",
+        f"{'roll':10s} {a['mean_true_roll_deg']:8.2f} deg {a['mae_roll_deg']:11.3f} deg "
+        f"{a['p90_roll_error_deg']:6.3f} deg",
+        f"{'tilt':10s} {a['mean_true_tilt_deg']:8.2f} deg {a['mae_tilt_deg']:11.3f} deg "
+        f"{a['p90_tilt_error_deg']:6.3f} deg   (as a vector: {a['mae_tilt_vector_deg']:.3f} deg)",
+    ]
+    f = rep["ft_only"]
+    if f.get("n_steps_scored"):
+        lines.append(f"FT-FT steps only ({f['n_steps_scored']}): distance {f['mae_distance_cm']:.4f} cm, roll "
+                     f"{f['mae_roll_deg']:.3f} deg, tilt {f['mae_tilt_deg']:.3f} deg")
+    return "\n".join(lines)
