@@ -101,7 +101,9 @@ class Matcher:
             raise ConfigError(f"mask is {m.shape[1]}x{m.shape[0]}, frames are {camera.width}x{camera.height}")
         m8 = m.astype(np.uint8) * 255
         if border_px > 0:
-            m8 = cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * border_px + 1,) * 2))
+            # outside the image counts as outside the field of view (cv2's default border would not erode there)
+            m8 = cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * border_px + 1,) * 2),
+                           borderType=cv2.BORDER_CONSTANT, borderValue=0)
         self.mask = m8
         # contrastThreshold 0.01: rendered and real mucosa are low-contrast (OpenCV's 0.04 finds ~50 points)
         if mode == "asift":
@@ -123,6 +125,14 @@ class Matcher:
         if gray.dtype != np.uint8:
             raise ConfigError(f"frames must be 8-bit, got {gray.dtype}")
         kp, desc = self._det.detectAndCompute(gray, self.mask)
+        if kp:  # ASIFT detects in warped views and may land a point on the mask's edge: enforce the mask
+            ij = np.rint(np.array([k.pt for k in kp])).astype(int)
+            h, w = self.mask.shape
+            inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+            inside[inside] &= self.mask[ij[inside, 1], ij[inside, 0]] > 0
+            if not inside.all():
+                keep = np.nonzero(inside)[0]
+                kp, desc = [kp[i] for i in keep], desc[keep]
         if len(kp) > self.max_features:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
             keep = np.argsort([-k.response for k in kp], kind="stable")[: self.max_features]
             kp, desc = [kp[i] for i in keep], desc[keep]

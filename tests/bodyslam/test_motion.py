@@ -1,0 +1,82 @@
+"""Per-step motion estimators on synthetic matches with an exactly known answer."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bodyslam.camera import FisheyeCamera
+from bodyslam.matching import Matches
+from bodyslam.motion import estimate_thesis, estimate_tube, motion_from_transform
+from bodyslam.unroll import Unroller
+
+R_TUBE = 0.015
+CAM = FisheyeCamera.equidistant(320, 320, 156.0)
+
+
+def tube_points(n, rng, axis_rotvec=(0.0, 0.0, 0.0), offset=(0.0, 0.0), s_range=(0.002, 0.06)):
+    """Points on a cylinder of radius R_TUBE given in camera-1 coordinates."""
+    s = rng.uniform(*s_range, n)
+    a = rng.uniform(0, 2 * math.pi, n)
+    local = np.c_[R_TUBE * np.cos(a) + offset[0], R_TUBE * np.sin(a) + offset[1], s]
+    return Rotation.from_rotvec(axis_rotvec).apply(local)
+
+
+def synth_matches(X1, R_c1_c2, t_c1_c2, noise_px=0.0, rng=None):
+    X2 = R_c1_c2.inv().apply(X1 - t_c1_c2)
+    uv1, ok1 = CAM.project(X1)
+    uv2, ok2 = CAM.project(X2)
+    ok = ok1 & ok2 & (X1[:, 2] > 0) & (X2[:, 2] > 0)
+    uv1, uv2 = uv1[ok], uv2[ok]
+    if noise_px:
+        uv1 = uv1 + rng.normal(0, noise_px, uv1.shape)
+        uv2 = uv2 + rng.normal(0, noise_px, uv2.shape)
+    return Matches(uv1, uv2, len(uv1))
+
+
+CASES = [
+    # (rotvec of R_c1_c2, t_c1_c2 (m), tube axis rotvec in c1, tube offset (m))
+    ((0.0, 0.0, 0.14), (0.0, 0.0, 0.0041), (0.0, 0.0, 0.0), (0.0, 0.0)),
+    ((0.05, -0.06, 0.2), (0.0005, -0.0003, 0.006), (0.08, -0.05, 0.0), (0.003, -0.002)),
+    ((-0.03, 0.02, -0.1), (0.0, 0.0, -0.003), (0.0, 0.1, 0.0), (-0.004, 0.0)),  # backward
+    ((0.02, 0.01, 0.05), (0.0, 0.0, 0.0), (0.05, 0.0, 0.0), (0.0, 0.003)),  # stopped, rotating
+]
+
+
+@pytest.mark.parametrize("rv, t, axis, off", CASES)
+def test_tube_estimator_recovers_the_motion(rv, t, axis, off):
+    rng = np.random.default_rng(3)
+    R = Rotation.from_rotvec(rv)
+    m = synth_matches(tube_points(300, rng, axis, off), R, np.array(t), noise_px=0.3, rng=rng)
+    est = estimate_tube(m, CAM, R_TUBE)
+    truth = motion_from_transform(R, np.array(t), len(m))
+    assert est.ok
+    # 0.3 px noise on 150 rays; issue 3's goals are 0.01 cm / 0.5 deg / 1 deg per step: demand 3x better
+    assert abs(est.distance_m - truth.distance_m) < 3e-5
+    assert abs(est.roll_rad - truth.roll_rad) < math.radians(0.15)
+    assert abs(est.tilt_rad - truth.tilt_rad) < math.radians(0.3)
+    assert abs(est.pitch_rad - truth.pitch_rad) < math.radians(0.3)
+    assert abs(est.yaw_rad - truth.yaw_rad) < math.radians(0.3)
+
+
+def test_thesis_estimator_signs_are_derived_not_printed():
+    """On the axis, moving forward by d and rolling by g: Eq. 3.14 as printed gives -d, Eq. 3.22 gives -g."""
+    rng = np.random.default_rng(4)
+    d, g = 0.004, 0.12
+    R = Rotation.from_rotvec([0.0, 0.0, g])
+    m = synth_matches(tube_points(300, rng, s_range=(0.006, 0.05)), R, np.array([0.0, 0.0, d]))
+    un = Unroller(CAM)
+    est = estimate_thesis(m, un, R_TUBE)
+    assert est.distance_m == pytest.approx(d, rel=1e-6)  # exact for a centred camera on a straight tube
+    assert est.roll_rad == pytest.approx(g, rel=1e-6)
+    literal = estimate_thesis(m, un, R_TUBE, literal_signs=True)
+    assert literal.distance_m == pytest.approx(-d, rel=1e-6)
+    assert literal.roll_rad == pytest.approx(-g, rel=1e-6)
+
+
+def test_no_estimate_is_invented():
+    m = Matches(np.zeros((5, 2)) + 100, np.zeros((5, 2)) + 101, 5)
+    for est in (estimate_tube(m, CAM, R_TUBE), estimate_thesis(m, Unroller(CAM), R_TUBE)):
+        assert est.status == "too_few_matches"
+        assert math.isnan(est.distance_m) and math.isnan(est.roll_rad) and est.n_matches == 5

@@ -1,0 +1,90 @@
+"""Whole-sequence motion on the embedded demo (real rendering, real matching) and dead reckoning."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bodyslam.camera import camera_from_dict
+from bodyslam.geometry import relative_motion
+from bodyslam.io import read_image, read_meta, read_tum
+from bodyslam.matching import Matcher
+from bodyslam.motion import motion_from_transform
+from bodyslam.tracking import dead_reckon
+
+DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True)
+
+
+def test_dead_reckoning_of_true_steps_reproduces_the_trajectory():
+    stamps, pos, rot = read_tum(DEMO / "groundtruth.tum")
+    m = relative_motion(rot, pos)
+    R12 = rot[:-1].inv() * rot[1:]
+    steps = [motion_from_transform(R12[k], m["t_c1_c2_m"][k], 100) for k in range(len(pos) - 1)]
+    got_p, got_R = dead_reckon(steps)
+    # world of dead reckoning = first camera frame
+    want_p = rot[0].inv().apply(pos - pos[0])
+    assert np.abs(got_p - want_p).max() < 1e-12
+    assert np.abs((got_R.inv() * (rot[0].inv() * rot)).magnitude()).max() < 1e-9
+
+
+@pytest.mark.parametrize("mode", ["sift", "asift"])
+def test_features_stay_inside_the_field_of_view(mode):
+    cam = camera_from_dict(read_meta(DEMO)["camera"])
+    matcher = Matcher(cam, mode)
+    pts, _ = matcher.features(read_image(DEMO / "frames" / "000003.png"))
+    assert len(pts) > 100
+    ij = np.rint(pts).astype(int)
+    assert (matcher.mask[ij[:, 1], ij[:, 0]] > 0).all()
+    r = np.hypot(pts[:, 0] - cam.cx, pts[:, 1] - cam.cy)
+    assert r.max() < min(cam.width, cam.height) / 2 - 3
+
+
+def test_motion_and_score_on_the_demo_sequence(tmp_path):
+    out = tmp_path / "motion.csv"
+    p = run("bodyslam.cli", "motion", str(DEMO), "--out", str(out), "--jobs", "2")
+    assert p.returncode == 0, p.stderr
+    header = out.read_text().splitlines()[0]
+    assert header == "frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,n_matches,status"
+    p = run("testbed.cli", "score-motion", str(DEMO), str(out), "--json", str(tmp_path / "score.json"))
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((tmp_path / "score.json").read_text())
+    a = rep["all"]
+    assert rep["coverage"] == 1.0
+    # Issue 3's bars for roll and tilt (1 deg, 2 deg per step) hold on the demo too (320x320, folds, tapering
+    # tube). Its distance bar is for the thesis tube (a cylinder of the radius meta.json states): here the scale
+    # comes from meta.json's mean radius (1.38 cm) while the capsule travels where the lumen is ~1.45 cm wide
+    # and folds bulge 12% inward, so distances come out ~15% short (measured 0.067 cm of 0.41); bound it at 25%.
+    assert a["mae_roll_deg"] < 1.0
+    assert a["mae_tilt_deg"] < 2.0
+    assert a["mae_distance_cm"] < 0.25 * a["mean_true_distance_cm"]
+    assert "distance" in p.stdout and "roll" in p.stdout
+
+
+def test_track_writes_a_tum_trajectory(tmp_path):
+    out = tmp_path / "trajectory.tum"
+    p = run("bodyslam.cli", "track", str(DEMO), "--out", str(out), "--jobs", "1")
+    assert p.returncode == 0, p.stderr
+    stamps, pos, rot = read_tum(out)
+    assert len(stamps) == 40 and np.allclose(pos[0], 0) and rot[0].magnitude() < 1e-12
+    assert np.allclose(np.diff(stamps), 0.5)
+    # path length within 25% of the truth's (the radius scale, see the test above)
+    _, gpos, _ = read_tum(DEMO / "groundtruth.tum")
+    got, want = np.linalg.norm(np.diff(pos, axis=0), axis=1).sum(), np.linalg.norm(np.diff(gpos, axis=0), axis=1).sum()
+    assert abs(got - want) < 0.25 * want
+
+
+def test_bad_inputs_get_one_line(tmp_path):
+    bad = tmp_path / "x.png"
+    bad.write_bytes(b"not a png")
+    p = run("bodyslam.cli", "match", str(bad), str(bad), "--out", str(tmp_path / "v.png"))
+    assert p.returncode == 1 and p.stderr.startswith("error:") and len(p.stderr.strip().splitlines()) == 1
+    p = run("bodyslam.cli", "motion", str(tmp_path), "--out", str(tmp_path / "m.csv"))
+    assert p.returncode == 1 and "meta.json" in p.stderr and len(p.stderr.strip().splitlines()) == 1
