@@ -7,6 +7,7 @@ match A.png B.png --out vis.png     verified feature matches as motion vectors, 
 unroll FRAME --out unrolled.png     inverse cylindrical projection (L x H), exact or the thesis's Eq. 3.11
 motion SEQDIR --out motion.csv      per-step distance, roll, pitch, yaw, tilt (SPEC.md columns)
 track SEQDIR --out trajectory.tum   dead reckoning of the per-step motion (TUM)
+speed-stats motion.csv --out DIR    speed PDF/CDF plots and a fitted speed model for `testbed simulate`
 
 The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
 sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
@@ -58,8 +59,37 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("seqdir")
         q.add_argument("--out", required=True, help=f"output {out}")
         q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
+        q.add_argument("--camera", default="front", choices=("front", "rear"),
+                       help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
         motion_opts(q)
+    ss = sub.add_parser("speed-stats", help="speed PDF/CDF and a speed model file from a motion.csv")
+    ss.add_argument("motion_csv")
+    ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
+    ss.add_argument("--frame-rate", type=float, default=None, help="frames/s (default: from the t column)")
     return p
+
+
+def _speed_stats(args) -> int:
+    import numpy as np
+
+    from bodyslam.errors import InputError
+    from bodyslam.io import read_motion_csv
+    from bodyslam.speed import fit_speed_model, speed_statistics, summary_line, write_speed_report
+
+    rows = read_motion_csv(args.motion_csv)
+    rate = args.frame_rate
+    if rate is None:
+        ks = sorted(k for k in rows if np.isfinite(rows[k].get("t", np.nan)))
+        if len(ks) < 2:
+            raise InputError(f"{args.motion_csv}: no t column to infer the frame rate from; give --frame-rate")
+        dt = np.diff([rows[k]["t"] for k in ks]) / np.diff(ks)
+        rate = 1.0 / float(np.median(dt))
+    stats = speed_statistics(rows, rate)
+    model = fit_speed_model(stats)
+    paths = write_speed_report(stats, model, args.out)
+    print(summary_line(model))
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
 
 
 def _camera_for(image, meta_arg):
@@ -127,9 +157,9 @@ def _motion_or_track(args) -> int:
     from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, dead_reckon, motion_rows, sequence_motion
 
     settings = MotionSettings(args.mode, args.estimator, args.unroll_mode)
-    seq = Sequence.open(args.seqdir, args.radius_m)
+    seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
-                            progress=Progress(args.cmd))
+                            progress=Progress(args.cmd), camera=args.camera)
     counts = Counter(s.status for s in steps)
     if args.cmd == "motion":
         write_csv(args.out, MOTION_COLUMNS, motion_rows(steps, seq.frame_rate_hz))
@@ -176,7 +206,7 @@ def _check(args) -> int:
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
-            "track": _motion_or_track}[args.cmd](args)
+            "track": _motion_or_track, "speed-stats": _speed_stats}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

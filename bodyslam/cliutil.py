@@ -50,3 +50,6 @@ def run_cli(main: Callable[[list[str] | None], int], argv: list[str] | None, ver
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into `head` and the like: not an error of ours
+        sys.stderr.close()
+        return 0

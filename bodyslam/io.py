@@ -14,6 +14,7 @@ import contextlib
 import csv
 import io
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -38,6 +39,7 @@ __all__ = [
     "write_csv",
     "read_meta",
     "frame_name",
+    "read_motion_csv",
 ]
 
 FRAME_INDEX_DIGITS = 6
@@ -195,3 +197,35 @@ def read_image(path: str | os.PathLike, unchanged: bool = False) -> np.ndarray:
     if not unchanged:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     return img
+
+
+_MOTION_REQUIRED = ("frame", "distance_m", "roll_rad", "pitch_rad", "yaw_rad")
+
+
+def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:
+    """Rows of a ``motion.csv`` keyed by frame; malformed lines are named by file and line."""
+    path = Path(path)
+    try:
+        f = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    with f:
+        r = csv.DictReader(f)
+        missing = [c for c in _MOTION_REQUIRED if c not in (r.fieldnames or [])]
+        if missing:
+            raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {r.fieldnames}")
+        rows = {}
+        for lineno, row in enumerate(r, start=2):
+            try:
+                k = int(row["frame"])
+                vals = {c: float(row[c]) if row[c] not in ("", None) else math.nan
+                        for c in ("distance_m", "roll_rad", "pitch_rad", "yaw_rad")}
+                vals["tilt_rad"] = float(row["tilt_rad"]) if row.get("tilt_rad") not in ("", None) else math.hypot(
+                    vals["pitch_rad"], vals["yaw_rad"])
+            except (TypeError, ValueError):
+                raise InputError(f"{path}:{lineno}: not a number in {row}") from None
+            vals["t"] = float(row["t"]) if row.get("t") not in ("", None) else math.nan
+            vals["status"] = row.get("status") or "ok"  # truth files have no status: every step is known
+            vals["label"] = row.get("label") or ""
+            rows[k] = vals
+    return rows

@@ -124,6 +124,7 @@ class Matcher:
                               f"{self.mask.shape[1]}x{self.mask.shape[0]}")
         if gray.dtype != np.uint8:
             raise ConfigError(f"frames must be 8-bit, got {gray.dtype}")
+        gray = self._normalise(gray)
         kp, desc = self._det.detectAndCompute(gray, self.mask)
         if kp:  # ASIFT detects in warped views and may land a point on the mask's edge: enforce the mask
             ij = np.rint(np.array([k.pt for k in kp])).astype(int)
@@ -163,6 +164,21 @@ class Matcher:
         return self.match_features(self.features(rgb1), self.features(rgb2))
 
     # -- internals ------------------------------------------------------------------------------------------
+    def _normalise(self, gray: np.ndarray) -> np.ndarray:
+        """Stretch the field of view's 1st-99th brightness percentiles to the full 8-bit range.
+
+        SIFT's contrast threshold is absolute: a capsule's light control dims a frame when the wall is near,
+        and the same mucosa then yields a tenth of the keypoints (measured: 155 vs 1585 on testbed frames).
+        """
+        vals = gray[self.mask > 0]
+        if vals.size == 0:
+            return gray
+        lo, hi = np.percentile(vals, (1, 99))
+        if hi - lo < 8:  # a flat (black, saturated) frame: nothing to stretch
+            return gray
+        lut = np.clip((np.arange(256) - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+        return cv2.LUT(gray, lut)
+
     def _verify(self, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
         """Inliers of a RANSAC essential matrix between the unit rays of the matches."""
         n = len(p1)

@@ -28,13 +28,14 @@ Two estimators, same output (:class:`StepMotion`, conventions of :mod:`bodyslam.
 
 Status values (``StepMotion.status``): ``ok``; ``too_few_matches`` (fewer than ``min_matches`` verified
 matches); ``no_lumen`` (the frame faces the wall: no tube geometry to use; set by the caller's classifier);
-``solver_failed``; ``bad_frame`` (a frame of the pair could not be read; set by the sequence reader). Rows that are not ``ok`` carry NaN, never an invented number.
+``solver_failed``; ``uncertain`` (the fit's 1-sigma distance uncertainty exceeds ``max_sigma_distance_m``,
+1 mm by default, a quarter of the mean step: few or badly spread matches after a large jump); ``bad_frame`` (a frame of the pair could not be read; set by the sequence reader). Rows that are not ``ok`` carry NaN, never an invented number.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -63,6 +64,8 @@ class StepMotion:
     status: str = "ok"
     R_c1_c2: np.ndarray | None = field(default=None, repr=False)  # 3x3, when the estimator gives a full pose
     t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
+    sigma_distance_m: float = NAN  # 1-sigma uncertainty of distance_m (tube estimator: from the fit)
+    sigma_rotation_rad: float = NAN  # 1-sigma uncertainty of the rotation (largest axis)
 
     @property
     def ok(self) -> bool:
@@ -149,9 +152,9 @@ def _kabsch(b1: np.ndarray, b2: np.ndarray) -> Rotation:
     return Rot
 
 
-def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 8,
+def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 20,
                   noise_rad: float = 0.003, max_depth_m: float = 0.3, init: np.ndarray | None = None,
-                  max_points: int = 150) -> StepMotion:
+                  max_points: int = 150, max_sigma_distance_m: float = 1e-3) -> StepMotion:
     """The tube-constrained 6-DOF estimator (module docstring). ``init``: optional 10-vector to start from."""
     n = len(m)
     if n < min_matches:
@@ -193,4 +196,21 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     if not np.all(np.isfinite(sol.x)):
         return StepMotion(n_matches=len(b1), status="solver_failed")
     R, t, _, _ = _unpack(sol.x)
-    return motion_from_transform(R, t, n_used)
+    # Uncertainty: Gauss-Newton covariance at the solution, scaled by the robust residual variance.
+    J = sol.jac
+    m_res = len(sol.fun) - 4
+    dof = max(1, 2 * (m_res // 3) - 10)  # two independent components per 3-vector cross-product residual
+    s2 = max(float(2.0 * sol.cost) / dof, 1.0)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        return StepMotion(n_matches=n_used, status="solver_failed")
+    d = t / max(np.linalg.norm(t), 1e-12) if np.linalg.norm(t) > 1e-6 else np.array([0.0, 0.0, 1.0])
+    sig_d = float(np.sqrt(max(d @ cov[3:6, 3:6] @ d, 0.0)))
+    sig_r = float(np.sqrt(max(np.linalg.eigvalsh(cov[0:3, 0:3]).max(), 0.0)))
+    out = motion_from_transform(R, t, n_used)
+    out = replace(out, sigma_distance_m=sig_d, sigma_rotation_rad=sig_r)
+    if sig_d > max_sigma_distance_m:
+        return replace(StepMotion(n_matches=n_used, status="uncertain"), sigma_distance_m=sig_d,
+                       sigma_rotation_rad=sig_r)
+    return out

@@ -33,6 +33,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="render processes (default: one per core for 60+ frames, else 1: starting workers "
                         "costs ~2 s)")
     s.add_argument("--force", action="store_true", help="write into a non-empty directory")
+    s.add_argument("--speed-model", default=None,
+                   help="drive the capsule with a speed model fitted from video (bodyslam speed-stats)")
 
     c = sub.add_parser("contact-sheet", help="write a PNG grid of a sequence's frames")
     c.add_argument("seqdir")
@@ -63,6 +65,12 @@ def _simulate(args) -> int:
     from testbed.simulate import simulate
 
     scn = load_scenario(args.scenario, args.overrides)
+    if args.speed_model:
+        from bodyslam.speed import load_speed_model
+
+        # the fitted model replaces the scenario's motion statistics (frame rate stays the scenario's)
+        fitted = {k: v for k, v in load_speed_model(args.speed_model).items() if k != "frame_rate_hz"}
+        scn["motion"] = {**scn.get("motion", {}), **fitted}
     truth = simulate(scn, args.seed, args.out, n_frames=args.frames, jobs=args.jobs, force=args.force,
                      progress=Progress(f"render {scn.get('name')}"))
     print(f"{args.out}: {truth['n_frames']} frames; mean step {truth['mean_step_cm']:.3f} cm, "

@@ -174,8 +174,11 @@ def generate_motion(tube: Tube, n_frames: int, cfg: MotionConfig, rng: np.random
 
     def build(scale_step: float, scale_roll: float, scale_tilt: float):
         ds = speed_rel * scale_step
-        s = cfg.start_s_m + np.concatenate([[0.0], np.cumsum(ds[1:])])
+        rel = np.concatenate([[0.0], np.cumsum(ds[1:])])
         lo, hi = 0.02, cl.length_m - 0.02
+        # start further in when early backward motion would leave the path's start (sequences that fit keep
+        # start_s_m exactly, so existing sequences are unchanged)
+        s = max(cfg.start_s_m, lo - rel.min()) + rel
         if s.max() > hi or s.min() < lo:
             raise ConfigError(
                 f"the capsule would leave the {cl.length_m:.2f} m path (s from {s.min():.3f} to {s.max():.3f} m); "

@@ -45,6 +45,10 @@ class Lighting:
     specular: float = 0.35
     shininess: float = 60.0
     gamma: float = 2.2
+    # Automatic light control (capsules adapt LED power per frame): scale so that the given percentile of the
+    # linear pixel values is at most ``auto_exposure_level``; only ever dims (0 = off, the default).
+    auto_exposure_percentile: float = 0.0
+    auto_exposure_level: float = 0.85
 
 
 @dataclass(frozen=True)
@@ -153,6 +157,10 @@ class TubeRenderer:
             col = albedo * diffuse[:, None]
             if L.specular > 0:
                 col += (np.float32(L.specular) * irr * cos_i ** np.float32(L.shininess))[:, None]
+            if L.auto_exposure_percentile > 0:
+                level = float(np.percentile(col.max(axis=1), L.auto_exposure_percentile))
+                if level > L.auto_exposure_level:
+                    col *= np.float32(L.auto_exposure_level / level)
             np.clip(col, 0.0, 1.0, out=col)
             np.power(col, np.float32(1.0 / L.gamma), out=col)
             rgb[self._pix[hit]] = np.rint(col * np.float32(255.0)).astype(np.uint8)

@@ -121,6 +121,7 @@ class World:
     write_depth: bool
     rngs: dict
     render_backend: str = "raycast"
+    rear_baseline_m: float | None = None  # a second, rear-facing camera this far behind the front lens (None: off)
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -213,5 +214,11 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     backend = str(_section(scn, "render").get("backend", "raycast"))
     if backend not in RENDER_BACKENDS:
         raise ConfigError(f"[render] backend must be one of {', '.join(RENDER_BACKENDS)}, got {backend!r}")
+    rear = _section(scn, "rear_camera")
+    rear_baseline = None
+    if rear.get("enabled", False):
+        rear_baseline = float(rear.get("baseline_m", 0.026))
+        if not 0.0 <= rear_baseline <= 0.05:
+            raise ConfigError(f"[rear_camera] baseline_m must be within 0-0.05 m, got {rear_baseline}")
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend)
+                 backend, rear_baseline)

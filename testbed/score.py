@@ -11,7 +11,6 @@ Steps without an estimate are counted, never scored as zero.
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from pathlib import Path
@@ -19,38 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from bodyslam.errors import InputError
+from bodyslam.io import read_motion_csv
 
-__all__ = ["read_motion_csv", "score_motion", "format_table"]
-
-REQUIRED = ("frame", "distance_m", "roll_rad", "pitch_rad", "yaw_rad")
-
-
-def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:
-    """Rows of a ``motion.csv`` keyed by frame; malformed lines are named by file and line."""
-    path = Path(path)
-    try:
-        f = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    with f:
-        r = csv.DictReader(f)
-        missing = [c for c in REQUIRED if c not in (r.fieldnames or [])]
-        if missing:
-            raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {r.fieldnames}")
-        rows = {}
-        for lineno, row in enumerate(r, start=2):
-            try:
-                k = int(row["frame"])
-                vals = {c: float(row[c]) if row[c] not in ("", None) else math.nan
-                        for c in ("distance_m", "roll_rad", "pitch_rad", "yaw_rad")}
-                vals["tilt_rad"] = float(row["tilt_rad"]) if row.get("tilt_rad") not in ("", None) else math.hypot(
-                    vals["pitch_rad"], vals["yaw_rad"])
-            except (TypeError, ValueError):
-                raise InputError(f"{path}:{lineno}: not a number in {row}") from None
-            vals["status"] = row.get("status") or "ok"  # truth files have no status: every step is known
-            vals["label"] = row.get("label") or ""
-            rows[k] = vals
-    return rows
+__all__ = ["score_motion", "format_table"]
 
 
 def _wrap(a):

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from bodyslam import __version__
 from bodyslam.errors import InputError
@@ -81,15 +82,26 @@ def _init_worker(state: dict | None = None) -> None:
     _W["renderer"] = make_renderer(w.render_backend, w.tube, w.texture, w.camera, w.lighting, mesh=_W.get("mesh"))
 
 
+def rear_extrinsics(baseline_m: float) -> tuple[Rotation, np.ndarray]:
+    """``T_front_rear``: the rear lens looks backward (rotated pi about y), ``baseline_m`` behind the front lens."""
+    return Rotation.from_rotvec([0.0, np.pi, 0.0]), np.array([0.0, 0.0, -baseline_m])
+
+
 def _render_one(k: int) -> int:
     w: World = _W["world"]
     traj: CapsuleTrajectory = _W["traj"]
     out: Path = _W["out"]
-    res = _W["renderer"].render(traj.rotations_w_c[k], traj.positions_w_m[k])
+    R_w_c, p_w_c = traj.rotations_w_c[k], traj.positions_w_m[k]
+    res = _W["renderer"].render(R_w_c, p_w_c)
     rng = np.random.default_rng([w.seed, 7919, k])  # per-frame noise stream: same output for any job count
     write_image(out / "frames" / frame_name(k), w.noise.apply(res.rgb, rng))
     if w.write_depth:
         write_image(out / "depth" / frame_name(k), encode_range(res.range_m))
+    if w.rear_baseline_m is not None:
+        R_c_r, t_c_r = rear_extrinsics(w.rear_baseline_m)
+        rear = _W["renderer"].render(R_w_c * R_c_r, p_w_c + R_w_c.apply(t_c_r))
+        rng = np.random.default_rng([w.seed, 7919, k, 1])
+        write_image(out / "frames_rear" / frame_name(k), w.noise.apply(rear.rgb, rng))
     return k
 
 
@@ -114,6 +126,8 @@ def simulate(
     (out / "frames").mkdir(exist_ok=True)
     if world.write_depth:
         (out / "depth").mkdir(exist_ok=True)
+    if world.rear_baseline_m is not None:
+        (out / "frames_rear").mkdir(exist_ok=True)
 
     _W.update(world=world, traj=traj, out=out, mesh=mesh)
     n = world.n_frames
@@ -183,6 +197,10 @@ def simulate(
         "source": {"generator": "testbed", "version": __version__, "scenario": scenario.get("name"),
                    "seed": seed},
     }
+    if world.rear_baseline_m is not None:
+        R_c_r, t_c_r = rear_extrinsics(world.rear_baseline_m)
+        meta["rear_camera"] = {"camera": cam.to_dict(), "frames": {"dir": "frames_rear"},
+                               "T_front_rear": {"q_xyzw": R_c_r.as_quat().tolist(), "t_m": t_c_r.tolist()}}
     write_json(out / "meta.json", meta)
     log.info("wrote %d frames to %s", n, out)
     return truth

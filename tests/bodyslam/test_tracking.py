@@ -57,11 +57,13 @@ def test_motion_and_score_on_the_demo_sequence(tmp_path):
     assert p.returncode == 0, p.stderr
     rep = json.loads((tmp_path / "score.json").read_text())
     a = rep["all"]
-    assert rep["coverage"] == 1.0
+    # two demo steps are big jumps with few matches: they get a status, not a number (measured 37 of 39 ok)
+    assert rep["coverage"] >= 0.9
+    assert set(rep["status_counts"]) <= {"ok", "too_few_matches", "uncertain"}
     # Issue 3's bars for roll and tilt (1 deg, 2 deg per step) hold on the demo too (320x320, folds, tapering
     # tube). Its distance bar is for the thesis tube (a cylinder of the radius meta.json states): here the scale
     # comes from meta.json's mean radius (1.38 cm) while the capsule travels where the lumen is ~1.45 cm wide
-    # and folds bulge 12% inward, so distances come out ~15% short (measured 0.067 cm of 0.41); bound it at 25%.
+    # and folds bulge 12% inward, so distances come out short (measured 0.021 cm of 0.38 mean); bound it at 25%.
     assert a["mae_roll_deg"] < 1.0
     assert a["mae_tilt_deg"] < 2.0
     assert a["mae_distance_cm"] < 0.25 * a["mean_true_distance_cm"]
@@ -88,3 +90,22 @@ def test_bad_inputs_get_one_line(tmp_path):
     assert p.returncode == 1 and p.stderr.startswith("error:") and len(p.stderr.strip().splitlines()) == 1
     p = run("bodyslam.cli", "motion", str(tmp_path), "--out", str(tmp_path / "m.csv"))
     assert p.returncode == 1 and "meta.json" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_rear_camera_steps_are_reported_in_the_body_frame(tmp_path):
+    """A rear camera's exact relative motion, converted with its extrinsics, is the front camera's motion."""
+    from bodyslam.motion import StepMotion
+    from bodyslam.tracking import Sequence
+
+    R_cr, t_cr = Rotation.from_rotvec([0.0, np.pi, 0.0]), np.array([0.0, 0.0, -0.026])
+    R_front = Rotation.from_rotvec([0.03, -0.05, 0.12])
+    t_front = np.array([0.0004, -0.0002, 0.004])
+    # T_r1_r2 = T_rc T_c1_c2 T_cr
+    R_r = R_cr.inv() * R_front * R_cr
+    t_r = R_cr.inv().apply(R_front.apply(t_cr) + t_front - t_cr)
+    seq = Sequence(tmp_path, None, 2, 2.0, 0.015, tmp_path, "rear", (R_cr, t_cr))
+    got = seq.to_body(StepMotion(status="ok", R_c1_c2=R_r.as_matrix(), t_c1_c2_m=t_r))
+    want = motion_from_transform(R_front, t_front, 0)
+    assert got.distance_m == pytest.approx(want.distance_m, abs=1e-12)
+    assert got.roll_rad == pytest.approx(want.roll_rad, abs=1e-12)
+    assert got.tilt_rad == pytest.approx(want.tilt_rad, abs=1e-12)

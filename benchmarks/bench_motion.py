@@ -1,0 +1,170 @@
+"""Per-step motion accuracy over many `thesis` seeds (Table 4.1), and `bodyslam motion` throughput.
+
+Accuracy: for each seed, render `testbed simulate thesis --seed S --frames 200`, match every consecutive pair
+once (matcher mode as given), run both estimators (tube: the project's; thesis: the dissertation's equations)
+on the same matches, write each as motion.csv and score it with the code behind `testbed score-motion`.
+Prints per-seed lines, the mean over seeds, and the same errors restricted to off-centre steps (the capsule
+more than 0.3 radii from the centre line, from the truth; scoring only).
+
+Throughput: the whole `bodyslam motion` process (spawned as a user would run it) on a 320x320 thesis sequence,
+per matcher mode.
+
+    .venv/bin/python benchmarks/bench_motion.py --seeds 100-119 [--mode sift] [--frames 200] [--keep DIR]
+    .venv/bin/python benchmarks/bench_motion.py --speed-only
+
+Seeds 100+ are used by no test (tests use the demo sequence and seeds 11-13).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bodyslam.io import read_tum, write_csv
+from bodyslam.matching import Matcher
+from bodyslam.motion import estimate_thesis, estimate_tube
+from bodyslam.tracking import MOTION_COLUMNS, Sequence, motion_rows
+from bodyslam.unroll import Unroller
+from testbed.centerline import Centerline
+from testbed.scenario import load_scenario
+from testbed.score import score_motion
+from testbed.simulate import simulate
+
+KEYS = ("mae_distance_cm", "mae_roll_deg", "mae_tilt_deg", "mae_tilt_vector_deg")
+
+
+def parse_seeds(s: str) -> list[int]:
+    if "-" in s:
+        a, b = s.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(x) for x in s.split(",")]
+
+
+def off_centre_steps(seq: Path, radius_m: float) -> np.ndarray:
+    """Step k (frames k-1 -> k) is off-centre when frame k-1's camera is > 0.3 r from the centre line (truth)."""
+    _, pos, _ = read_tum(seq / "groundtruth.tum")
+    cl = Centerline.read_csv(seq / "centerline.csv")
+    s = np.loadtxt(seq / "labels.csv", delimiter=",", skiprows=1, usecols=4)
+    c, _, _ = cl.frame_at(s)
+    off = np.linalg.norm(pos - c, axis=1) > 0.3 * radius_m
+    return off[:-1]
+
+
+def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dict:
+    scn = load_scenario("thesis")
+    per_seed = {"tube": [], "thesis": []}
+    off_err = {"tube": [], "thesis": []}
+    root = keep or Path(tempfile.mkdtemp(prefix="bench_motion_"))
+    for seed in seeds:
+        d = root / f"thesis_{seed}"
+        t0 = time.perf_counter()
+        simulate(scn, seed, d, n_frames=frames, force=True)
+        t_sim = time.perf_counter() - t0
+        seq = Sequence.open(d)
+        matcher = Matcher(seq.camera, mode)
+        un = Unroller(seq.camera)
+        steps = {"tube": [], "thesis": []}
+        prev = matcher.features(seq.frame(0))
+        t0 = time.perf_counter()
+        for k in range(1, seq.n_frames):
+            f = matcher.features(seq.frame(k))
+            m = matcher.match_features(prev, f)
+            prev = f
+            steps["tube"].append(estimate_tube(m, seq.camera, seq.radius_m))
+            steps["thesis"].append(estimate_thesis(m, un, seq.radius_m))
+        t_mot = time.perf_counter() - t0
+        off = off_centre_steps(d, seq.radius_m)
+        line = [f"seed {seed}: render {t_sim:.0f} s, motion {t_mot:.0f} s, off-centre steps {off.sum()}"]
+        for est, st in steps.items():
+            csv_path = d / f"motion_{est}.csv"
+            write_csv(csv_path, MOTION_COLUMNS, motion_rows(st, seq.frame_rate_hz))
+            rep = score_motion(d, csv_path)
+            (d / f"motion_{est}.score.json").write_text(json.dumps(rep, indent=1))
+            per_seed[est].append(rep)
+            a = rep["all"]
+            line.append(f"{est}: dist {a['mae_distance_cm']:.4f} cm roll {a['mae_roll_deg']:.3f} deg "
+                        f"tilt {a['mae_tilt_deg']:.3f} deg cov {rep['coverage']:.3f}")
+            true_d = np.loadtxt(d / "motion_truth.csv", delimiter=",", skiprows=1, usecols=(2, 3, 6))
+            e = np.array([[s.distance_m, s.roll_rad, s.tilt_rad] for s in st])
+            err = np.abs(e - true_d)
+            err[:, 1] = np.abs((e[:, 1] - true_d[:, 1] + np.pi) % (2 * np.pi) - np.pi)
+            off_err[est].append(err[off & np.isfinite(err).all(axis=1)])
+        print("  ".join(line), flush=True)
+    out = {"seeds": seeds, "mode": mode, "frames": frames, "estimators": {}}
+    for est in per_seed:
+        reps = per_seed[est]
+        mean = {k: float(np.mean([r["all"][k] for r in reps])) for k in KEYS}
+        mean["coverage"] = float(np.mean([r["coverage"] for r in reps]))
+        mean["mean_true_distance_cm"] = float(np.mean([r["all"]["mean_true_distance_cm"] for r in reps]))
+        mean["mean_true_roll_deg"] = float(np.mean([r["all"]["mean_true_roll_deg"] for r in reps]))
+        mean["mean_true_tilt_deg"] = float(np.mean([r["all"]["mean_true_tilt_deg"] for r in reps]))
+        oe = np.concatenate(off_err[est]) if off_err[est] else np.zeros((0, 3))
+        mean["off_centre_steps"] = int(len(oe))
+        if len(oe):
+            mean["off_centre_mae_distance_cm"] = float(oe[:, 0].mean() * 100)
+            mean["off_centre_mae_roll_deg"] = float(np.degrees(oe[:, 1].mean()))
+            mean["off_centre_mae_tilt_deg"] = float(np.degrees(oe[:, 2].mean()))
+        out["estimators"][est] = mean
+    return out
+
+
+def speed(modes: list[str], frames: int) -> dict:
+    res = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp) / "seq"
+        simulate(load_scenario("thesis", ["camera.width=320", "camera.height=320"]), 7, d, n_frames=frames,
+                 force=True)
+        for mode in modes:
+            t0 = time.perf_counter()
+            p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "motion", str(d), "--out",
+                                str(Path(tmp) / f"m_{mode}.csv"), "--mode", mode], capture_output=True, text=True)
+            el = time.perf_counter() - t0
+            if p.returncode:
+                print(p.stderr)
+            rep = score_motion(d, Path(tmp) / f"m_{mode}.csv")
+            res[mode] = {"frames_per_s": frames / el, "seconds": el, **{k: rep["all"][k] for k in KEYS[:3]}}
+            print(f"bodyslam motion --mode {mode}: {frames} frames 320x320 in {el:.1f} s = {frames / el:.1f} "
+                  f"frames/s (whole process, 2 cores); dist {rep['all']['mae_distance_cm']:.4f} cm roll "
+                  f"{rep['all']['mae_roll_deg']:.3f} deg tilt {rep['all']['mae_tilt_deg']:.3f} deg", flush=True)
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", default="100-119")
+    ap.add_argument("--mode", default="sift")
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--keep", type=Path, default=None, help="keep the rendered sequences here")
+    ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    report = {}
+    if not args.speed_only:
+        report["accuracy"] = acc = accuracy(parse_seeds(args.seeds), args.mode, args.frames, args.keep)
+        print(f"\nTable 4.1 over {len(acc['seeds'])} thesis seeds ({args.frames} frames, matcher {args.mode}):")
+        print(f"{'':8s} {'dist MAE cm':>12s} {'roll MAE deg':>13s} {'tilt MAE deg':>13s} {'tilt vec deg':>13s} "
+              f"{'coverage':>9s}")
+        print(f"{'thesis*':8s} {0.04:12.4f} {1.8:13.3f} {3.0:13.3f} {'':>13s} {'':>9s}   (* as reported, Table 4.1)")
+        for est, m in acc["estimators"].items():
+            print(f"{est:8s} {m['mae_distance_cm']:12.4f} {m['mae_roll_deg']:13.3f} {m['mae_tilt_deg']:13.3f} "
+                  f"{m['mae_tilt_vector_deg']:13.3f} {m['coverage']:9.3f}")
+            if m.get("off_centre_steps"):
+                print(f"{'':8s} off-centre steps ({m['off_centre_steps']}): dist {m['off_centre_mae_distance_cm']:.4f}"
+                      f" cm roll {m['off_centre_mae_roll_deg']:.3f} deg tilt {m['off_centre_mae_tilt_deg']:.3f} deg")
+        m0 = acc["estimators"]["tube"]
+        print(f"mean true per step: distance {m0['mean_true_distance_cm']:.3f} cm, roll "
+              f"{m0['mean_true_roll_deg']:.2f} deg, tilt {m0['mean_true_tilt_deg']:.2f} deg")
+    report["speed"] = speed(["asift", "sift", "fast"], 100)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()
