@@ -11,13 +11,14 @@ Two estimators, same output (:class:`StepMotion`, conventions of :mod:`bodyslam.
   - roll (Eq. 3.22): the mean change of the features' azimuth around the image centre. When the capsule rolls
     by ``+gamma`` about its optical axis the scene turns by ``-gamma`` in its image, so ``gamma = -mean(dphi)``;
     Eq. 3.22 as printed returns the scene's turn (opposite sign).
-  - tilt (Eq. 3.19-3.21): features are grouped by azimuth (8 sectors); ``P`` is the sector whose angular depth
-    grew most, ``Q`` the one that grew least (the capsule tilted toward ``Q``); ``phi_t = (dQ - dP) /
-    max(dP, dQ)`` (Eq. 3.20, a ratio used as an angle in radians, as printed: it has no derivation) and its
-    magnitude is the tilt. Tilting toward image azimuth ``psi`` turns the optical axis about
-    ``(-sin psi, cos psi, 0)``, so pitch = ``-|phi_t| sin psi``, yaw = ``|phi_t| cos psi``; Eq. 3.21 as printed
-    (``alpha = phi cos psi, beta = phi sin psi``) swaps the axes.
-  ``literal_signs=True`` reproduces the printed signs and axes exactly.
+  - tilt (Eq. 3.19-3.21): the thesis compares the angular-depth changes of two feature groups P and Q and takes
+    ``phi = (dQ - dP) / max(dP, dQ)`` (Eq. 3.20). That ratio does not scale with the tilt: for a pure tilt by
+    ``phi`` toward Q, ``dQ = -dP`` and the ratio is -2 whatever ``phi`` is. Derived instead, in the same unrolled
+    domain: a small rotation (pitch ``wx``, yaw ``wy``) changes a ray's angular depth by
+    ``wx sin(psi) - wy cos(psi)`` at azimuth ``psi``, so a least-squares sinusoid fit of the features' ``d theta``
+    against their azimuth gives pitch and yaw (forward motion adds an azimuth-independent part).
+  ``literal_signs=True`` reproduces the printed equations exactly: Eq. 3.14's and Eq. 3.22's signs, and
+  Eq. 3.20-3.21 with 8 azimuth sectors (P: largest mean change, Q: smallest, tilt direction = Q's azimuth).
 
 ``tube`` -- the project's estimator: a full 6-DOF solve that uses what the thesis assumes but does not exploit,
   that matched points lie on a tube of known radius ``R``. Unknowns: the motion ``T_c1_c2`` (6) and the tube's
@@ -102,6 +103,14 @@ def estimate_thesis(m: Matches, unroller: Unroller, radius_m: float, min_matches
     dphi = _wrap(phi2 - phi1)
     roll = float(np.mean(dphi)) * (1.0 if literal_signs else -1.0)
     dth = th2 - th1
+    if not literal_signs:
+        # Derived tilt: a small rotation (pitch wx, yaw wy) changes the angular depth of a ray at azimuth psi by
+        # d(theta) = wx sin(psi) - wy cos(psi); forward motion adds a part that does not depend on psi. A least-
+        # squares fit of d(theta) = a + c sin(psi) + b cos(psi) over the features gives wx = c, wy = -b.
+        A = np.c_[np.ones_like(phi1), np.sin(phi1), np.cos(phi1)]
+        (_, c, b), *_ = np.linalg.lstsq(A, dth, rcond=None)
+        pitch, yaw = float(c), float(-b)
+        return StepMotion(distance, roll, pitch, yaw, float(math.hypot(pitch, yaw)), int(ok.sum()), "ok")
     sector = np.floor(np.mod(phi1, 2 * np.pi) / (2 * np.pi / sectors)).astype(int)
     means = np.array([dth[sector == k].mean() if np.any(sector == k) else np.nan for k in range(sectors)])
     if np.sum(np.isfinite(means)) < 2:
@@ -111,11 +120,7 @@ def estimate_thesis(m: Matches, unroller: Unroller, radius_m: float, min_matches
     denom = max(dP, dQ)
     phi_t = (dQ - dP) / denom if abs(denom) > 1e-12 else 0.0  # Eq. 3.20
     psi = (kQ + 0.5) * 2 * np.pi / sectors  # direction of tilting: the group with the smallest change
-    mag = abs(phi_t)
-    if literal_signs:
-        pitch, yaw = phi_t * math.cos(psi), phi_t * math.sin(psi)  # Eq. 3.21 as printed
-    else:
-        pitch, yaw = -mag * math.sin(psi), mag * math.cos(psi)
+    pitch, yaw = phi_t * math.cos(psi), phi_t * math.sin(psi)  # Eq. 3.21 as printed
     return StepMotion(distance, roll, float(pitch), float(yaw), float(math.hypot(pitch, yaw)), int(ok.sum()), "ok")
 
 

@@ -80,3 +80,15 @@ def test_no_estimate_is_invented():
     for est in (estimate_tube(m, CAM, R_TUBE), estimate_thesis(m, Unroller(CAM), R_TUBE)):
         assert est.status == "too_few_matches"
         assert math.isnan(est.distance_m) and math.isnan(est.roll_rad) and est.n_matches == 5
+
+
+def test_thesis_tilt_fit_recovers_a_small_tilt():
+    """Derived unrolled-domain tilt (sinusoid fit of d theta over azimuth): first-order exact for a pure tilt."""
+    rng = np.random.default_rng(5)
+    R = Rotation.from_rotvec([0.03, -0.04, 0.0])
+    m = synth_matches(tube_points(400, rng, s_range=(0.006, 0.05)), R, np.zeros(3))
+    est = estimate_thesis(m, Unroller(CAM), R_TUBE)
+    assert est.pitch_rad == pytest.approx(0.03, abs=0.002)
+    assert est.yaw_rad == pytest.approx(-0.04, abs=0.002)
+    literal = estimate_thesis(m, Unroller(CAM), R_TUBE, literal_signs=True)
+    assert abs(literal.tilt_rad - 0.05) > 0.5  # Eq. 3.20 as printed: a ratio near 2, not the 0.05 rad tilt
