@@ -59,6 +59,9 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("seqdir")
         q.add_argument("--out", required=True, help=f"output {out}")
         q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
+        q.add_argument("--mask", default=None,
+                       help="valid field of view: 'auto' (detect black border and burned-in text from the frames)"
+                            " or a PNG (non-zero = valid); default: the camera's image circle")
         q.add_argument("--camera", default="front", choices=("front", "rear"),
                        help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
         motion_opts(q)
@@ -156,7 +159,7 @@ def _motion_or_track(args) -> int:
     from bodyslam.io import write_csv, write_tum
     from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, dead_reckon, motion_rows, sequence_motion
 
-    settings = MotionSettings(args.mode, args.estimator, args.unroll_mode)
+    settings = MotionSettings(args.mode, args.estimator, args.unroll_mode, mask=args.mask)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
                             progress=Progress(args.cmd), camera=args.camera)

@@ -69,6 +69,7 @@ def detect_fov_mask(frames: list[np.ndarray], threshold: int = 12, min_fraction:
     hull = cv2.convexHull(np.concatenate(contours))
     filled = np.zeros_like(region)
     cv2.fillConvexPoly(filled, hull, 1)
+    filled = cv2.erode(filled, np.ones((3, 3), np.uint8))  # the polygon is drawn over the rim pixels: drop them
     # text inside the hull stays excluded: constant pixels are not field of view
     return filled.astype(bool) & (varying | ~bright)
 

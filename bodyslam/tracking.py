@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.camera import CameraModel, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.io import frame_name, read_image, read_meta
-from bodyslam.matching import Matcher
+from bodyslam.matching import Matcher, detect_fov_mask
 from bodyslam.motion import ESTIMATORS, StepMotion, estimate_thesis, estimate_tube, motion_from_transform
 from bodyslam.unroll import Unroller
 
@@ -48,6 +48,8 @@ class MotionSettings:
     estimator: str = "tube"
     unroll_mode: str = "exact"  # for the thesis estimator: "exact" angles or the linear Eq. 3.11 ("thesis")
     min_matches: int = 20  # a 10-parameter fit on fewer verified matches fails on big jumps (measured)
+    mask: str | None = None  # valid field of view: None = the camera's image circle, "auto" = detected from the
+    #                          frames (black border, burned-in text), or a PNG path (non-zero = valid)
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -124,12 +126,12 @@ def _estimate(settings: MotionSettings, matches, camera, unroller, radius_m) -> 
 
 def _chunk_motion(args) -> list[tuple[int, StepMotion]]:
     """Steps ``a+1 .. b`` (pairs (k-1, k)) of one chunk, features computed once per frame."""
-    seq_dir, radius_m, settings, a, b, camera = args
+    seq_dir, radius_m, settings, a, b, camera, mask = args
     import cv2
 
     cv2.setNumThreads(1)  # one worker per core
     seq = Sequence.open(seq_dir, radius_m, camera)
-    matcher = Matcher(seq.camera, settings.match_mode)
+    matcher = Matcher(seq.camera, settings.match_mode, mask=mask)
     unroller = Unroller(seq.camera, mode=settings.unroll_mode)
     out = []
     prev = None
@@ -162,7 +164,8 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     if n < 2:
         raise InputError(f"{seq_dir}: need at least 2 frames, meta.json says {n}")
     bounds = list(range(0, n - 1, chunk_frames)) + [n - 1]
-    tasks = [(str(seq.path), seq.radius_m, settings, bounds[i], bounds[i + 1], camera)
+    mask = resolve_mask(seq, settings.mask)
+    tasks = [(str(seq.path), seq.radius_m, settings, bounds[i], bounds[i + 1], camera, mask)
              for i in range(len(bounds) - 1)]
     if jobs is None:
         jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -187,6 +190,30 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             pool.close()
             pool.join()
     return steps
+
+
+def resolve_mask(seq: Sequence, mask: str | None, n_sample: int = 30) -> np.ndarray | None:
+    """The valid field-of-view mask a sequence's matcher uses (see :attr:`MotionSettings.mask`)."""
+    if mask is None:
+        return None
+    if mask == "auto":
+        ks = np.unique(np.linspace(0, seq.n_frames - 1, min(n_sample, seq.n_frames)).astype(int))
+        frames = []
+        for k in ks:
+            try:
+                frames.append(seq.frame(int(k)))
+            except InputError as exc:
+                log.warning("%s (skipped for mask detection)", exc)
+        m = detect_fov_mask(frames)
+        log.info("detected field of view: %d of %d pixels", int(m.sum()), m.size)
+        return m
+    img = read_image(mask, unchanged=True)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    if img.shape != (seq.camera.height, seq.camera.width):
+        raise InputError(f"{mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are "
+                         f"{seq.camera.width}x{seq.camera.height}")
+    return img > 0
 
 
 def motion_rows(steps: list[StepMotion], frame_rate_hz: float) -> list[list]:

@@ -109,3 +109,30 @@ def test_rear_camera_steps_are_reported_in_the_body_frame(tmp_path):
     assert got.distance_m == pytest.approx(want.distance_m, abs=1e-12)
     assert got.roll_rad == pytest.approx(want.roll_rad, abs=1e-12)
     assert got.tilt_rad == pytest.approx(want.tilt_rad, abs=1e-12)
+
+
+def test_speed_statistics_drive_the_testbed(tmp_path):
+    """motion.csv -> speed PDF/CDF + model file -> testbed simulate --speed-model (the thesis's loop)."""
+    import shutil
+
+    mcsv = tmp_path / "motion.csv"
+    shutil.copy(DEMO / "motion_truth.csv", tmp_path / "truth.csv")
+    # a motion.csv from the truth (the speed statistics code only reads the SPEC columns)
+    lines = (tmp_path / "truth.csv").read_text().splitlines()
+    out = ["frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,n_matches,status"]
+    out += [",".join(ln.split(",")[:7] + ["100", "ok"]) for ln in lines[1:]]
+    mcsv.write_text("\n".join(out) + "\n")
+    p = run("bodyslam.cli", "speed-stats", str(mcsv), "--out", str(tmp_path / "speed"))
+    assert p.returncode == 0, p.stderr
+    model = json.loads((tmp_path / "speed" / "speed_model.json").read_text())
+    assert model["motion"]["mean_step_m"] == pytest.approx(0.0041, rel=0.01)
+    assert abs(sum(model["motion"]["phase_probs"]) - 1) < 1e-9
+    for png in ("speed_pdf.png", "speed_cdf.png"):
+        assert read_image(tmp_path / "speed" / png).shape == (420, 640, 3)
+    # the model drives a new sequence: its mean step, roll and tilt are the model's
+    p = run("testbed.cli", "simulate", "demo", "--seed", "3", "--frames", "12", "--out", str(tmp_path / "sim"),
+            "--speed-model", str(tmp_path / "speed" / "speed_model.json"))
+    assert p.returncode == 0, p.stderr
+    truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
+    assert truth["mean_step_cm"] == pytest.approx(model["motion"]["mean_step_m"] * 100, rel=0.02)
+    assert truth["mean_roll_deg"] == pytest.approx(model["motion"]["mean_roll_deg"], rel=0.05)
