@@ -67,6 +67,8 @@ class StepMotion:
     t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
     sigma_distance_m: float = NAN  # 1-sigma uncertainty of distance_m (tube estimator: from the fit)
     sigma_rotation_rad: float = NAN  # 1-sigma uncertainty of the rotation (largest axis)
+    params: np.ndarray | None = field(default=None, repr=False)  # tube estimator's solution (warm start)
+    n_evaluations: int = 0
 
     @property
     def ok(self) -> bool:
@@ -142,6 +144,56 @@ def _cylinder_depth(b: np.ndarray, axis: np.ndarray, origin: np.ndarray, radius:
     return np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth), max_depth)
 
 
+def _rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """Rodrigues for a batch of rotation vectors ``(B, 3)`` -> ``(B, 3, 3)``."""
+    th = np.linalg.norm(rv, axis=1)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    k = rv / ths[:, None]
+    K = np.zeros((len(rv), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    R = np.eye(3) + s * K + (1 - c) * (K @ K)
+    if small.any():  # first order for tiny angles
+        v = rv[small]
+        Ks = np.zeros((len(v), 3, 3))
+        Ks[:, 0, 1], Ks[:, 0, 2], Ks[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        Ks[:, 1, 0], Ks[:, 2, 0], Ks[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+        R[small] = np.eye(3) + Ks
+    return R
+
+
+def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius: float, max_depth: float,
+                          noise_rad: float, prior_sigma: np.ndarray) -> np.ndarray:
+    """Residuals of the tube model for a batch of parameter vectors ``P (B, 10)`` -> ``(B, 3 n + 4)``."""
+    B = len(P)
+    R = _rotvec_to_matrix(P[:, 0:3])
+    t = P[:, 3:6]
+    axis = np.c_[P[:, 6], P[:, 7], np.ones(B)]
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    origin = np.c_[P[:, 8], P[:, 9], np.zeros(B)]
+    # ray-cylinder depth, batched: w = b x a (B, n, 3), u = o x a (B, 3)
+    a = axis[:, None, :]
+    w = np.stack([b1[None, :, 1] * a[..., 2] - b1[None, :, 2] * a[..., 1],
+                  b1[None, :, 2] * a[..., 0] - b1[None, :, 0] * a[..., 2],
+                  b1[None, :, 0] * a[..., 1] - b1[None, :, 1] * a[..., 0]], axis=-1)
+    u = np.cross(origin, axis)
+    ww = np.einsum("bij,bij->bi", w, w)
+    wu = np.einsum("bij,bj->bi", w, u)
+    disc = wu * wu - ww * (np.einsum("bj,bj->b", u, u) - radius * radius)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (wu + np.sqrt(np.maximum(disc, 0.0))) / ww
+    lam = np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth), max_depth)
+    X = lam[..., None] * b1[None] - t[:, None, :]
+    X2 = np.einsum("bij,bjk->bik", X, R)  # rows: R^T (X - t)
+    X2 /= np.sqrt(np.einsum("bij,bij->bi", X2, X2))[..., None]
+    r = np.stack([b2[None, :, 1] * X2[..., 2] - b2[None, :, 2] * X2[..., 1],
+                  b2[None, :, 2] * X2[..., 0] - b2[None, :, 0] * X2[..., 2],
+                  b2[None, :, 0] * X2[..., 1] - b2[None, :, 1] * X2[..., 0]], axis=-1).reshape(B, -1) / noise_rad
+    return np.concatenate([r, P[:, 6:10] / prior_sigma], axis=1)
+
+
 def _unpack(p):
     R = Rotation.from_rotvec(p[0:3])
     t = p[3:6]
@@ -179,23 +231,26 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     R_max = radius_m
     prior_sigma = np.array([0.35, 0.35, 0.5 * R_max, 0.5 * R_max])  # axis tilt (rad), axis offset (m)
 
-    def residuals(p):
-        R, t, axis, origin = _unpack(p)
-        lam = _cylinder_depth(b1, axis, origin, R_max, max_depth_m)
-        X2 = (lam[:, None] * b1 - t) @ R.as_matrix()  # R^T (X - t), row-wise
-        X2 /= np.sqrt(np.einsum("ij,ij->i", X2, X2))[:, None]
-        r = _cross(b2, X2).ravel() / noise_rad
-        prior = np.array([p[6], p[7], p[8], p[9]]) / prior_sigma
-        return np.concatenate([r, prior])
+    x_scale = np.r_[[0.05] * 3, [0.003] * 3, [0.2] * 2, [0.005] * 2]
+    steps = 1e-6 * x_scale  # forward-difference steps, relative to each parameter's scale
 
-    if init is None:
-        p0 = np.zeros(10)
-        p0[0:3] = _kabsch(b1, b2).as_rotvec()
-    else:
+    def residuals(p):
+        return _tube_residuals_batch(p[None], b1, b2, R_max, max_depth_m, noise_rad, prior_sigma)[0]
+
+    def jacobian(p):
+        # all 10 forward differences in one batched evaluation (scipy's 2-point scheme calls f 10 times)
+        P = np.repeat(p[None], 11, axis=0)
+        P[1:] += np.diag(steps)
+        F = _tube_residuals_batch(P, b1, b2, R_max, max_depth_m, noise_rad, prior_sigma)
+        return ((F[1:] - F[0]) / steps[:, None]).T
+
+    p0 = np.zeros(10)
+    p0[0:3] = _kabsch(b1, b2).as_rotvec()
+    if init is not None:  # a caller's start (measured: the previous step's solution does not save iterations)
         p0 = np.asarray(init, float).copy()
     try:
-        sol = least_squares(residuals, p0, loss="soft_l1", f_scale=2.0, x_scale=np.r_[[0.05] * 3, [0.003] * 3,
-                            [0.2] * 2, [0.005] * 2], max_nfev=200, method="trf")
+        sol = least_squares(residuals, p0, jac=jacobian, loss="soft_l1", f_scale=2.0, x_scale=x_scale,
+                            max_nfev=200, method="trf")
     except (ValueError, np.linalg.LinAlgError):
         return StepMotion(n_matches=len(b1), status="solver_failed")
     if not np.all(np.isfinite(sol.x)):
@@ -214,7 +269,7 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     sig_d = float(np.sqrt(max(d @ cov[3:6, 3:6] @ d, 0.0)))
     sig_r = float(np.sqrt(max(np.linalg.eigvalsh(cov[0:3, 0:3]).max(), 0.0)))
     out = motion_from_transform(R, t, n_used)
-    out = replace(out, sigma_distance_m=sig_d, sigma_rotation_rad=sig_r)
+    out = replace(out, sigma_distance_m=sig_d, sigma_rotation_rad=sig_r, params=sol.x, n_evaluations=sol.nfev)
     if sig_d > max_sigma_distance_m:
         return replace(StepMotion(n_matches=n_used, status="uncertain"), sigma_distance_m=sig_d,
                        sigma_rotation_rad=sig_r)
