@@ -8,6 +8,9 @@ unroll FRAME --out unrolled.png     inverse cylindrical projection (L x H), exac
 motion SEQDIR --out motion.csv      per-step distance, roll, pitch, yaw, tilt (SPEC.md columns)
 track SEQDIR --out trajectory.tum   dead reckoning of the per-step motion (TUM)
 speed-stats motion.csv --out DIR    speed PDF/CDF plots and a fitted speed model for `testbed simulate`
+segment FRAME --out seg.png         SRM segmentation, regions in their mean colours (Fig. 3.3)
+train-classifier SEQDIR... --out M  train the FT/FL kernel SVM on testbed sequences (labels.csv)
+classify INPUT --out classes.csv    FT/FL per frame (sequence directory or folder of frames)
 
 The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
 sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
@@ -65,11 +68,118 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--camera", default="front", choices=("front", "rear"),
                        help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
         motion_opts(q)
+    sg = sub.add_parser("segment", help="SRM segmentation of a frame, regions in their mean colours")
+    sg.add_argument("frame")
+    sg.add_argument("--out", required=True)
+    sg.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
+    sg.add_argument("--q", type=float, default=16.0, help="SRM coarseness Q (dissertation: 16)")
+    sg.add_argument("--full", action="store_true", help="segment at full resolution (slow) instead of 96 px")
+    tc = sub.add_parser("train-classifier", help="train the FT/FL classifier on testbed sequences")
+    tc.add_argument("seqdirs", nargs="+")
+    tc.add_argument("--out", required=True, help="model file (.npz)")
+    tc.add_argument("--features", default="rich", choices=("nine", "rich"),
+                    help="nine: the dissertation's features; rich: nine + five (default)")
+    tc.add_argument("--jobs", type=int, default=None)
+    cl = sub.add_parser("classify", help="FT/FL per frame with the kernel SVM")
+    cl.add_argument("input", help="a sequence directory (meta.json) or a folder of frames")
+    cl.add_argument("--out", required=True, help="classes.csv")
+    cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
+    cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
+    cl.add_argument("--jobs", type=int, default=None)
     ss = sub.add_parser("speed-stats", help="speed PDF/CDF and a speed model file from a motion.csv")
     ss.add_argument("motion_csv")
     ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
     ss.add_argument("--frame-rate", type=float, default=None, help="frames/s (default: from the t column)")
     return p
+
+
+def _frames_of(inp):
+    """Frame paths and camera of a sequence directory or a folder of images."""
+    from pathlib import Path
+
+    from bodyslam.errors import InputError
+    from bodyslam.io import frame_name, read_image, read_meta
+
+    p = Path(inp)
+    if (p / "meta.json").exists():
+        from bodyslam.camera import camera_from_dict
+
+        meta = read_meta(p)
+        d = p / meta.get("frames", {}).get("dir", "frames")
+        return [d / frame_name(k) for k in range(int(meta["n_frames"]))], camera_from_dict(meta["camera"])
+    if not p.is_dir():
+        raise InputError(f"{p}: not a sequence directory or a folder of frames")
+    exts = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
+    paths = sorted(q for q in p.iterdir() if q.suffix.lower() in exts)
+    if not paths:
+        raise InputError(f"{p}: no image files")
+    return paths, None
+
+
+def _segment(args) -> int:
+    from bodyslam.io import read_image, write_image
+    from bodyslam.segmentation import paint_regions, srm
+
+    img = read_image(args.frame)
+    cam = _camera_for(img, args.meta)
+    seg = srm(img, cam.fov_mask(), Q=args.q, work_px=None if args.full else 96)
+    write_image(args.out, paint_regions(seg, img.shape[:2]))
+    print(f"{seg.n_regions} regions (Q = {args.q:g}); wrote {args.out}")
+    return 0
+
+
+def _train_classifier(args) -> int:
+    import numpy as np
+
+    from bodyslam.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
+    from bodyslam.errors import InputError
+
+    X, y, names = [], [], []
+    for sd in args.seqdirs:
+        paths, cam = _frames_of(sd)
+        lab_path = __import__("pathlib").Path(sd) / "labels.csv"
+        if not lab_path.exists():
+            raise InputError(f"{sd}: no labels.csv (training needs testbed sequences with FT/FL labels)")
+        labels = {int(r.split(",")[0]): r.split(",")[2] for r in lab_path.read_text().splitlines()[1:] if r}
+        res = features_of_frames(paths, cam.fov_mask(), jobs=args.jobs, progress=Progress(f"features {sd}"))
+        for k, (st, _, f) in enumerate(res):
+            if st == "ok" and k in labels:
+                X.append(f)
+                y.append(labels[k])
+        names.append(str(sd))
+    model = train(np.array(X), np.array(y), FEATURES_9 if args.features == "nine" else FEATURES_RICH,
+                  info={"trained_on": names})
+    model.save(args.out)
+    print(f"{args.out}: {args.features} features, {len(y)} frames ({model.info['n_train_ft']} FT, "
+          f"{model.info['n_train_fl']} FL), cross-validated accuracy {model.info['cv_accuracy']:.4f}, "
+          f"C {model.info['C']:g}, gamma {model.gamma:g}, {len(model.support_vectors)} support vectors")
+    return 0
+
+
+def _classify(args) -> int:
+    from collections import Counter
+
+    from bodyslam.classify import TunnelClassifier, features_of_frames
+    from bodyslam.io import read_image, write_csv
+
+    paths, cam = _frames_of(args.input)
+    if cam is None:
+        cam = _camera_for(read_image(paths[0]), args.meta)
+    model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
+    res = features_of_frames(paths, cam.fov_mask(), jobs=args.jobs, progress=Progress("classify"))
+    rows = []
+    for p, (st, msg, f) in zip(paths, res):
+        if st == "ok":
+            d = float(model.decision(f[None])[0])
+            rows.append([p.name, "FT" if d > 0 else "FL", d, st])
+        else:
+            rows.append([p.name, "", float("nan"), st])
+            if msg:
+                print(f"  {msg}")
+    write_csv(args.out, ["frame", "label", "decision", "status"], rows)
+    c = Counter(r[1] or r[3] for r in rows)
+    print(f"{args.out}: {len(rows)} frames: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
+    return 0
 
 
 def _speed_stats(args) -> int:
@@ -209,7 +319,8 @@ def _check(args) -> int:
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
-            "track": _motion_or_track, "speed-stats": _speed_stats}[args.cmd](args)
+            "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
+            "train-classifier": _train_classifier, "classify": _classify}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,279 @@
+"""Facing the tunnel (FT) or facing the lumen wall (FL): region features of an SRM segmentation and a kernel SVM
+(dissertation Sec. 3.2.1).
+
+Features (:func:`region_features`), from the segmentation inside the valid field of view:
+
+- the dissertation's nine: size of the darkest region (fraction of the field of view), its length and width
+  (major and minor axis of its second moments, as fractions of the field's diameter), its RGB mean and the RGB
+  mean of the remaining regions (both /255). "Darkest" is the region of lowest mean luminance among those covering
+  at least 1% of the field (a dark speck of a few pixels is not a tunnel);
+- five more (``rich`` set): the darkest region's centroid distance from the image centre and its share of
+  pixels on the field's rim (both fractions), its luminance over the rest's, its fill of the ellipse of its
+  moments, and log(1 + number of regions).
+
+Model files are numpy ``.npz`` archives loaded with ``allow_pickle=False``: support vectors, dual coefficients,
+intercept, RBF gamma, scaler mean and scale, and a JSON header (feature list, format, versions, training
+summary) stored as bytes. Loading cannot run code; a tampered or foreign file gets an :class:`InputError`. The
+decision function is evaluated here with numpy (``sum_i a_i exp(-gamma |x - s_i|^2) + b``), so a model does not
+depend on the scikit-learn version that trained it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import zipfile
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from bodyslam.errors import ConfigError, InputError
+from bodyslam.segmentation import Segmentation, srm
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FEATURES_9", "FEATURES_RICH", "region_features", "frame_features", "TunnelClassifier", "train"]
+
+FEATURES_9 = ("dark_size", "dark_length", "dark_width", "dark_r", "dark_g", "dark_b", "rest_r", "rest_g", "rest_b")
+FEATURES_RICH = FEATURES_9 + ("dark_offset", "dark_rim_share", "dark_contrast", "dark_fill", "log_regions")
+FORMAT = "bodyslam-tunnel-svm/1"
+LABELS = ("FL", "FT")  # decision < 0: FL, > 0: FT
+
+
+def region_features(seg: Segmentation, min_region_frac: float = 0.01) -> np.ndarray:
+    """The ``FEATURES_RICH`` vector of one segmentation (the first nine are the dissertation's)."""
+    lab = seg.labels
+    valid = lab >= 0
+    n_valid = int(valid.sum())
+    lum = seg.means @ np.array([0.299, 0.587, 0.114])
+    big = seg.sizes >= max(1, min_region_frac * n_valid)
+    cand = np.nonzero(big)[0] if big.any() else np.arange(seg.n_regions)
+    d = int(cand[np.argmin(lum[cand])])
+    ys, xs = np.nonzero(lab == d)
+    h, w = lab.shape
+    vy, vx = np.nonzero(valid)
+    cy, cx = vy.mean(), vx.mean()
+    diam = 2.0 * math.sqrt(n_valid / math.pi)
+    if len(xs) > 1:
+        cov = np.cov(np.stack([xs, ys]).astype(float))
+        ev = np.sort(np.maximum(np.linalg.eigvalsh(cov), 0.0))[::-1]
+        length, width = 4.0 * math.sqrt(ev[0]), 4.0 * math.sqrt(ev[1])
+    else:
+        length = width = 1.0
+    w_rest = seg.sizes.astype(float).copy()
+    w_rest[d] = 0.0
+    rest_mean = (seg.means * w_rest[:, None]).sum(axis=0) / w_rest.sum() if w_rest.sum() > 0 else seg.means[d]
+    r_pix = np.hypot(xs - cx, ys - cy)
+    rim = float(np.mean(r_pix > 0.8 * diam / 2.0)) if len(xs) else 0.0
+    lum_rest = float(rest_mean @ np.array([0.299, 0.587, 0.114]))
+    size = seg.sizes[d] / n_valid
+    fill = seg.sizes[d] / max(math.pi / 4.0 * length * width, 1.0)
+    return np.array([
+        size, length / diam, width / diam, *(seg.means[d] / 255.0), *(rest_mean / 255.0),
+        math.hypot(xs.mean() - cx, ys.mean() - cy) / (diam / 2.0) if len(xs) else 0.0,
+        rim, (lum[d] + 1.0) / (lum_rest + 1.0), min(fill, 2.0), math.log1p(seg.n_regions),
+    ])
+
+
+def frame_features(rgb: np.ndarray, mask: np.ndarray, Q: float = 16.0, work_px: int = 96) -> np.ndarray:
+    """Features of one frame. Frames that cannot be segmented meaningfully raise :class:`InputError`."""
+    if rgb.ndim == 2:
+        rgb = cv2.cvtColor(rgb, cv2.COLOR_GRAY2RGB)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise InputError(f"frames must be 8-bit RGB or grey, got shape {rgb.shape} dtype {rgb.dtype}")
+    if rgb.shape[:2] != mask.shape:
+        raise InputError(f"frame is {rgb.shape[1]}x{rgb.shape[0]}, the field-of-view mask is "
+                         f"{mask.shape[1]}x{mask.shape[0]}")
+    if min(rgb.shape[:2]) < 16:
+        raise InputError(f"frame of {rgb.shape[1]}x{rgb.shape[0]} is too small to classify")
+    return region_features(srm(rgb, mask, Q=Q, work_px=work_px))
+
+
+@dataclass
+class TunnelClassifier:
+    """An RBF-kernel SVM on standardised region features; ``decision(x) > 0`` means FT."""
+
+    features: tuple[str, ...]
+    support_vectors: np.ndarray
+    dual_coef: np.ndarray
+    intercept: float
+    gamma: float
+    scaler_mean: np.ndarray
+    scaler_scale: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    @property
+    def feature_index(self) -> np.ndarray:
+        return np.array([FEATURES_RICH.index(f) for f in self.features])
+
+    def decision(self, X_rich: np.ndarray) -> np.ndarray:
+        """Decision values for rows of ``FEATURES_RICH`` vectors (the model picks its own columns)."""
+        X = np.atleast_2d(np.asarray(X_rich, float))[:, self.feature_index]
+        Z = (X - self.scaler_mean) / self.scaler_scale
+        d2 = (np.sum(Z * Z, axis=1)[:, None] + np.sum(self.support_vectors**2, axis=1)[None, :]
+              - 2.0 * Z @ self.support_vectors.T)
+        return np.exp(-self.gamma * np.maximum(d2, 0.0)) @ self.dual_coef + self.intercept
+
+    def predict(self, X_rich: np.ndarray) -> np.ndarray:
+        return np.where(self.decision(X_rich) > 0, "FT", "FL")
+
+    # -- files ----------------------------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> None:
+        from bodyslam.io import atomic_path
+
+        header = {"format": FORMAT, "features": list(self.features), "gamma": self.gamma,
+                  "intercept": self.intercept, **self.info}
+        with atomic_path(path, suffix=".npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, support_vectors=self.support_vectors, dual_coef=self.dual_coef,
+                         scaler_mean=self.scaler_mean, scaler_scale=self.scaler_scale,
+                         header=np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "TunnelClassifier":
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in ("support_vectors", "dual_coef", "scaler_mean", "scaler_scale", "header")}
+        except FileNotFoundError:
+            raise InputError(f"{path}: model file not found") from None
+        except KeyError as exc:
+            raise InputError(f"{path}: not a tunnel classifier model (missing {exc})") from None
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:  # not an npz, object arrays, truncated
+            raise InputError(f"{path}: not a readable model file ({exc})") from None
+        try:
+            header = json.loads(arrays["header"].tobytes().decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            raise InputError(f"{path}: model header is not JSON") from None
+        if header.get("format") != FORMAT:
+            raise InputError(f"{path}: model format {header.get('format')!r}, expected {FORMAT!r}")
+        feats = tuple(header.get("features", ()))
+        if not feats or any(f not in FEATURES_RICH for f in feats):
+            raise InputError(f"{path}: unknown feature list {feats}")
+        sv, dc = arrays["support_vectors"], arrays["dual_coef"]
+        mu, sc = arrays["scaler_mean"], arrays["scaler_scale"]
+        n = len(feats)
+        ok = (sv.ndim == 2 and sv.shape[1] == n and dc.shape == (sv.shape[0],) and mu.shape == (n,)
+              and sc.shape == (n,) and all(np.issubdtype(a.dtype, np.floating) for a in (sv, dc, mu, sc)))
+        if not ok:
+            raise InputError(f"{path}: model arrays have inconsistent shapes or types")
+        try:
+            gamma, intercept = float(header["gamma"]), float(header["intercept"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"{path}: model header lacks gamma/intercept") from None
+        if not (np.isfinite(sv).all() and np.isfinite(dc).all() and np.isfinite(mu).all()
+                and np.isfinite(sc).all() and (sc > 0).all() and math.isfinite(gamma) and gamma > 0):
+            raise InputError(f"{path}: model contains non-finite or invalid values")
+        info = {k: v for k, v in header.items() if k not in ("format", "features", "gamma", "intercept")}
+        return cls(feats, sv, dc, intercept, gamma, mu, sc, info)
+
+    @classmethod
+    def default(cls) -> "TunnelClassifier":
+        p = Path(__file__).with_name("models") / "tunnel_svm.npz"
+        if not p.exists():
+            raise ConfigError(f"the default classifier model is missing ({p}); train one with "
+                              "`bodyslam train-classifier`")
+        return cls.load(p)
+
+
+def train(X_rich: np.ndarray, y: np.ndarray, features: tuple[str, ...] = FEATURES_RICH, folds: int = 5,
+          seed: int = 0, info: dict | None = None) -> TunnelClassifier:
+    """Fit scaler + RBF SVM, ``C`` and ``gamma`` chosen by stratified k-fold cross-validation (accuracy)."""
+    import sklearn
+    from sklearn.model_selection import GridSearchCV, StratifiedKFold
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import StandardScaler
+    from sklearn.svm import SVC
+
+    y = np.asarray(y)
+    if set(np.unique(y)) != {"FL", "FT"}:
+        raise InputError(f"training needs both FT and FL frames, got {sorted(set(y.tolist()))}")
+    cols = np.array([FEATURES_RICH.index(f) for f in features])
+    X = np.asarray(X_rich, float)[:, cols]
+    yy = np.where(y == "FT", 1, -1)
+    pipe = Pipeline([("scale", StandardScaler()), ("svm", SVC(kernel="rbf"))])
+    grid = {"svm__C": [0.3, 1, 3, 10, 30, 100], "svm__gamma": [0.01, 0.03, 0.1, 0.3, 1.0]}
+    n_min = int(min(np.sum(yy == 1), np.sum(yy == -1)))
+    cv = StratifiedKFold(n_splits=max(2, min(folds, n_min)), shuffle=True, random_state=seed)
+    search = GridSearchCV(pipe, grid, cv=cv, scoring="accuracy", n_jobs=1)
+    search.fit(X, yy)
+    best = search.best_estimator_
+    svm, sc = best.named_steps["svm"], best.named_steps["scale"]
+    meta = {"cv_accuracy": float(search.best_score_), "C": float(search.best_params_["svm__C"]),
+            "n_train": int(len(y)), "n_train_ft": int(np.sum(yy == 1)), "n_train_fl": int(np.sum(yy == -1)),
+            "sklearn_version": sklearn.__version__, "numpy_version": np.__version__, **(info or {})}
+    # sklearn's decision_function: sum dual_coef * K + intercept, positive for classes_[1] (= +1: FT)
+    sign = 1.0 if svm.classes_[1] == 1 else -1.0
+    return TunnelClassifier(tuple(features), svm.support_vectors_.astype(float),
+                            sign * svm.dual_coef_[0].astype(float), sign * float(svm.intercept_[0]),
+                            float(svm._gamma), sc.mean_.astype(float), sc.scale_.astype(float), meta)
+
+
+# -- frames in bulk -----------------------------------------------------------------------------------------------
+def frame_status(rgb: np.ndarray, mask: np.ndarray) -> str:
+    """``ok``, or why a frame has no meaningful segmentation: ``dark`` (mean luminance < 8/255 in the field of
+    view) or ``saturated`` (over 90% of the field at >= 250)."""
+    g = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
+    v = g[mask]
+    if v.size == 0 or v.mean() < 8:
+        return "dark"
+    if np.mean(v >= 250) > 0.9:
+        return "saturated"
+    return "ok"
+
+
+def _features_chunk(args):
+    paths, mask, Q, work_px = args
+    import cv2 as _cv2
+
+    from bodyslam.io import read_image
+
+    _cv2.setNumThreads(1)
+    out = []
+    for p in paths:
+        try:
+            img = read_image(p)
+        except InputError as exc:
+            out.append(("unreadable", str(exc), None))
+            continue
+        if img.shape[:2] != mask.shape:
+            out.append(("bad_size", f"{p}: {img.shape[1]}x{img.shape[0]}, expected {mask.shape[1]}x{mask.shape[0]}",
+                        None))
+            continue
+        st = frame_status(img, mask)
+        if st != "ok":
+            out.append((st, "", None))
+            continue
+        out.append(("ok", "", frame_features(img, mask, Q, work_px)))
+    return out
+
+
+def features_of_frames(paths: list[Path], mask: np.ndarray, jobs: int | None = None, Q: float = 16.0,
+                       work_px: int = 96, chunk: int = 32, progress=None) -> list[tuple[str, str, np.ndarray | None]]:
+    """``(status, message, features)`` per frame path, in order, over ``jobs`` processes (streamed in chunks)."""
+    import multiprocessing as mp
+
+    tasks = [(paths[i:i + chunk], mask, Q, work_px) for i in range(0, len(paths), chunk)]
+    if jobs is None:
+        jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    jobs = max(1, min(jobs, len(tasks)))
+    results = []
+    if jobs == 1:
+        it, pool = map(_features_chunk, tasks), None
+    else:
+        pool = mp.get_context("spawn").Pool(jobs)
+        it = pool.imap(_features_chunk, tasks)
+    try:
+        for r in it:
+            results.extend(r)
+            if progress:
+                progress(len(results), len(paths))
+    finally:
+        if pool is not None:
+            pool.close()
+            pool.join()
+    return results

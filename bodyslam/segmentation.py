@@ -1,0 +1,146 @@
+"""Statistical Region Merging (Nock & Nielsen 2004; dissertation Sec. 3.2.1.1, Eq. 3.1) of colour frames.
+
+Pixel pairs of the 4-neighbourhood are visited in increasing order of their largest per-channel difference;
+two regions ``R, R'`` merge when, in every colour channel, ``|mean(R) - mean(R')| <= sqrt(b2(R) + b2(R'))`` with
+``b2(R) = g^2 / (2 Q |R|) * (min(g, |R|) ln(1 + |R|) + ln(6 |I|^2))`` (the paper's bound with
+``delta = 1 / (6 |I|^2)``; ``g = 256`` levels, ``|I|`` the number of pixels). ``Q`` sets the coarseness: the
+dissertation uses 16. ``b2`` is multiplied by ``relax = 0.1`` as in the reference implementation most users know
+(Fiji's SRM plug-in): with the paper's bound as printed (``relax = 1``) and Q = 16, a capsule frame merges into
+1-4 regions and the tunnel is lost (measured on testbed frames; STACK-NOTES.md), unlike Fig. 3.3. Only pixels inside the valid field-of-view mask take part; outside is label -1.
+
+Speed: the merge loop is sequential union-find (SRM's order matters), which in Python costs ~3 us per pixel
+pair. :func:`srm` therefore segments a copy resized so its longer side is ``work_px`` (default 96 pixels: the
+classifier's region features are coarse, see :mod:`bodyslam.classify`) and returns labels at that size;
+``work_px=None`` segments at full resolution (``bodyslam segment --full``).
+
+Data form: :class:`Segmentation` with ``labels (h, w) int32`` (-1 outside the mask, else 0..n-1),
+``means (n, 3) float64`` RGB region means and ``sizes (n,)`` pixel counts, at the working resolution.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from bodyslam.errors import ConfigError, InputError
+
+__all__ = ["Segmentation", "srm", "paint_regions"]
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    labels: np.ndarray
+    means: np.ndarray
+    sizes: np.ndarray
+
+    @property
+    def n_regions(self) -> int:
+        return len(self.sizes)
+
+
+def _resize_for_work(rgb: np.ndarray, mask: np.ndarray, work_px: int | None):
+    h, w = mask.shape
+    if work_px is None or max(h, w) <= work_px:
+        return rgb, mask
+    s = work_px / max(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    m = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+    return small, m
+
+
+def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_px: int | None = 96,
+        relax: float = 0.1) -> Segmentation:
+    """Segment an RGB ``uint8 (h, w, 3)`` frame (see module docstring; ``relax`` scales the merge bound)."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise InputError(f"SRM needs an RGB or grey image, got shape {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise InputError(f"SRM needs 8-bit images, got {rgb.dtype}")
+    if not Q > 0:
+        raise ConfigError(f"SRM's Q must be positive, got {Q}")
+    if mask is None:
+        mask = np.ones(rgb.shape[:2], bool)
+    if mask.shape != rgb.shape[:2]:
+        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {rgb.shape[1]}x{rgb.shape[0]}")
+    img, m = _resize_for_work(rgb, mask, work_px)
+    h, w = m.shape
+    n_pix = int(m.sum())
+    if n_pix == 0:
+        raise InputError("the field-of-view mask is empty")
+    flat = img.reshape(-1, 3).astype(np.float64)
+    idx = np.arange(h * w).reshape(h, w)
+    # 4-neighbour pairs inside the mask, sorted by the largest channel difference (stable: reproducible)
+    pa = np.concatenate([idx[:, :-1][m[:, :-1] & m[:, 1:]], idx[:-1, :][m[:-1, :] & m[1:, :]]])
+    pb = np.concatenate([idx[:, 1:][m[:, :-1] & m[:, 1:]], idx[1:, :][m[:-1, :] & m[1:, :]]])
+    diff = np.abs(flat[pa] - flat[pb]).max(axis=1)
+    order = np.argsort(diff, kind="stable")
+    pa, pb = pa[order].tolist(), pb[order].tolist()
+
+    g = 256.0
+    log_term = math.log(6.0 * n_pix * n_pix)
+    k = relax * g * g / (2.0 * Q)
+    parent = list(range(h * w))
+    size = [1] * (h * w)
+    sums = flat.tolist()  # per-pixel [r, g, b] running sums of each root
+    b2_of = [k * (math.log(2.0) + log_term)] * (h * w)  # b2 of a one-pixel region
+
+    def find(x):
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:  # path compression
+            parent[x], x = root, parent[x]
+        return root
+
+    for a, b in zip(pa, pb):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            continue
+        na, nb = size[ra], size[rb]
+        sa, sb = sums[ra], sums[rb]
+        thr = b2_of[ra] + b2_of[rb]
+        d0 = sa[0] / na - sb[0] / nb
+        if d0 * d0 > thr:
+            continue
+        d1 = sa[1] / na - sb[1] / nb
+        if d1 * d1 > thr:
+            continue
+        d2 = sa[2] / na - sb[2] / nb
+        if d2 * d2 > thr:
+            continue
+        if na < nb:
+            ra, rb, na, nb, sa, sb = rb, ra, nb, na, sb, sa
+        parent[rb] = ra
+        n = na + nb
+        size[ra] = n
+        sums[ra] = [sa[0] + sb[0], sa[1] + sb[1], sa[2] + sb[2]]
+        b2_of[ra] = k / n * (min(g, n) * math.log(1.0 + n) + log_term)
+
+    roots = np.array([find(i) for i in range(h * w)])
+    roots[~m.ravel()] = -1
+    uniq, labels = np.unique(roots, return_inverse=True)
+    labels = labels.astype(np.int32) - (1 if uniq[0] == -1 else 0)
+    labels[roots == -1] = -1
+    labels = labels.reshape(h, w)
+    valid = labels >= 0
+    n_reg = int(labels.max()) + 1
+    sizes = np.bincount(labels[valid], minlength=n_reg)
+    means = np.stack([np.bincount(labels[valid], weights=img[..., c][valid], minlength=n_reg) for c in range(3)],
+                     axis=1) / np.maximum(sizes, 1)[:, None]
+    return Segmentation(labels, means, sizes)
+
+
+def paint_regions(seg: Segmentation, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Each region drawn in its mean colour (Fig. 3.3), black outside the mask; resized to ``shape`` (h, w)."""
+    out = np.zeros(seg.labels.shape + (3,), np.uint8)
+    valid = seg.labels >= 0
+    out[valid] = np.rint(seg.means[seg.labels[valid]]).astype(np.uint8)
+    if shape is not None and shape != out.shape[:2]:
+        out = cv2.resize(out, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+    return out

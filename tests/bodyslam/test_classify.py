@@ -1,0 +1,111 @@
+"""SRM segmentation, region features, and the FT/FL kernel SVM with its non-executable model files."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bodyslam.classify import (FEATURES_9, FEATURES_RICH, TunnelClassifier, frame_features, frame_status,
+                               region_features, train)
+from bodyslam.errors import InputError
+from bodyslam.segmentation import paint_regions, srm
+
+
+def disc_frame(size=96, dark_radius=20, centre=(48, 48), seed=0):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    mask = (xx - 47.5) ** 2 + (yy - 47.5) ** 2 <= 46**2
+    img = np.full((size, size, 3), (200, 120, 90), np.float64)
+    dark = (xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= dark_radius**2
+    img[dark] = (30, 15, 10)
+    img += rng.normal(0, 3, img.shape)
+    img[~mask] = 0
+    return np.clip(img, 0, 255).astype(np.uint8), mask, dark & mask
+
+
+def test_srm_separates_a_dark_tunnel_and_respects_the_mask():
+    img, mask, dark = disc_frame()
+    seg = srm(img, mask, Q=16, work_px=None)
+    assert (seg.labels[~mask] == -1).all() and (seg.labels[mask] >= 0).all()
+    big = np.argsort(seg.sizes)[::-1][:2]
+    assert seg.sizes[big].sum() >= 0.97 * mask.sum()  # two regions: the wall and the tunnel (noise is merged)
+    d = big[np.argmin(seg.means[big].sum(axis=1))]
+    assert np.mean(seg.labels[dark] == d) > 0.97
+    assert paint_regions(seg, (192, 192)).shape == (192, 192, 3)
+
+
+def test_region_features_describe_the_darkest_region():
+    img, mask, dark = disc_frame(dark_radius=15, centre=(60, 48))
+    f = region_features(srm(img, mask, work_px=None))
+    named = dict(zip(FEATURES_RICH, f))
+    assert named["dark_size"] == pytest.approx(dark.sum() / mask.sum(), rel=0.05)
+    diam = 2 * np.sqrt(mask.sum() / np.pi)
+    assert named["dark_length"] == pytest.approx(30 / diam, rel=0.1)  # a circle: length = width = diameter
+    assert named["dark_width"] == pytest.approx(30 / diam, rel=0.1)
+    assert named["dark_r"] == pytest.approx(30 / 255, abs=0.02)
+    assert named["rest_r"] == pytest.approx(200 / 255, abs=0.02)
+    assert named["dark_offset"] == pytest.approx(12.5 / 46, abs=0.05)
+
+
+def test_frames_without_content_get_a_defined_answer():
+    _, mask, _ = disc_frame()
+    assert frame_status(np.zeros((96, 96, 3), np.uint8), mask) == "dark"
+    assert frame_status(np.full((96, 96, 3), 255, np.uint8), mask) == "saturated"
+    grey = disc_frame()[0][..., 0]
+    assert len(frame_features(grey, mask)) == len(FEATURES_RICH)  # grey frames are read as RGB
+    with pytest.raises(InputError, match="too small"):
+        frame_features(np.zeros((8, 8, 3), np.uint8), np.ones((8, 8), bool))
+    with pytest.raises(InputError, match="mask"):
+        frame_features(disc_frame()[0], np.ones((50, 50), bool))
+
+
+@pytest.fixture(scope="module")
+def toy_model():
+    rng = np.random.default_rng(1)
+    n = 120
+    X = rng.normal(size=(n, len(FEATURES_RICH)))
+    y = np.where(X[:, 0] + 0.5 * X[:, 3] ** 2 > 0.3, "FT", "FL")
+    return train(X, y, FEATURES_RICH, folds=3), X, y
+
+
+def test_decision_function_equals_scikit_learn(toy_model):
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+    from sklearn.svm import SVC
+
+    model, X, y = toy_model
+    ref = make_pipeline(StandardScaler(), SVC(kernel="rbf", C=model.info["C"], gamma=model.gamma))
+    ref.fit(X, np.where(y == "FT", 1, -1))
+    assert np.allclose(model.decision(X), ref.decision_function(X), atol=1e-8)
+    assert np.mean(model.predict(X) == y) > 0.9
+
+
+def test_model_files_round_trip_and_refuse_tampering(toy_model, tmp_path):
+    model, X, _ = toy_model
+    p = tmp_path / "m.npz"
+    model.save(p)
+    back = TunnelClassifier.load(p)
+    assert np.array_equal(back.decision(X), model.decision(X)) and back.features == model.features
+    (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(InputError, match="not a readable model"):
+        TunnelClassifier.load(tmp_path / "junk.npz")
+    # an archive holding a pickled object array: refused, never unpickled
+    np.savez(tmp_path / "obj.npz", support_vectors=np.array([object()], dtype=object), dual_coef=np.zeros(1),
+             scaler_mean=np.zeros(1), scaler_scale=np.ones(1), header=np.zeros(1, np.uint8))
+    with pytest.raises(InputError):
+        TunnelClassifier.load(tmp_path / "obj.npz")
+    # a foreign format, and arrays that do not fit the header
+    hdr = {"format": "someone-else/1", "features": list(FEATURES_9), "gamma": 0.1, "intercept": 0.0}
+    np.savez(tmp_path / "foreign.npz", support_vectors=np.zeros((2, 9)), dual_coef=np.zeros(2),
+             scaler_mean=np.zeros(9), scaler_scale=np.ones(9),
+             header=np.frombuffer(json.dumps(hdr).encode(), np.uint8))
+    with pytest.raises(InputError, match="format"):
+        TunnelClassifier.load(tmp_path / "foreign.npz")
+    hdr["format"] = "bodyslam-tunnel-svm/1"
+    np.savez(tmp_path / "shape.npz", support_vectors=np.zeros((2, 5)), dual_coef=np.zeros(2),
+             scaler_mean=np.zeros(9), scaler_scale=np.ones(9),
+             header=np.frombuffer(json.dumps(hdr).encode(), np.uint8))
+    with pytest.raises(InputError, match="inconsistent"):
+        TunnelClassifier.load(tmp_path / "shape.npz")
+    with pytest.raises(InputError, match="not found"):
+        TunnelClassifier.load(tmp_path / "missing.npz")
