@@ -65,6 +65,9 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--mask", default=None,
                        help="valid field of view: 'auto' (detect black border and burned-in text from the frames)"
                             " or a PNG (non-zero = valid); default: the camera's image circle")
+        q.add_argument("--no-classify", action="store_true",
+                       help="estimate every step; by default steps touching a facing-the-wall frame get no_lumen")
+        q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--camera", default="front", choices=("front", "rear"),
                        help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
         motion_opts(q)
@@ -269,7 +272,8 @@ def _motion_or_track(args) -> int:
     from bodyslam.io import write_csv, write_tum
     from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, dead_reckon, motion_rows, sequence_motion
 
-    settings = MotionSettings(args.mode, args.estimator, args.unroll_mode, mask=args.mask)
+    settings = MotionSettings(args.mode, args.estimator, args.unroll_mode, mask=args.mask,
+                              classify=not args.no_classify, model=args.model)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
                             progress=Progress(args.cmd), camera=args.camera)

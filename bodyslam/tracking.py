@@ -50,6 +50,8 @@ class MotionSettings:
     min_matches: int = 20  # a 10-parameter fit on fewer verified matches fails on big jumps (measured)
     mask: str | None = None  # valid field of view: None = the camera's image circle, "auto" = detected from the
     #                          frames (black border, burned-in text), or a PNG path (non-zero = valid)
+    classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
+    model: str | None = None  # classifier model file (default: the shipped one)
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -133,22 +135,44 @@ def _chunk_motion(args) -> list[tuple[int, StepMotion]]:
     seq = Sequence.open(seq_dir, radius_m, camera)
     matcher = Matcher(seq.camera, settings.match_mode, mask=mask)
     unroller = Unroller(seq.camera, mode=settings.unroll_mode)
+    fov = seq.camera.fov_mask() if mask is None else mask
+    classifier = None
+    if settings.classify:
+        from bodyslam.classify import TunnelClassifier
+
+        classifier = (TunnelClassifier.load(settings.model) if settings.model else TunnelClassifier.default())
     out = []
-    prev = None
+    prev = prev_class = None
     for k in range(a, b + 1):
         try:
-            feats = matcher.features(seq.frame(k))
+            img = seq.frame(k)
+            feats = matcher.features(img)
+            cls = _frame_class(classifier, img, fov)
         except InputError as exc:
             log.warning("%s", exc)
-            feats = None
+            feats = cls = None
         if k > a:
             if prev is None or feats is None:
                 out.append((k, StepMotion(status="bad_frame")))
+            elif prev_class != "FT" or cls != "FT":
+                # the geometric model needs the lumen in view in both frames (dissertation Sec. 3.2.1)
+                out.append((k, StepMotion(status="no_lumen")))
             else:
                 m = matcher.match_features(prev, feats)
                 out.append((k, seq.to_body(_estimate(settings, m, seq.camera, unroller, seq.radius_m))))
-        prev = feats
+        prev, prev_class = feats, cls
     return out
+
+
+def _frame_class(classifier, img: np.ndarray, fov: np.ndarray) -> str:
+    """FT or FL by the kernel SVM (FT for every frame when classification is off); dark/saturated frames: FL."""
+    if classifier is None:
+        return "FT"
+    from bodyslam.classify import frame_features, frame_status
+
+    if frame_status(img, fov) != "ok":
+        return "FL"
+    return str(classifier.predict(frame_features(img, fov)[None])[0])
 
 
 def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = MotionSettings(),
