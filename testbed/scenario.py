@@ -25,6 +25,7 @@ from bodyslam.camera import CameraModel, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from testbed.centerline import Centerline, procedural_centerline
 from testbed.motion import MotionConfig
+from testbed.artifacts import Bubbles
 from testbed.render import RENDER_BACKENDS, Lighting, SensorNoise
 from testbed.texture import Texture, procedural_mucosa, texture_from_image
 from testbed.tube import Folds, Tube
@@ -122,6 +123,7 @@ class World:
     rngs: dict
     render_backend: str = "raycast"
     rear_baseline_m: float | None = None  # a second, rear-facing camera this far behind the front lens (None: off)
+    bubbles: Bubbles = Bubbles()
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -220,5 +222,6 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
         rear_baseline = float(rear.get("baseline_m", 0.026))
         if not 0.0 <= rear_baseline <= 0.05:
             raise ConfigError(f"[rear_camera] baseline_m must be within 0-0.05 m, got {rear_baseline}")
+    bubbles = _dataclass_from(Bubbles, _section(scn, "artifacts"), "artifacts")
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend, rear_baseline)
+                 backend, rear_baseline, bubbles)

@@ -79,6 +79,7 @@ def _init_worker(state: dict | None = None) -> None:
         threadpool_limits(1)
     cv2.setNumThreads(1)  # one render process per core: OpenCV's own threads would only oversubscribe the cores
     w: World = _W["world"]
+    _W["fov"] = w.camera.fov_mask()
     _W["renderer"] = make_renderer(w.render_backend, w.tube, w.texture, w.camera, w.lighting, mesh=_W.get("mesh"))
 
 
@@ -94,7 +95,10 @@ def _render_one(k: int) -> int:
     R_w_c, p_w_c = traj.rotations_w_c[k], traj.positions_w_m[k]
     res = _W["renderer"].render(R_w_c, p_w_c)
     rng = np.random.default_rng([w.seed, 7919, k])  # per-frame noise stream: same output for any job count
-    write_image(out / "frames" / frame_name(k), w.noise.apply(res.rgb, rng))
+    rgb = res.rgb
+    if w.bubbles.bubble_prob > 0:
+        rgb = w.bubbles.apply(rgb, np.random.default_rng([w.seed, 7919, k, 2]), _W["fov"])
+    write_image(out / "frames" / frame_name(k), w.noise.apply(rgb, rng))
     if w.write_depth:
         write_image(out / "depth" / frame_name(k), encode_range(res.range_m))
     if w.rear_baseline_m is not None:

@@ -42,3 +42,30 @@ def test_motion_gives_facing_the_wall_steps_a_status(fl_sequence, tmp_path):
     both_fl = [k for k in rows if labels[k] == "FL" and labels[k - 1] == "FL"]
     assert both_fl and all(rows[k]["status"] == "no_lumen" for k in both_fl)
     assert all(rows[k]["distance_m"] == "nan" for k in both_fl)
+
+
+def test_a_folder_of_awkward_frames_gets_an_answer_per_frame(fl_sequence, tmp_path):
+    """Black, saturated, grey, odd-size and corrupt files: a status each, the good frames a label."""
+    import shutil
+
+    from bodyslam.io import read_image, write_image
+
+    d = tmp_path / "frames"
+    d.mkdir()
+    good = read_image(fl_sequence / "frames" / "000000.png")
+    shutil.copy(fl_sequence / "frames" / "000000.png", d / "a_good.png")
+    write_image(d / "b_black.png", np.zeros_like(good))
+    write_image(d / "c_white.png", np.full_like(good, 255))
+    write_image(d / "d_grey.png", good[..., 1])
+    write_image(d / "e_small.png", good[::2, ::2])
+    (d / "f_corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    out = tmp_path / "c.csv"
+    p = run("bodyslam.cli", "classify", str(d), "--out", str(out), "--jobs", "1", "--meta", str(fl_sequence))
+    assert p.returncode == 0, p.stderr
+    rows = {r["frame"]: r for r in csv.DictReader(out.open())}
+    assert rows["a_good.png"]["status"] == "ok" and rows["a_good.png"]["label"] in ("FT", "FL")
+    assert rows["b_black.png"]["status"] == "dark"
+    assert rows["c_white.png"]["status"] == "saturated"
+    assert rows["d_grey.png"]["status"] == "ok"
+    assert rows["e_small.png"]["status"] == "bad_size"
+    assert rows["f_corrupt.png"]["status"] == "unreadable"
