@@ -11,6 +11,7 @@ speed-stats motion.csv --out DIR    speed PDF/CDF plots and a fitted speed model
 segment FRAME --out seg.png         SRM segmentation, regions in their mean colours (Fig. 3.3)
 train-classifier SEQDIR... --out M  train the FT/FL kernel SVM on testbed sequences (labels.csv)
 classify INPUT --out classes.csv    FT/FL per frame (sequence directory or folder of frames)
+rf-localize --rf rf.csv --sensors sensors.csv --out fixes.csv   RF-only position fixes (LLS, NLS, ML)
 
 The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
 sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
@@ -89,6 +90,12 @@ def _parser() -> argparse.ArgumentParser:
     cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
     cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
     cl.add_argument("--jobs", type=int, default=None)
+    rl = sub.add_parser("rf-localize", help="RF-only position per reading time (Eq. 2.12, 3.36, ML)")
+    rl.add_argument("--rf", required=True, help="rf.csv (t,sensor,rss_dbm)")
+    rl.add_argument("--sensors", required=True, help="sensors.csv (sensor,x,y,z[,nx,ny,nz])")
+    rl.add_argument("--meta", default=None, help="meta.json with the path-loss model (default: Table 2.2, -16 dBm)")
+    rl.add_argument("--method", default="ml", choices=("lls", "nls", "ml"))
+    rl.add_argument("--out", required=True, help="fixes.csv: t,x_m,y_m,z_m,cov_xx..cov_zz,n_sensors,status")
     ss = sub.add_parser("speed-stats", help="speed PDF/CDF and a speed model file from a motion.csv")
     ss.add_argument("motion_csv")
     ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
@@ -183,6 +190,46 @@ def _classify(args) -> int:
     c = Counter(r[1] or r[3] for r in rows)
     print(f"{args.out}: {len(rows)} frames: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
     return 0
+
+
+def _rf_localize(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from bodyslam.io import read_json, write_csv
+    from bodyslam.rf import PathLossModel, locate_lls, locate_ml, locate_nls, read_rf, read_sensors
+
+    names, pos, nrm = read_sensors(args.sensors)
+    stamps, rss, problems = read_rf(args.rf, names)
+    pl = PathLossModel()
+    if args.meta:
+        p = Path(args.meta)
+        meta = read_json(p / "meta.json" if p.is_dir() else p)
+        if isinstance(meta.get("rf"), dict) and "pathloss" in meta["rf"]:
+            pl = PathLossModel.from_dict(meta["rf"]["pathloss"])
+    rows = []
+    prog = Progress("rf-localize")
+    for k, t in enumerate(stamps):
+        if args.method == "lls":
+            fx = locate_lls(pos, rss[k], pl)
+        elif args.method == "nls":
+            fx = locate_nls(pos, rss[k], pl)
+        else:
+            fx = locate_ml(pos, nrm, rss[k], pl)
+        c = fx.cov_m2
+        rows.append([t, *fx.position_w_m, c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2], fx.n_sensors,
+                     fx.status])
+        prog(k + 1, len(stamps))
+    write_csv(args.out, ["t", "x_m", "y_m", "z_m", "cov_xx_m2", "cov_xy_m2", "cov_xz_m2", "cov_yy_m2", "cov_yz_m2",
+                         "cov_zz_m2", "n_sensors", "status"], rows)
+    for msg in problems[:20]:
+        print(f"  skipped {msg}")
+    ok = sum(r[-1] == "ok" for r in rows)
+    sd = np.nanmedian([np.sqrt(r[4] + r[7] + r[9]) for r in rows]) if rows else float("nan")
+    print(f"{args.out}: {len(rows)} fixes ({ok} ok, {args.method}); median predicted 1-sigma {sd * 100:.1f} cm; "
+          f"{len(problems)} RF line(s) skipped")
+    return 1 if problems else 0
 
 
 def _speed_stats(args) -> int:
@@ -324,7 +371,7 @@ def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
-            "train-classifier": _train_classifier, "classify": _classify}[args.cmd](args)
+            "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -124,6 +124,7 @@ class World:
     render_backend: str = "raycast"
     rear_baseline_m: float | None = None  # a second, rear-facing camera this far behind the front lens (None: off)
     bubbles: Bubbles = Bubbles()
+    rf: dict | None = None  # {"layout": SensorLayout, "pathloss": PathLossModel, "toa": TOAModel}, or None (off)
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -223,5 +224,18 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
         if not 0.0 <= rear_baseline <= 0.05:
             raise ConfigError(f"[rear_camera] baseline_m must be within 0-0.05 m, got {rear_baseline}")
     bubbles = _dataclass_from(Bubbles, _section(scn, "artifacts"), "artifacts")
+    rf = _rf_from(_section(scn, "rf"), Path(scn["_origin"]).parent if "_origin" in scn else None)
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend, rear_baseline, bubbles)
+                 backend, rear_baseline, bubbles, rf)
+
+
+def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:
+    """RF emulation settings; on by default with the thesis sensor grids (``[rf] enabled = false`` turns it off)."""
+    from testbed.rf import PathLossModel, TOAModel, layout_from_config
+
+    if not sec.get("enabled", True):
+        return None
+    pl = {k: (tuple(v) if isinstance(v, list) else v) for k, v in sec.get("pathloss", {}).items()}
+    return {"layout": layout_from_config(sec, base_dir),
+            "pathloss": _dataclass_from(PathLossModel, pl, "rf.pathloss"),
+            "toa": _dataclass_from(TOAModel, sec.get("toa", {}), "rf.toa")}

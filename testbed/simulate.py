@@ -171,6 +171,13 @@ def simulate(
     write_csv(out / "labels.csv", ["frame", "t", "label", "phase", "s_m"],
               [[k, traj.stamps_s[k], labels[k], PHASES[traj.phase[k]], traj.s_m[k]] for k in range(n)])
     world.tube.centerline.write_csv(out / "centerline.csv")
+    if world.rf is not None:
+        from testbed.rf import emulate_rf, write_rf
+
+        meas = emulate_rf(traj.positions_w_m, world.rf["layout"], world.rf["pathloss"], world.rf["toa"],
+                          world.rngs["rf"])
+        world.rf["layout"].write_csv(out / "sensors.csv")
+        write_rf(out / "rf.csv", traj.stamps_s, world.rf["layout"], meas)
     truth = {
         "n_frames": n,
         "n_steps": n - 1,
@@ -201,6 +208,11 @@ def simulate(
         "source": {"generator": "testbed", "version": __version__, "scenario": scenario.get("name"),
                    "seed": seed},
     }
+    if world.rf is not None:  # the RF calibration a real system would have (path-loss model), not ground truth
+        from dataclasses import asdict
+
+        meta["rf"] = {"file": "rf.csv", "sensors": "sensors.csv", "pathloss": asdict(world.rf["pathloss"]),
+                      "toa": asdict(world.rf["toa"])}
     if world.rear_baseline_m is not None:
         R_c_r, t_c_r = rear_extrinsics(world.rear_baseline_m)
         meta["rear_camera"] = {"camera": cam.to_dict(), "frames": {"dir": "frames_rear"},
