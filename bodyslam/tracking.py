@@ -39,7 +39,10 @@ log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "sequence_motion", "dead_reckon", "MOTION_COLUMNS", "motion_rows"]
 
-MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status"]
+MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status",
+                  # beyond SPEC's minimum: the full step (translation in the first frame's camera axes, rotation
+                  # vector of R_c1_c2) and its 1-sigma uncertainties, so fusion can run from the file alone
+                  "tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"]
 
 
 @dataclass(frozen=True)
@@ -242,8 +245,13 @@ def resolve_mask(seq: Sequence, mask: str | None, n_sample: int = 30) -> np.ndar
 
 def motion_rows(steps: list[StepMotion], frame_rate_hz: float) -> list[list]:
     """Rows of ``motion.csv`` (SPEC.md): step ``k`` is the motion from frame ``k-1`` to frame ``k``."""
-    return [[k, k / frame_rate_hz, s.distance_m, s.roll_rad, s.pitch_rad, s.yaw_rad, s.tilt_rad, s.n_matches,
-             s.status] for k, s in enumerate(steps, start=1)]
+    rows = []
+    for k, s in enumerate(steps, start=1):
+        t = s.t_c1_c2_m if s.t_c1_c2_m is not None else np.full(3, np.nan)
+        rv = Rotation.from_matrix(s.R_c1_c2).as_rotvec() if s.R_c1_c2 is not None else np.full(3, np.nan)
+        rows.append([k, k / frame_rate_hz, s.distance_m, s.roll_rad, s.pitch_rad, s.yaw_rad, s.tilt_rad, s.n_matches,
+                     s.status, *map(float, t), *map(float, rv), s.sigma_distance_m, s.sigma_rotation_rad])
+    return rows
 
 
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:

@@ -52,7 +52,7 @@ def test_motion_and_score_on_the_demo_sequence(tmp_path):
     p = run("bodyslam.cli", "motion", str(DEMO), "--out", str(out), "--jobs", "2")
     assert p.returncode == 0, p.stderr
     header = out.read_text().splitlines()[0]
-    assert header == "frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,n_matches,status"
+    assert header.startswith("frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,n_matches,status")
     p = run("testbed.cli", "score-motion", str(DEMO), str(out), "--json", str(tmp_path / "score.json"))
     assert p.returncode == 0, p.stderr
     rep = json.loads((tmp_path / "score.json").read_text())
