@@ -12,6 +12,7 @@ segment FRAME --out seg.png         SRM segmentation, regions in their mean colo
 train-classifier SEQDIR... --out M  train the FT/FL kernel SVM on testbed sequences (labels.csv)
 classify INPUT --out classes.csv    FT/FL per frame (sequence directory or folder of frames)
 rf-localize --rf rf.csv --sensors sensors.csv --out fixes.csv   RF-only position fixes (LLS, NLS, ML)
+localize SEQDIR [--rf rf.csv --sensors sensors.csv] --out DIR    Body-SLAM: vision + RF fusion, smoothed
 
 The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
 sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
@@ -96,6 +97,17 @@ def _parser() -> argparse.ArgumentParser:
     rl.add_argument("--meta", default=None, help="meta.json with the path-loss model (default: Table 2.2, -16 dBm)")
     rl.add_argument("--method", default="ml", choices=("lls", "nls", "ml"))
     rl.add_argument("--out", required=True, help="fixes.csv: t,x_m,y_m,z_m,cov_xx..cov_zz,n_sensors,status")
+    lo = sub.add_parser("localize", help="Body-SLAM: motion from the frames fused with RF (EKF + RTS smoother)")
+    lo.add_argument("seqdir")
+    lo.add_argument("--rf", default=None, help="rf.csv (default: the sequence's rf.csv)")
+    lo.add_argument("--sensors", default=None, help="sensors.csv (default: the sequence's sensors.csv)")
+    lo.add_argument("--out", required=True, help="output directory")
+    lo.add_argument("--motion", default=None, help="reuse a motion.csv instead of estimating motion again")
+    lo.add_argument("--fusion", default="rss", choices=("rss", "fix"),
+                    help="rss: EKF on the raw RSS readings (default); fix: EKF on ML position fixes")
+    lo.add_argument("--jobs", type=int, default=None)
+    lo.add_argument("--force", action="store_true", help="write into a non-empty output directory")
+    motion_opts(lo)
     ss = sub.add_parser("speed-stats", help="speed PDF/CDF and a speed model file from a motion.csv")
     ss.add_argument("motion_csv")
     ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
@@ -229,6 +241,77 @@ def _rf_localize(args) -> int:
     sd = np.nanmedian([np.sqrt(r[4] + r[7] + r[9]) for r in rows]) if rows else float("nan")
     print(f"{args.out}: {len(rows)} fixes ({ok} ok, {args.method}); median predicted 1-sigma {sd * 100:.1f} cm; "
           f"{len(problems)} RF line(s) skipped")
+    return 1 if problems else 0
+
+
+def _localize(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from bodyslam.errors import InputError
+    from bodyslam.fusion import fuse, rts_smooth, steps_from_motion_rows
+    from bodyslam.io import read_json, read_motion_csv, write_csv, write_image, write_tum
+    from bodyslam.plots import Figure
+    from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors
+    from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, motion_rows, sequence_motion
+
+    seq_dir = Path(args.seqdir)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise InputError(f"{out}: directory is not empty (use --force to overwrite)")
+    out.mkdir(parents=True, exist_ok=True)
+    seq = Sequence.open(seq_dir, args.radius_m)
+    meta = read_json(seq_dir / "meta.json")
+    rf_meta = meta.get("rf") if isinstance(meta.get("rf"), dict) else {}
+    rf_path = Path(args.rf) if args.rf else seq_dir / rf_meta.get("file", "rf.csv")
+    sensors_path = Path(args.sensors) if args.sensors else seq_dir / rf_meta.get("sensors", "sensors.csv")
+    pl = PathLossModel.from_dict(rf_meta["pathloss"]) if "pathloss" in rf_meta else PathLossModel()
+    names, pos, nrm = read_sensors(sensors_path)
+    stamps, rss_t, problems = read_rf(rf_path, names)
+    # RF readings per frame: the reading nearest in time within half a frame, else none
+    n = seq.n_frames
+    frame_t = np.arange(n) / seq.frame_rate_hz
+    rss = np.full((n, len(names)), np.nan)
+    if len(stamps):
+        j = np.clip(np.searchsorted(stamps, frame_t), 0, len(stamps) - 1)
+        j = np.where((j > 0) & (np.abs(stamps[np.maximum(j - 1, 0)] - frame_t) < np.abs(stamps[j] - frame_t)),
+                     j - 1, j)
+        near = np.abs(stamps[j] - frame_t) <= 0.5 / seq.frame_rate_hz
+        rss[near] = rss_t[j[near]]
+    if args.motion:
+        rows = read_motion_csv(args.motion)
+    else:
+        settings = MotionSettings(args.mode, args.estimator, args.unroll_mode)
+        steps = sequence_motion(seq_dir, settings, jobs=args.jobs, radius_m=args.radius_m,
+                                progress=Progress("motion"))
+        write_csv(out / "motion.csv", MOTION_COLUMNS, motion_rows(steps, seq.frame_rate_hz))
+        rows = read_motion_csv(out / "motion.csv")
+    steps = steps_from_motion_rows(rows, n)
+    fixes = [locate_ml(pos, nrm, r, pl) for r in rss]
+    ekf = fuse(steps, fixes, rss, pos, nrm, pl, mode=args.fusion)
+    res = rts_smooth(ekf)
+    write_tum(out / "trajectory.tum", frame_t, res.positions_w_m, res.rotations_w_c)
+    write_tum(out / "trajectory_filter.tum", frame_t, ekf.positions_w_m, ekf.rotations_w_c)
+    c = res.cov
+    write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m", "sd_heading_rad"],
+              [[t, *np.sqrt(np.diag(c[k])[:3]), float(np.sqrt(np.trace(c[k][:3, :3]))),
+                float(np.sqrt(np.trace(c[k][3:, 3:])))] for k, t in enumerate(frame_t)])
+    fx = np.array([f.position_w_m for f in fixes])
+    write_csv(out / "rf_fixes.csv", ["t", "x_m", "y_m", "z_m", "status"],
+              [[t, *fx[k], fixes[k].status] for k, t in enumerate(frame_t)])
+    for a, b, name in ((0, 2, "x-z (coronal)"), (0, 1, "x-y (axial)")):
+        fig = Figure(f"Body-SLAM trajectory, {name} view", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)", size=(640, 520))
+        fig.line(fx[:, a] * 100, fx[:, b] * 100, label="RF fixes (ML)", colour=(200, 200, 200))
+        fig.line(res.positions_w_m[:, a] * 100, res.positions_w_m[:, b] * 100, label="fused (smoothed)")
+        write_image(out / f"trajectory_{'xyz'[a]}{'xyz'[b]}.png", fig.image())
+    sd = np.sqrt(np.trace(c[:, :3, :3], axis1=1, axis2=2))
+    travelled = float(np.sum(np.linalg.norm(np.diff(res.positions_w_m, axis=0), axis=1)))
+    print(f"{out}: {n} poses; path {travelled * 100:.1f} cm; position 1-sigma median {np.median(sd) * 100:.2f} cm "
+          f"(max {sd.max() * 100:.2f}); {ekf.n_updates} RF updates, {ekf.n_rejected} rejected by the gate; "
+          f"{sum(not s.ok for s in steps)} steps without a visual estimate; {len(problems)} RF line(s) skipped")
+    for msg in problems[:20]:
+        print(f"  skipped {msg}")
     return 1 if problems else 0
 
 
@@ -371,7 +454,8 @@ def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
-            "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize}[args.cmd](args)
+            "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize,
+            "localize": _localize}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

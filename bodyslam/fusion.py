@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.errors import InputError
 from bodyslam.rf import Fix, PathLossModel
 
-__all__ = ["Step", "FusionResult", "fuse", "rts_smooth", "align_to_fixes"]
+__all__ = ["Step", "FusionResult", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows"]
 
 CHI2_3_999 = 16.27
 
@@ -205,3 +205,25 @@ def rts_smooth(res: FusionResult) -> FusionResult:
         Ps[k] = po["P"][k] + C @ (Ps[k + 1] - Pp) @ C.T
     return FusionResult(np.array(ps), Rotation.from_quat([r.as_quat() for r in Rs]), np.array(Ps),
                         res.n_rejected, res.n_updates, res.passes)
+
+
+def steps_from_motion_rows(rows: dict[int, dict], n_frames: int) -> list[Step]:
+    """Steps ``1..n-1`` from ``motion.csv`` rows (:func:`bodyslam.io.read_motion_csv`); missing rows, rows
+    without an estimate or without the full-step columns become steps without an estimate."""
+    out = []
+    for k in range(1, n_frames):
+        r = rows.get(k)
+        vals = None
+        if r is not None and r.get("status") == "ok":
+            try:
+                vals = [float(r[c]) for c in ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad",
+                                                 "sigma_distance_m", "sigma_rotation_rad")]
+            except (KeyError, TypeError, ValueError):
+                vals = None
+        if vals is None or not np.all(np.isfinite(vals[:6])):
+            out.append(Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False))
+        else:
+            sig_t = vals[6] if np.isfinite(vals[6]) else 1e-3
+            sig_r = vals[7] if np.isfinite(vals[7]) else np.radians(1.0)
+            out.append(Step(Rotation.from_rotvec(vals[3:6]), np.array(vals[:3]), sig_t, sig_r, True))
+    return out

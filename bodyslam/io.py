@@ -230,6 +230,12 @@ def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]
             except (TypeError, ValueError):
                 raise InputError(f"{path}:{lineno}: not a number in {row}") from None
             vals["t"] = float(row["t"]) if row.get("t") not in ("", None) else math.nan
+            for c in ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"):
+                if row.get(c) not in (None, ""):
+                    try:
+                        vals[c] = float(row[c])
+                    except ValueError:
+                        raise InputError(f"{path}:{lineno}: not a number in column {c}") from None
             vals["status"] = row.get("status") or "ok"  # truth files have no status: every step is known
             vals["label"] = row.get("label") or ""
             rows[k] = vals
