@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.errors import InputError
 from bodyslam.rf import Fix, PathLossModel
 
-__all__ = ["Step", "FusionResult", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows"]
+__all__ = ["Step", "FusionResult", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows", "kf_thesis"]
 
 CHI2_3_999 = 16.27
 
@@ -219,7 +219,8 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         post["R"].append(R)
         post["P"].append(P.copy())
         pos[k], quats[k], covs[k] = p, R.as_quat(), P
-    return FusionResult(pos, Rotation.from_quat(quats), covs, rejected, updates, {"prior": prior, "post": post})
+    return FusionResult(pos, Rotation.from_quat(quats), covs, rejected, updates,
+                        {"prior": prior, "post": post, "init": (R0, np.asarray(p0, float))})
 
 
 def rts_smooth(res: FusionResult) -> FusionResult:
@@ -262,4 +263,42 @@ def steps_from_motion_rows(rows: dict[int, dict], n_frames: int) -> list[Step]:
             sig_t = vals[6] if np.isfinite(vals[6]) else 1e-3
             sig_r = vals[7] if np.isfinite(vals[7]) else np.radians(1.0)
             out.append(Step(Rotation.from_rotvec(vals[3:6]), np.array(vals[:3]), sig_t, sig_r, True))
+    return out
+
+
+def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndarray], sigma_p_m: float = 0.002,
+              sigma_n: float = 0.05) -> np.ndarray:
+    """The dissertation's Kalman filter (Eq. 3.26-3.33), written so that it runs: state ``[x, y, z, nx, ny, nz]``
+    (position and unit heading in the world frame), transition ``p <- p + v dt n`` and ``n <- dR_w n``, RF fixes
+    as position measurements (``H = [I 0]``). The printed transition matrix is garbled; ``v dt`` is the visual
+    step's signed distance and ``dR_w = R_w_c R_step R_w_c^T`` the step's rotation in the world frame, with
+    ``R_w_c`` accumulated from ``init`` (the thesis assumes the camera starts aligned with the world axes, which
+    no real or testbed capsule is; the same initial alignment as :func:`fuse` is used). Returns positions (n, 3).
+    """
+    R_wc, p0 = init
+    n = len(steps) + 1
+    x = np.r_[np.asarray(p0, float), R_wc.apply([0.0, 0.0, 1.0])]
+    P = np.diag([0.02**2] * 3 + [0.2**2] * 3)
+    out = np.zeros((n, 3))
+    for k in range(n):
+        if k > 0:
+            s = steps[k - 1]
+            Rs = s.R if s.ok else Rotation.identity()
+            d = (float(np.linalg.norm(s.t)) * (1.0 if s.t[2] >= 0 else -1.0)) if s.ok else 0.0
+            dRw = (R_wc * Rs * R_wc.inv()).as_matrix()
+            A = np.eye(6)
+            A[:3, 3:] = d * np.eye(3)
+            A[3:, 3:] = dRw
+            R_wc = R_wc * Rs
+            x = A @ x
+            q_p = sigma_p_m if s.ok else 5e-3
+            P = A @ P @ A.T + np.diag([q_p**2] * 3 + [sigma_n**2] * 3)
+        f = fixes[k]
+        if f.status == "ok":
+            H = np.hstack([np.eye(3), np.zeros((3, 3))])
+            S = H @ P @ H.T + f.cov_m2
+            K = P @ H.T @ np.linalg.inv(S)
+            x = x + K @ (f.position_w_m - H @ x)
+            P = (np.eye(6) - K @ H) @ P
+        out[k] = x[:3]
     return out

@@ -97,3 +97,14 @@ def test_localize_cli_on_the_demo(tmp_path):
     p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "localize", str(DEMO), "--out", str(out)],
                        capture_output=True, text=True)
     assert p.returncode == 1 and "--force" in p.stderr
+
+
+def test_thesis_kf_runs_and_improves_on_rf(demo):
+    from bodyslam.fusion import kf_thesis
+    from bodyslam.rf import locate_nls
+
+    steps, fixes, rss, pos, nrm, pl, gt = demo
+    nls = [locate_nls(pos, r, pl) for r in rss]
+    init = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss").passes["init"]
+    got = kf_thesis(steps, nls, init)
+    assert err(got, gt) < err(np.array([f.position_w_m for f in nls]), gt)
