@@ -126,24 +126,6 @@ def estimate_thesis(m: Matches, unroller: Unroller, radius_m: float, min_matches
     return StepMotion(distance, roll, float(pitch), float(yaw), float(math.hypot(pitch, yaw)), int(ok.sum()), "ok")
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (n, 3) arrays (np.cross's axis handling costs more than the arithmetic here)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-
-
-def _cylinder_depth(b: np.ndarray, axis: np.ndarray, origin: np.ndarray, radius: float, max_depth: float):
-    """Distance along unit rays ``b`` (from the camera centre) to a cylinder (unit ``axis`` through ``origin``)."""
-    w = _cross(b, axis[None, :])
-    u = np.cross(origin, axis)
-    ww = np.einsum("ij,ij->i", w, w)
-    wu = w @ u
-    disc = wu * wu - ww * (u @ u - radius * radius)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (wu + np.sqrt(np.maximum(disc, 0.0))) / ww
-    return np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth), max_depth)
-
-
 def _rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
     """Rodrigues for a batch of rotation vectors ``(B, 3)`` -> ``(B, 3, 3)``."""
     th = np.linalg.norm(rv, axis=1)

@@ -16,7 +16,6 @@ pixel's ray to the wall, metres; NaN where no wall is hit or outside the field o
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
