@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.errors import InputError
 from bodyslam.rf import Fix, PathLossModel
 
-__all__ = ["Step", "FusionResult", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows", "kf_thesis"]
+__all__ = ["Step", "FusionResult", "process_noise", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows", "kf_thesis"]
 
 CHI2_3_999 = 16.27
 
@@ -58,6 +58,23 @@ class FusionResult:
     n_rejected: int = 0
     n_updates: int = 0
     passes: dict = field(default_factory=dict, repr=False)  # for the smoother
+
+
+def process_noise(steps: list[Step]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step: the translation the filter applies (the estimate, or for a step without one the last
+    estimated step: constant velocity), and the 1-sigma of translation (m) and rotation (rad) it assumes."""
+    t_out = np.zeros((len(steps), 3))
+    sig_t = np.zeros(len(steps))
+    sig_r = np.zeros(len(steps))
+    last_t = np.zeros(3)
+    for k, s in enumerate(steps):
+        if s.ok:
+            t_out[k], last_t = s.t, s.t
+            sig_t[k], sig_r[k] = max(s.sigma_t_m, 3e-4), max(s.sigma_r_rad, np.radians(0.2))
+        else:
+            t_out[k] = last_t
+            sig_t[k], sig_r[k] = max(float(np.linalg.norm(last_t)), 3e-3), np.radians(5.0)
+    return t_out, sig_t, sig_r
 
 
 def _skew(v):
@@ -132,7 +149,8 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
     prior = {"p": [], "R": [], "P": [], "F": []}
     post = {"p": [], "R": [], "P": []}
     rejected = updates = streak = 0
-    last_t = np.zeros(3)
+    bridged_t, sig_t_all, sig_r_all = process_noise(steps)
+    P_init = P.copy()
 
     def update(p, R, P, k):
         nonlocal rejected, updates, streak
@@ -198,14 +216,8 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
     for k in range(n):
         if k > 0:
             s = steps[k - 1]
-            if s.ok:
-                Rs, ts = s.R, s.t
-                sig_t, sig_r = max(s.sigma_t_m, 3e-4), max(s.sigma_r_rad, np.radians(0.2))
-                last_t = ts
-            else:
-                # no visual estimate (big jump, facing the wall): constant velocity, uncertain by the step itself
-                Rs, ts = Rotation.identity(), last_t.copy()
-                sig_t, sig_r = max(float(np.linalg.norm(last_t)), 3e-3), np.radians(5.0)
+            ts, Rs = bridged_t[k - 1], (s.R if s.ok else Rotation.identity())
+            sig_t, sig_r = sig_t_all[k - 1], sig_r_all[k - 1]
             Rm_ = R.as_matrix()
             F = np.eye(6)
             F[:3, 3:] = -Rm_ @ _skew(ts)
@@ -226,7 +238,7 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         post["P"].append(P.copy())
         pos[k], quats[k], covs[k] = p, R.as_quat(), P
     return FusionResult(pos, Rotation.from_quat(quats), covs, rejected, updates,
-                        {"prior": prior, "post": post, "init": (R0, np.asarray(p0, float))})
+                        {"prior": prior, "post": post, "init": (R0, np.asarray(p0, float)), "P0": P_init})
 
 
 def rts_smooth(res: FusionResult) -> FusionResult:

@@ -1,0 +1,67 @@
+"""The posterior Cramer-Rao bound (PCRB) of Body-SLAM filtering (paper 000, Sec. 4, Eq. 28-29, Algorithm 2).
+
+Model (the one :func:`bodyslam.fusion.fuse` assumes, in its error-state form): state ``x = [p, theta]``;
+process ``x_(k+1) = A_k x_k + w``, ``A_k = [[I, -R_k [t_k]x], [0, R_s,k^T]]`` evaluated on the *true* trajectory
+(``R_k`` the true orientation, ``t_k``, ``R_s,k`` the true step), ``w ~ N(0, Q_k)`` with the visual steps' own
+1-sigma (steps without an estimate: the filter's bridging noise); measurements: the RSS of every sensor,
+``H_k`` the gradient of Eq. 2.1's mean at the true position, ``Z_k = diag(sigma_dB^2)``.
+
+Recursion (Eq. 28): ``J_(k+1) = H^T Z^-1 H + (Q + A J_k^-1 A^T)^-1``, ``J_0 = P_0^-1``; position bound (Eq. 29):
+``tr(J_p^-1)`` with ``J_p`` the Schur complement of the position block. This bounds *causal* filters (the EKF);
+a smoother uses future readings too and may go below it.
+
+Units: m^2 for the bound; report ``RMSE / sqrt(mean PCRB)`` (SPEC.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodyslam.rf import PathLossModel
+
+__all__ = ["pcrb_positions"]
+
+
+def _skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
+                   sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray, pl: PathLossModel,
+                   P0: np.ndarray) -> np.ndarray:
+    """``tr(J_p^-1)`` per frame (m^2). ``sigma_t_m``, ``sigma_r_rad``: per-step process 1-sigma (n - 1,)."""
+    n = len(positions_w_m)
+    out = np.zeros(n)
+
+    def info(p):
+        diff = sensors_w_m - p
+        d = np.linalg.norm(diff, axis=1)
+        depth = np.maximum(np.einsum("ij,ij->i", diff, normals_w), 0.0)
+        _, alpha, sigma = pl.params(depth)
+        Hp = (10.0 * alpha / np.log(10.0))[:, None] * diff / (d**2)[:, None]
+        Jm = np.zeros((6, 6))
+        Jm[:3, :3] = Hp.T @ (Hp / (sigma**2)[:, None])
+        return Jm
+
+    J = np.linalg.inv(P0) + info(positions_w_m[0])
+
+    def bound(J):
+        Jp = J[:3, :3] - J[:3, 3:] @ np.linalg.solve(J[3:, 3:], J[3:, :3])
+        return float(np.trace(np.linalg.inv(Jp)))
+
+    out[0] = bound(J)
+    for k in range(n - 1):
+        R = rotations_w_c[k]
+        Rs = rotations_w_c[k].inv() * rotations_w_c[k + 1]
+        t = R.inv().apply(positions_w_m[k + 1] - positions_w_m[k])
+        A = np.eye(6)
+        A[:3, 3:] = -R.as_matrix() @ _skew(t)
+        A[3:, 3:] = Rs.as_matrix().T
+        Rm = R.as_matrix()
+        Q = np.zeros((6, 6))
+        Q[:3, :3] = Rm @ (np.eye(3) * sigma_t_m[k] ** 2) @ Rm.T
+        Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
+        J = info(positions_w_m[k + 1]) + np.linalg.inv(Q + A @ np.linalg.solve(J, A.T))
+        out[k + 1] = bound(J)
+    return out

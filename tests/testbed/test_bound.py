@@ -1,0 +1,38 @@
+"""The PCRB recursion (paper 000 Eq. 28-29) on the demo trajectory: sanity properties that could fail."""
+
+from pathlib import Path
+
+import numpy as np
+
+from bodyslam.io import read_tum
+from bodyslam.rf import PathLossModel, read_sensors
+from testbed.bound import pcrb_positions
+
+DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+
+
+def setup():
+    _, gt, grot = read_tum(DEMO / "groundtruth.tum")
+    _, pos, nrm = read_sensors(DEMO / "sensors.csv")
+    return gt, grot, pos, nrm, PathLossModel()
+
+
+def rf_only_crb(p, pos, nrm, pl):
+    diff = pos - p
+    d = np.linalg.norm(diff, axis=1)
+    depth = np.maximum(np.einsum("ij,ij->i", diff, nrm), 0)
+    _, alpha, sigma = pl.params(depth)
+    H = (10 * alpha / np.log(10))[:, None] * diff / (d**2)[:, None]
+    return np.trace(np.linalg.inv(H.T @ (H / (sigma**2)[:, None])))
+
+
+def test_bound_is_below_rf_alone_and_shrinks_with_better_steps():
+    gt, grot, pos, nrm, pl = setup()
+    n = len(gt)
+    P0 = np.diag([0.02**2] * 3 + [np.radians(10) ** 2] * 3)
+    loose = pcrb_positions(gt, grot, np.full(n - 1, 3e-3), np.full(n - 1, np.radians(2)), pos, nrm, pl, P0)
+    tight = pcrb_positions(gt, grot, np.full(n - 1, 1e-4), np.full(n - 1, np.radians(0.1)), pos, nrm, pl, P0)
+    rf = np.array([rf_only_crb(p, pos, nrm, pl) for p in gt])
+    assert np.all(loose[1:] < rf[1:])  # RF plus any motion information beats one RF snapshot
+    assert np.all(tight[5:] < loose[5:])  # better visual steps, lower bound
+    assert tight[-1] < 0.5 * tight[0]  # information accumulates along the path
