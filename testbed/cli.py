@@ -6,6 +6,7 @@ simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
 centerline MESH --out centerline.csv [--voxel-size X Y Z] [--pitch-mm P] [--reference CSV]
 score-motion SEQDIR motion.csv [--json report.json]   Table 4.1: per-step motion errors against the truth
+evaluate SCENARIO --seeds N|A-B|a,b --out DIR [--frames K]   every algorithm on the same runs: report.json
 scenarios      list the shipped scenarios
 """
 
@@ -47,6 +48,15 @@ def _parser() -> argparse.ArgumentParser:
     sm.add_argument("motion_csv")
     sm.add_argument("--json", default=None, help="write the report as JSON (default: next to motion.csv)")
 
+    ev = sub.add_parser("evaluate", help="run every localization algorithm on the same rendered runs and score")
+    ev.add_argument("scenario")
+    ev.add_argument("--seeds", required=True, help="N (seeds 0..N-1), A-B, or a,b,c")
+    ev.add_argument("--out", required=True)
+    ev.add_argument("--frames", type=int, default=None)
+    ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    ev.add_argument("--keep-frames", action="store_true", help="keep the rendered frames (default: deleted)")
+    ev.add_argument("--force", action="store_true")
+
     e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY)")
     e.add_argument("mesh")
     e.add_argument("--out", required=True, help="centre line CSV (s_m,x_m,y_m,z_m,radius_m)")
@@ -84,6 +94,32 @@ def _contact(args) -> int:
 
     n = contact_sheet(args.seqdir, args.out, count=args.count, cols=args.cols)
     print(f"{args.out}: {n} frames")
+    return 0
+
+
+def parse_seeds(text: str) -> list[int]:
+    from bodyslam.errors import ConfigError
+
+    try:
+        if "," in text:
+            return [int(x) for x in text.split(",")]
+        if "-" in text:
+            a, b = (int(x) for x in text.split("-"))
+            return list(range(a, b + 1))
+        return list(range(int(text)))
+    except ValueError:
+        raise ConfigError(f"--seeds must be N, A-B or a,b,c; got {text!r}") from None
+
+
+def _evaluate(args) -> int:
+    from testbed.evaluate import evaluate, main_report_line
+    from testbed.scenario import load_scenario
+
+    scn = load_scenario(args.scenario, args.overrides)
+    report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force,
+                      keep=args.keep_frames, progress=lambda msg: print(msg, flush=True))
+    print(main_report_line(report))
+    print(f"wrote {args.out}/report.json and plots")
     return 0
 
 
@@ -126,7 +162,7 @@ def _scenarios(args) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
-    return {"score-motion": _score_motion, "simulate": _simulate, "contact-sheet": _contact, "centerline": _centerline,
+    return {"evaluate": _evaluate, "score-motion": _score_motion, "simulate": _simulate, "contact-sheet": _contact, "centerline": _centerline,
             "scenarios": _scenarios}[args.cmd](args)
 
 
