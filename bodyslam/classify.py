@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import json
 import logging
-import zipfile
 import math
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -228,11 +228,9 @@ def frame_status(rgb: np.ndarray, mask: np.ndarray) -> str:
 
 def _features_chunk(args):
     paths, mask, Q, work_px = args
-    import cv2 as _cv2
-
     from bodyslam.io import read_image
 
-    _cv2.setNumThreads(1)
+    cv2.setNumThreads(1)  # one worker per core
     out = []
     for p in paths:
         try:
@@ -255,25 +253,12 @@ def _features_chunk(args):
 def features_of_frames(paths: list[Path], mask: np.ndarray, jobs: int | None = None, Q: float = 16.0,
                        work_px: int = 96, chunk: int = 32, progress=None) -> list[tuple[str, str, np.ndarray | None]]:
     """``(status, message, features)`` per frame path, in order, over ``jobs`` processes (streamed in chunks)."""
-    import multiprocessing as mp
+    from bodyslam.parallel import imap_tasks
 
     tasks = [(paths[i:i + chunk], mask, Q, work_px) for i in range(0, len(paths), chunk)]
-    if jobs is None:
-        jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    jobs = max(1, min(jobs, len(tasks)))
     results = []
-    if jobs == 1:
-        it, pool = map(_features_chunk, tasks), None
-    else:
-        pool = mp.get_context("spawn").Pool(jobs)
-        it = pool.imap(_features_chunk, tasks)
-    try:
-        for r in it:
-            results.extend(r)
-            if progress:
-                progress(len(results), len(paths))
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()
+    for r in imap_tasks(_features_chunk, tasks, jobs):
+        results.extend(r)
+        if progress:
+            progress(len(results), len(paths))
     return results

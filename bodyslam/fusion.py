@@ -177,14 +177,8 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
             ok = np.isfinite(r)
             if ok.sum() < 1:
                 return p, R, P
-            s, nn = sensors_w_m[ok], normals_w[ok]
-            diff = s - p
-            d = np.linalg.norm(diff, axis=1)
-            depth = np.maximum(np.einsum("ij,ij->i", diff, nn), 0.0)
-            _, alpha, sigma = pl.params(depth)
-            y = r[ok] - pl.mean_rss_dbm(d, depth)
-            # d(mean)/dp = -10 alpha / ln10 * d(ln d)/dp = +10 alpha / ln10 * diff / d^2
-            Hp = (10.0 * alpha / np.log(10.0))[:, None] * diff / (d**2)[:, None]
+            mean, sigma, Hp = pl.predict(p, sensors_w_m[ok], normals_w[ok])
+            y = r[ok] - mean
             H = np.hstack([Hp, np.zeros((len(y), 3))])
             Rm = np.diag(sigma**2)
             S = H @ P @ H.T + Rm
@@ -238,7 +232,8 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         post["P"].append(P.copy())
         pos[k], quats[k], covs[k] = p, R.as_quat(), P
     return FusionResult(pos, Rotation.from_quat(quats), covs, rejected, updates,
-                        {"prior": prior, "post": post, "init": (R0, np.asarray(p0, float)), "P0": P_init})
+                        {"prior": prior, "post": post, "init": (R0, np.asarray(p0, float)), "P0": P_init,
+                         "dead_reckoning": dr})
 
 
 def rts_smooth(res: FusionResult) -> FusionResult:

@@ -40,6 +40,7 @@ __all__ = [
     "read_meta",
     "frame_name",
     "read_motion_csv",
+    "csv_rows",
 ]
 
 FRAME_INDEX_DIGITS = 6
@@ -207,8 +208,15 @@ def read_image(path: str | os.PathLike, unchanged: bool = False) -> np.ndarray:
 _MOTION_REQUIRED = ("frame", "distance_m", "roll_rad", "pitch_rad", "yaw_rad")
 
 
-def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:
-    """Rows of a ``motion.csv`` keyed by frame; malformed lines are named by file and line."""
+@contextlib.contextmanager
+def csv_rows(path: str | os.PathLike, required: Sequence[str]) -> Iterator[Iterator[tuple[int, dict]]]:
+    """Open a CSV with a header and check its columns; yields an iterator of ``(line number, row dict)``.
+
+    Raises
+    ------
+    InputError
+        Missing file, or a header without the ``required`` columns (file and header are named).
+    """
     path = Path(path)
     try:
         f = path.open(newline="", encoding="utf-8")
@@ -216,11 +224,17 @@ def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]
         raise InputError(f"{path}: file not found") from None
     with f:
         r = csv.DictReader(f)
-        missing = [c for c in _MOTION_REQUIRED if c not in (r.fieldnames or [])]
+        missing = [c for c in required if c not in (r.fieldnames or [])]
         if missing:
             raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {r.fieldnames}")
-        rows = {}
-        for lineno, row in enumerate(r, start=2):
+        yield enumerate(r, start=2)
+
+
+def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:
+    """Rows of a ``motion.csv`` keyed by frame; malformed lines are named by file and line."""
+    rows = {}
+    with csv_rows(path, _MOTION_REQUIRED) as lines:
+        for lineno, row in lines:
             try:
                 k = int(row["frame"])
                 vals = {c: float(row[c]) if row[c] not in ("", None) else math.nan

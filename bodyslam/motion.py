@@ -67,8 +67,6 @@ class StepMotion:
     t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
     sigma_distance_m: float = NAN  # 1-sigma uncertainty of distance_m (tube estimator: from the fit)
     sigma_rotation_rad: float = NAN  # 1-sigma uncertainty of the rotation (largest axis)
-    params: np.ndarray | None = field(default=None, repr=False)  # tube estimator's solution (warm start)
-    n_evaluations: int = 0
 
     @property
     def ok(self) -> bool:
@@ -176,21 +174,6 @@ def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius:
     return np.concatenate([r, P[:, 6:10] / prior_sigma], axis=1)
 
 
-def _unpack(p):
-    R = Rotation.from_rotvec(p[0:3])
-    t = p[3:6]
-    axis = np.array([p[6], p[7], 1.0])
-    axis /= np.linalg.norm(axis)
-    origin = np.array([p[8], p[9], 0.0])
-    return R, t, axis, origin
-
-
-def _kabsch(b1: np.ndarray, b2: np.ndarray) -> Rotation:
-    """Rotation ``R_c1_c2`` with ``b1 ~= R b2`` (pure rotation), least squares."""
-    Rot, _ = Rotation.align_vectors(b1, b2)
-    return Rot
-
-
 def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 20,
                   noise_rad: float = 0.003, max_depth_m: float = 0.3, init: np.ndarray | None = None,
                   max_points: int = 150, max_sigma_distance_m: float = 1e-3) -> StepMotion:
@@ -227,7 +210,7 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
         return ((F[1:] - F[0]) / steps[:, None]).T
 
     p0 = np.zeros(10)
-    p0[0:3] = _kabsch(b1, b2).as_rotvec()
+    p0[0:3] = Rotation.align_vectors(b1, b2)[0].as_rotvec()  # pure-rotation start: b1 ~= R_c1_c2 b2
     if init is not None:  # a caller's start (measured: the previous step's solution does not save iterations)
         p0 = np.asarray(init, float).copy()
     try:
@@ -237,7 +220,7 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
         return StepMotion(n_matches=len(b1), status="solver_failed")
     if not np.all(np.isfinite(sol.x)):
         return StepMotion(n_matches=len(b1), status="solver_failed")
-    R, t, _, _ = _unpack(sol.x)
+    R, t = Rotation.from_rotvec(sol.x[0:3]), sol.x[3:6]
     # Uncertainty: Gauss-Newton covariance at the solution, scaled by the robust residual variance.
     J = sol.jac
     m_res = len(sol.fun) - 4
@@ -251,7 +234,7 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     sig_d = float(np.sqrt(max(d @ cov[3:6, 3:6] @ d, 0.0)))
     sig_r = float(np.sqrt(max(np.linalg.eigvalsh(cov[0:3, 0:3]).max(), 0.0)))
     out = motion_from_transform(R, t, n_used)
-    out = replace(out, sigma_distance_m=sig_d, sigma_rotation_rad=sig_r, params=sol.x, n_evaluations=sol.nfev)
+    out = replace(out, sigma_distance_m=sig_d, sigma_rotation_rad=sig_r)
     if sig_d > max_sigma_distance_m:
         return replace(StepMotion(n_matches=n_used, status="uncertain"), sigma_distance_m=sig_d,
                        sigma_rotation_rad=sig_r)

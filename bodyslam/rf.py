@@ -24,7 +24,6 @@ Missing sensors (NaN readings) are dropped; outliers are damped by the robust lo
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from bodyslam.errors import InputError
+from bodyslam.io import csv_rows
 
 __all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "rss_to_range", "locate_lls", "locate_nls",
            "locate_ml", "RF_METHODS"]
@@ -61,6 +61,17 @@ class PathLossModel:
         pl0, alpha, _ = self.params(depth_m)
         return self.pt_dbm - pl0 - 10.0 * alpha * np.log10(np.maximum(d_m, 1e-4) / self.d0_m)
 
+    def predict(self, p_w_m: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray):
+        """At capsule position ``p``: mean RSS (n,) dBm, its 1-sigma (n,) dB and gradient d(mean)/dp (n, 3)
+        dB/m, with the deep / near-surface switch by the depth below each sensor's surface."""
+        diff = sensors_w_m - p_w_m
+        d = np.linalg.norm(diff, axis=1)
+        depth = np.maximum(np.einsum("ij,ij->i", diff, normals_w), 0.0)
+        _, alpha, sigma = self.params(depth)
+        # d(mean)/dp = -10 alpha / ln10 * d(ln d)/dp = +10 alpha / ln10 * (s - p) / d^2
+        grad = (10.0 * alpha / np.log(10.0))[:, None] * diff / (d**2)[:, None]
+        return self.mean_rss_dbm(d, depth), sigma, grad
+
     @classmethod
     def from_dict(cls, d: dict) -> "PathLossModel":
         try:
@@ -83,25 +94,21 @@ def _no_fix(n: int, status: str) -> Fix:
 
 def read_sensors(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
     """``sensors.csv`` (``sensor,x,y,z[,nx,ny,nz]``): names, positions (n, 3), outward normals (n, 3)."""
-    path = Path(path)
-    try:
-        rows = list(csv.DictReader(path.open(newline="", encoding="utf-8")))
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    if not rows or not {"sensor", "x", "y", "z"} <= set(rows[0]):
-        raise InputError(f"{path}: needs columns sensor,x,y,z")
     names, pos, nrm = [], [], []
-    for i, r in enumerate(rows, start=2):
-        try:
-            p = [float(r["x"]), float(r["y"]), float(r["z"])]
-            n = [float(r[k]) for k in ("nx", "ny", "nz")] if r.get("nx") not in (None, "") else None
-        except (TypeError, ValueError):
-            raise InputError(f"{path}:{i}: not a number in {r}") from None
-        if r["sensor"] in names:
-            raise InputError(f"{path}:{i}: sensor {r['sensor']!r} listed twice")
-        names.append(r["sensor"])
-        pos.append(p)
-        nrm.append(n if n is not None else list(np.asarray(p) / max(float(np.linalg.norm(p)), 1e-9)))
+    with csv_rows(path, ("sensor", "x", "y", "z")) as lines:
+        for i, r in lines:
+            try:
+                p = [float(r["x"]), float(r["y"]), float(r["z"])]
+                n = [float(r[k]) for k in ("nx", "ny", "nz")] if r.get("nx") not in (None, "") else None
+            except (TypeError, ValueError):
+                raise InputError(f"{path}:{i}: not a number in {r}") from None
+            if r["sensor"] in names:
+                raise InputError(f"{path}:{i}: sensor {r['sensor']!r} listed twice")
+            names.append(r["sensor"])
+            pos.append(p)
+            nrm.append(n if n is not None else list(np.asarray(p) / max(float(np.linalg.norm(p)), 1e-9)))
+    if not names:
+        raise InputError(f"{path}: no sensors")
     nrm = np.array(nrm, float)
     return tuple(names), np.array(pos, float), nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
 
@@ -111,19 +118,11 @@ def read_rf(path: str | os.PathLike, sensor_names: tuple[str, ...]) -> tuple[np.
 
     Malformed lines and unknown sensors are skipped and reported (``file:line: reason``), never fatal.
     """
-    path = Path(path)
     index = {n: j for j, n in enumerate(sensor_names)}
     problems: list[str] = []
     data: dict[float, dict[int, float]] = {}
-    try:
-        f = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    with f:
-        r = csv.DictReader(f)
-        if not r.fieldnames or not {"t", "sensor", "rss_dbm"} <= set(r.fieldnames):
-            raise InputError(f"{path}: needs columns t,sensor,rss_dbm; header is {r.fieldnames}")
-        for lineno, row in enumerate(r, start=2):
+    with csv_rows(path, ("t", "sensor", "rss_dbm")) as lines:
+        for lineno, row in lines:
             try:
                 t, v = float(row["t"]), float(row["rss_dbm"])
             except (TypeError, ValueError):
@@ -222,11 +221,8 @@ def locate_ml(sensors_w_m: np.ndarray, normals_w: np.ndarray, rss_dbm: np.ndarra
 
     def res_for(sel):
         def res(x):
-            diff = s[sel] - x
-            d = np.linalg.norm(diff, axis=1)
-            depth = np.maximum(np.einsum("ij,ij->i", diff, n[sel]), 0.0)
-            _, _, sigma = pl.params(depth)
-            return (rss[sel] - pl.mean_rss_dbm(d, depth)) / sigma
+            mean, sigma, _ = pl.predict(x, s[sel], n[sel])
+            return (rss[sel] - mean) / sigma
         return res
 
     sel = np.ones(len(s), bool)

@@ -16,7 +16,6 @@ speed within a class. Steps without an estimate are left out (and counted).
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 
@@ -140,4 +139,4 @@ def summary_line(model: dict) -> str:
     return (f"{f['n_steps']} steps: mean speed {f['mean_speed_m_s'] * 1000:.2f} mm/s (median "
             f"{f['median_speed_m_s'] * 1000:.2f}), stopped {f['fraction_stopped']:.0%}, backward "
             f"{f['fraction_backward']:.0%}; mean step {m['mean_step_m'] * 100:.3f} cm, roll {m['mean_roll_deg']:.2f} deg,"
-            f" tilt {m['mean_tilt_deg']:.2f} deg per step" + ("" if math.isfinite(m["mean_tilt_deg"]) else ""))
+            f" tilt {m['mean_tilt_deg']:.2f} deg per step")

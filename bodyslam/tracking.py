@@ -19,7 +19,6 @@ stopped against it -- and is counted in the summary, never hidden.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from bodyslam.errors import ConfigError, InputError
 from bodyslam.io import frame_name, read_image, read_meta
 from bodyslam.matching import Matcher, detect_fov_mask
 from bodyslam.motion import ESTIMATORS, StepMotion, estimate_thesis, estimate_tube, motion_from_transform
+from bodyslam.parallel import imap_tasks
 from bodyslam.unroll import Unroller
 
 log = logging.getLogger(__name__)
@@ -194,28 +194,11 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     mask = resolve_mask(seq, settings.mask)
     tasks = [(str(seq.path), seq.radius_m, settings, bounds[i], bounds[i + 1], camera, mask)
              for i in range(len(bounds) - 1)]
-    if jobs is None:
-        jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    jobs = max(1, min(int(jobs), len(tasks)))
     steps: list[StepMotion] = []
-    done = 0
-    if jobs == 1:
-        results = map(_chunk_motion, tasks)
-        pool = None
-    else:
-        # spawn: a forked child of a process running OpenCV's thread pool can deadlock
-        pool = mp.get_context("spawn").Pool(jobs)
-        results = pool.imap(_chunk_motion, tasks)
-    try:
-        for chunk in results:
-            steps.extend(s for _, s in chunk)
-            done += len(chunk)
-            if progress:
-                progress(done, n - 1)
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()
+    for chunk in imap_tasks(_chunk_motion, tasks, jobs):
+        steps.extend(s for _, s in chunk)
+        if progress:
+            progress(len(steps), n - 1)
     return steps
 
 

@@ -35,11 +35,7 @@ def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
     out = np.zeros(n)
 
     def info(p):
-        diff = sensors_w_m - p
-        d = np.linalg.norm(diff, axis=1)
-        depth = np.maximum(np.einsum("ij,ij->i", diff, normals_w), 0.0)
-        _, alpha, sigma = pl.params(depth)
-        Hp = (10.0 * alpha / np.log(10.0))[:, None] * diff / (d**2)[:, None]
+        _, sigma, Hp = pl.predict(p, sensors_w_m, normals_w)
         Jm = np.zeros((6, 6))
         Jm[:3, :3] = Hp.T @ (Hp / (sigma**2)[:, None])
         return Jm

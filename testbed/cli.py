@@ -162,8 +162,8 @@ def _scenarios(args) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
-    return {"evaluate": _evaluate, "score-motion": _score_motion, "simulate": _simulate, "contact-sheet": _contact, "centerline": _centerline,
-            "scenarios": _scenarios}[args.cmd](args)
+    return {"evaluate": _evaluate, "score-motion": _score_motion, "simulate": _simulate, "contact-sheet": _contact,
+            "centerline": _centerline, "scenarios": _scenarios}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from bodyslam.fusion import fuse, kf_thesis, rts_smooth, steps_from_motion_rows
 from bodyslam.io import read_json, read_motion_csv, read_tum, write_image, write_json
@@ -48,11 +47,7 @@ def evaluate_sequence(d: Path) -> dict:
     nls = [locate_nls(pos, x, pl) for x in rss]
     ekf = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss")
     R0, p0 = ekf.passes["init"]
-    dr = np.zeros((len(gt), 3))
-    Rk = Rotation.identity()
-    for k, s in enumerate(steps, start=1):
-        dr[k] = dr[k - 1] + Rk.apply(s.t)
-        Rk = Rk * s.R
+    dr = ekf.passes["dead_reckoning"]  # in the first camera frame, steps without an estimate as no motion
     est = {
         "rf_ml": np.array([f.position_w_m for f in fixes]),
         "rf_nls": np.array([f.position_w_m for f in nls]),

@@ -103,8 +103,11 @@ class TubeRenderer:
         rays_c, valid = camera.pixel_rays()
         self._pix = np.nonzero(valid.ravel())[0]
         self._rays_c = rays_c.reshape(-1, 3)[self._pix]
-        self._cos_axis = np.clip(self._rays_c[:, 2], 0.0, 1.0)
-        self._pix_angle = self._pixel_angle(camera, valid)
+        self._led = (np.clip(self._rays_c[:, 2], 0.0, 1.0) ** lighting.led_exponent).astype(np.float32)
+        self._pix_angle = self._pixel_angle(camera, valid).astype(np.float32)
+        # per-vertex (s_m, phi_rad, nx, ny, nz) in float32: one gather per triangle corner when shading
+        m = self.mesh
+        self._attr = np.ascontiguousarray(np.c_[m.s_m, m.phi_rad, m.normals_w], dtype=np.float32)
 
     @staticmethod
     def _pixel_angle(camera: CameraModel, valid: np.ndarray) -> np.ndarray:
@@ -136,7 +139,7 @@ class TubeRenderer:
         rgb = np.zeros((h * w, 3), np.uint8)
         range_img = np.full(h * w, np.nan, np.float32)
         if len(hit):
-            attr = self._vertex_attributes()
+            attr = self._attr
             tri = self.mesh.faces[prim[hit]]
             w1 = bu[hit].astype(np.float32)[:, None]
             w2 = bv[hit].astype(np.float32)[:, None]
@@ -165,15 +168,6 @@ class TubeRenderer:
             rgb[self._pix[hit]] = np.rint(col * np.float32(255.0)).astype(np.uint8)
             range_img[self._pix[hit]] = t
         return RenderResult(rgb.reshape(h, w, 3), range_img.reshape(h, w))
-
-    def _vertex_attributes(self) -> np.ndarray:
-        """Per-vertex ``(s_m, phi_rad, nx, ny, nz)`` float32, for one gather per triangle corner."""
-        if not hasattr(self, "_attr"):
-            m = self.mesh
-            self._attr = np.ascontiguousarray(np.c_[m.s_m, m.phi_rad, m.normals_w], dtype=np.float32)
-            self._led = (self._cos_axis ** self.lighting.led_exponent).astype(np.float32)
-            self._pix_angle = self._pix_angle.astype(np.float32)
-        return self._attr
 
 
 class RaycastRenderer(TubeRenderer):

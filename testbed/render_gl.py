@@ -109,7 +109,8 @@ class PyrenderRenderer(TubeRenderer):
         self.face_px = int(face_px)
 
         # Which face each pixel's ray belongs to, and where on that face it lands.
-        self._face_of = {}
+        self._face_of = {}  # face name -> bool mask over the valid rays
+        self._face_pixel = {}  # face name -> flat face-pixel index of each of those rays
         for name, R_c_f in _FACES.items():
             d_f = self._rays_c @ R_c_f  # ray in face coordinates
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -122,7 +123,7 @@ class PyrenderRenderer(TubeRenderer):
             col = np.clip(np.rint((x[on] + 1.0) * 0.5 * n - 0.5), 0, n - 1).astype(np.int64)
             row = np.clip(np.rint((y[on] + 1.0) * 0.5 * n - 0.5), 0, n - 1).astype(np.int64)
             self._face_of[name] = on
-            setattr(self, f"_idx_{name}", row * n + col)
+            self._face_pixel[name] = row * n + col
 
         # One flat-shaded primitive, triangle k coloured k + 1 (0 = background).
         tri = np.arange(1, nf + 1, dtype=np.int64)
@@ -156,7 +157,7 @@ class PyrenderRenderer(TubeRenderer):
             color, _ = self._gl.render(self._scene, flags=self._flags)
             c = color.astype(np.int64)
             ids = np.pad((c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16)) - 1, 1, constant_values=-1)
-            idx = getattr(self, f"_idx_{name}")
+            idx = self._face_pixel[name]
             row, col = idx // n + 1, idx % n + 1
             prim[on] = ids[row, col]
             cand[on] = np.stack([ids[row + dr, col + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=1)

@@ -32,6 +32,7 @@ from bodyslam import __version__
 from bodyslam.errors import InputError
 from bodyslam.geometry import relative_motion
 from bodyslam.io import frame_name, write_csv, write_image, write_json, write_tum
+from bodyslam.parallel import available_cores
 from testbed.motion import PHASES, CapsuleTrajectory, generate_motion, label_frames
 from testbed.render import RANGE_SCALE_M, RaycastRenderer, encode_range, make_renderer
 from testbed.scenario import World, build_world
@@ -136,7 +137,7 @@ def simulate(
     _W.update(world=world, traj=traj, out=out, mesh=mesh)
     n = world.n_frames
     if jobs is None:  # spawning a worker costs ~2 s (imports, world by pickle, BVH): worth it for longer runs
-        jobs = len(os.sched_getaffinity(0)) if n >= 60 and hasattr(os, "sched_getaffinity") else 1
+        jobs = available_cores() if n >= 60 else 1
     jobs = max(1, min(int(jobs), n))
     try:
         if jobs == 1:

@@ -1,0 +1,33 @@
+"""Chunked work over both cores: one place for the worker-pool rules the pipeline follows.
+
+Workers are *spawned*, never forked: a child forked from a process that already runs OpenCV's (or Embree's)
+thread pool can deadlock on a lock held at fork time. Results come back in task order, as they finish, so a
+caller can stream them (progress, bounded memory).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from typing import Callable, Iterator, Sequence, TypeVar
+
+__all__ = ["available_cores", "imap_tasks"]
+
+T = TypeVar("T")
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity set where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None) -> Iterator[T]:
+    """``func(task)`` for every task, in order; in this process when one job suffices, else in a spawned pool
+    of ``jobs`` (default: one per available core) workers, closed when the iteration ends."""
+    jobs = available_cores() if jobs is None else int(jobs)
+    jobs = max(1, min(jobs, len(tasks)))
+    if jobs == 1:
+        yield from map(func, tasks)
+        return
+    with mp.get_context("spawn").Pool(jobs) as pool:
+        yield from pool.imap(func, tasks)
