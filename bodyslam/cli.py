@@ -13,6 +13,7 @@ train-classifier SEQDIR... --out M  train the FT/FL kernel SVM on testbed sequen
 classify INPUT --out classes.csv    FT/FL per frame (sequence directory or folder of frames)
 rf-localize --rf rf.csv --sensors sensors.csv --out fixes.csv   RF-only position fixes (LLS, NLS, ML)
 localize SEQDIR [--rf rf.csv --sensors sensors.csv] --out DIR    Body-SLAM: vision + RF fusion, smoothed
+batch INPUT... --out DIR [--mark FRAMES]   whole exams (folders, videos, manifests): resumable, parallel
 
 The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
 sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
@@ -108,6 +109,26 @@ def _parser() -> argparse.ArgumentParser:
     lo.add_argument("--jobs", type=int, default=None)
     lo.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     motion_opts(lo)
+    ba = sub.add_parser("batch", help="whole exams: frame folders, videos or manifests; resumable, parallel")
+    ba.add_argument("inputs", nargs="+", help="frame folders, sequence directories, videos, or manifests (.csv/.json)")
+    ba.add_argument("--out", required=True, help="output directory (resumed when it holds the same run)")
+    ba.add_argument("--mode", default="fast", choices=MATCH_MODES, help="feature matcher (default: fast)")
+    ba.add_argument("--estimator", default="tube", choices=ESTIMATORS)
+    ba.add_argument("--calib", default=None, help="camera calibration (JSON or OpenCV YAML with cv2.fisheye K, D)")
+    ba.add_argument("--fps", type=float, default=None, help="frame rate (default: meta.json / the video's / 2)")
+    ba.add_argument("--radius-m", type=float, default=None, help="lumen radius (default: meta.json / 1.25 cm)")
+    ba.add_argument("--mask", default=None, help="field of view: 'auto' or a PNG (default: the image circle)")
+    ba.add_argument("--rf", default=None, help="rf.csv to fuse (default: a sequence directory's own)")
+    ba.add_argument("--sensors", default=None, help="sensors.csv for --rf")
+    ba.add_argument("--mark", default=None, help="frames to locate, e.g. 120,455,1000-1002")
+    ba.add_argument("--mark-file", default=None, help="CSV of marked frames: frame[,label][,exam]")
+    ba.add_argument("--landmark", default=None, help="landmark frames (e.g. 310 = pylorus): path from each")
+    ba.add_argument("--chunk-frames", type=int, default=100, help="frames per checkpointed chunk")
+    ba.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
+    ba.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler (tcp://host:8786)")
+    ba.add_argument("--no-classify", action="store_true", help="skip the FT/FL classifier")
+    ba.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
+    ba.add_argument("--force", action="store_true", help="overwrite an output directory holding another run")
     ss = sub.add_parser("speed-stats", help="speed PDF/CDF and a speed model file from a motion.csv")
     ss.add_argument("motion_csv")
     ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
@@ -253,7 +274,7 @@ def _localize(args) -> int:
     from bodyslam.fusion import fuse, rts_smooth, steps_from_motion_rows
     from bodyslam.io import read_json, read_motion_csv, write_csv, write_image, write_tum
     from bodyslam.plots import Figure
-    from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors
+    from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
     from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, motion_rows, sequence_motion
 
     seq_dir = Path(args.seqdir)
@@ -272,13 +293,7 @@ def _localize(args) -> int:
     # RF readings per frame: the reading nearest in time within half a frame, else none
     n = seq.n_frames
     frame_t = np.arange(n) / seq.frame_rate_hz
-    rss = np.full((n, len(names)), np.nan)
-    if len(stamps):
-        j = np.clip(np.searchsorted(stamps, frame_t), 0, len(stamps) - 1)
-        j = np.where((j > 0) & (np.abs(stamps[np.maximum(j - 1, 0)] - frame_t) < np.abs(stamps[j] - frame_t)),
-                     j - 1, j)
-        near = np.abs(stamps[j] - frame_t) <= 0.5 / seq.frame_rate_hz
-        rss[near] = rss_t[j[near]]
+    rss = rss_per_frame(stamps, rss_t, frame_t, seq.frame_rate_hz)
     if args.motion:
         rows = read_motion_csv(args.motion)
     else:
@@ -313,6 +328,34 @@ def _localize(args) -> int:
     for msg in problems[:20]:
         print(f"  skipped {msg}")
     return 1 if problems else 0
+
+
+def _batch(args) -> int:
+    from bodyslam.batch import BatchSettings, open_exams, parse_frame_list, read_marks, run_batch
+
+    marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
+    landmarks = parse_frame_list(args.landmark) if args.landmark else []
+    exams = open_exams(args.inputs, calib=args.calib, fps=args.fps, radius_m=args.radius_m, mask=args.mask,
+                       rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks)
+    if args.mark_file:
+        read_marks(args.mark_file, exams)
+    settings = BatchSettings(args.mode, args.estimator, not args.no_classify, args.model,
+                             chunk_frames=args.chunk_frames)
+    total_frames = sum(e.n_positions for e in exams)
+    print(f"{len(exams)} exam(s), {total_frames} frames -> {args.out}", flush=True)
+    rep = run_batch(exams, args.out, settings, jobs=args.jobs, scheduler=args.scheduler, force=args.force,
+                    progress=Progress("batch"))
+    for s in rep.exams:
+        steps = s["steps"]
+        ok = steps.get("ok", 0)
+        print(f"{s['exam']}: {s['frames']} frames ({s['classes']['FT']} FT, {s['classes']['FL']} FL), "
+              f"{ok}/{sum(steps.values())} steps estimated, path {s['path_travelled_m'] * 100:.1f} "
+              f"+- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; {s['problems']} problem(s)")
+        for a in s["assumed"]:
+            print(f"  assumed {a}")
+    print(f"{rep.chunks_computed} chunk(s) computed, {rep.chunks_reused} reused; {rep.n_problems} problem(s) "
+          f"({rep.n_errors} error(s)) in {rep.out / 'problems.csv'}")
+    return 3 if rep.n_problems else 0
 
 
 def _speed_stats(args) -> int:
@@ -455,7 +498,7 @@ def _main(argv: list[str] | None) -> int:
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
             "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize,
-            "localize": _localize}[args.cmd](args)
+            "localize": _localize, "batch": _batch}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

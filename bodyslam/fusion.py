@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.errors import InputError
 from bodyslam.rf import Fix, PathLossModel
 
-__all__ = ["Step", "FusionResult", "process_noise", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows", "kf_thesis"]
+__all__ = ["Step", "FusionResult", "process_noise", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows", "kf_thesis"]
 
 CHI2_3_999 = 16.27
 
@@ -60,6 +60,14 @@ class FusionResult:
     passes: dict = field(default_factory=dict, repr=False)  # for the smoother
 
 
+def _bridge(s: Step, last_t: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
+    a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity)."""
+    if s.ok:
+        return s.t, max(s.sigma_t_m, 3e-4), max(s.sigma_r_rad, np.radians(0.2))
+    return last_t, max(float(np.linalg.norm(last_t)), 3e-3), np.radians(5.0)
+
+
 def process_noise(steps: list[Step]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per step: the translation the filter applies (the estimate, or for a step without one the last
     estimated step: constant velocity), and the 1-sigma of translation (m) and rotation (rad) it assumes."""
@@ -68,13 +76,49 @@ def process_noise(steps: list[Step]) -> tuple[np.ndarray, np.ndarray, np.ndarray
     sig_r = np.zeros(len(steps))
     last_t = np.zeros(3)
     for k, s in enumerate(steps):
+        t_out[k], sig_t[k], sig_r[k] = _bridge(s, last_t)
         if s.ok:
-            t_out[k], last_t = s.t, s.t
-            sig_t[k], sig_r[k] = max(s.sigma_t_m, 3e-4), max(s.sigma_r_rad, np.radians(0.2))
-        else:
-            t_out[k] = last_t
-            sig_t[k], sig_r[k] = max(float(np.linalg.norm(last_t)), 3e-3), np.radians(5.0)
+            last_t = s.t
     return t_out, sig_t, sig_r
+
+
+def predict(p: np.ndarray, R: Rotation, P: np.ndarray, t_s: np.ndarray, R_s: Rotation, sig_t: float,
+            sig_r: float) -> tuple[np.ndarray, Rotation, np.ndarray, np.ndarray]:
+    """One process step of the error-state model (module docstring): ``(p', R', P', F)``."""
+    Rm = R.as_matrix()
+    F = np.eye(6)
+    F[:3, 3:] = -Rm @ _skew(t_s)
+    F[3:, 3:] = R_s.as_matrix().T
+    Q = np.zeros((6, 6))
+    Q[:3, :3] = Rm @ (np.eye(3) * sig_t**2) @ Rm.T
+    Q[3:, 3:] = np.eye(3) * sig_r**2
+    return p + R.apply(t_s), R * R_s, F @ P @ F.T + Q, F
+
+
+class DeadReckoner:
+    """Streaming dead reckoning with the filter's process model and its covariance (no measurements).
+
+    World frame: the first camera frame, known exactly (``P = 0`` at frame 0). Per :meth:`step`: the pose
+    ``p_w_m``, ``R_w_c``, the 6x6 covariance ``P`` over ``[p, theta]``, and the path travelled ``path_m`` (sum of
+    the applied step lengths) with its variance ``path_var_m2`` (steps independent). Memory is constant.
+    """
+
+    def __init__(self) -> None:
+        self.p_w_m = np.zeros(3)
+        self.R_w_c = Rotation.identity()
+        self.P = np.zeros((6, 6))
+        self.path_m = 0.0
+        self.path_var_m2 = 0.0
+        self._last_t = np.zeros(3)
+
+    def step(self, s: Step) -> None:
+        t_s, sig_t, sig_r = _bridge(s, self._last_t)
+        if s.ok:
+            self._last_t = s.t
+        R_s = s.R if s.ok else Rotation.identity()
+        self.p_w_m, self.R_w_c, self.P, _ = predict(self.p_w_m, self.R_w_c, self.P, t_s, R_s, sig_t, sig_r)
+        self.path_m += float(np.linalg.norm(t_s))
+        self.path_var_m2 += sig_t**2
 
 
 def _skew(v):
@@ -211,17 +255,7 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         if k > 0:
             s = steps[k - 1]
             ts, Rs = bridged_t[k - 1], (s.R if s.ok else Rotation.identity())
-            sig_t, sig_r = sig_t_all[k - 1], sig_r_all[k - 1]
-            Rm_ = R.as_matrix()
-            F = np.eye(6)
-            F[:3, 3:] = -Rm_ @ _skew(ts)
-            F[3:, 3:] = Rs.as_matrix().T
-            Q = np.zeros((6, 6))
-            Q[:3, :3] = Rm_ @ (np.eye(3) * sig_t**2) @ Rm_.T
-            Q[3:, 3:] = np.eye(3) * sig_r**2
-            p = p + R.apply(ts)
-            R = R * Rs
-            P = F @ P @ F.T + Q
+            p, R, P, F = predict(p, R, P, ts, Rs, sig_t_all[k - 1], sig_r_all[k - 1])
             prior["F"].append(F)
         prior["p"].append(p.copy())
         prior["R"].append(R)

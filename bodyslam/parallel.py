@@ -21,13 +21,14 @@ def available_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None) -> Iterator[T]:
-    """``func(task)`` for every task, in order; in this process when one job suffices, else in a spawned pool
-    of ``jobs`` (default: one per available core) workers, closed when the iteration ends."""
+def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None, ordered: bool = True) -> Iterator[T]:
+    """``func(task)`` for every task, in order (or as they finish with ``ordered=False``); in this process when
+    one job suffices, else in a spawned pool of ``jobs`` (default: one per available core) workers, closed when
+    the iteration ends."""
     jobs = available_cores() if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(tasks)))
     if jobs == 1:
         yield from map(func, tasks)
         return
     with mp.get_context("spawn").Pool(jobs) as pool:
-        yield from pool.imap(func, tasks)
+        yield from (pool.imap if ordered else pool.imap_unordered)(func, tasks)

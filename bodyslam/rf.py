@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from bodyslam.errors import InputError
 from bodyslam.io import csv_rows
 
-__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "rss_to_range", "locate_lls", "locate_nls",
+__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "rss_per_frame", "rss_to_range", "locate_lls", "locate_nls",
            "locate_ml", "RF_METHODS"]
 
 RF_METHODS = ("lls", "nls", "ml")
@@ -140,6 +140,24 @@ def read_rf(path: str | os.PathLike, sensor_names: tuple[str, ...]) -> tuple[np.
         for j, v in data[t].items():
             rss[k, j] = v
     return stamps, rss, problems
+
+
+def rss_per_frame(stamps_s: np.ndarray, rss_dbm: np.ndarray, frame_stamps_s: np.ndarray,
+                  frame_rate_hz: float) -> np.ndarray:
+    """RF readings per frame: the reading nearest in time within half a frame interval, else NaN.
+
+    ``stamps_s (T,)`` sorted, ``rss_dbm (T, n)``, ``frame_stamps_s (F,)`` -> ``(F, n)``.
+    """
+    frame_t = np.asarray(frame_stamps_s, float)
+    out = np.full((len(frame_t), rss_dbm.shape[1] if rss_dbm.ndim == 2 else 0), np.nan)
+    if len(stamps_s) == 0 or out.shape[1] == 0:
+        return out
+    j = np.clip(np.searchsorted(stamps_s, frame_t), 0, len(stamps_s) - 1)
+    prev = np.maximum(j - 1, 0)
+    j = np.where((j > 0) & (np.abs(stamps_s[prev] - frame_t) < np.abs(stamps_s[j] - frame_t)), prev, j)
+    near = np.abs(stamps_s[j] - frame_t) <= 0.5 / frame_rate_hz
+    out[near] = rss_dbm[j[near]]
+    return out
 
 
 def rss_to_range(rss_dbm: np.ndarray, pl: PathLossModel, deep: bool = True) -> tuple[np.ndarray, np.ndarray]:

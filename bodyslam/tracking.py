@@ -37,7 +37,7 @@ from bodyslam.unroll import Unroller
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MotionSettings", "sequence_motion", "dead_reckon", "MOTION_COLUMNS", "motion_rows"]
+__all__ = ["MotionSettings", "sequence_motion", "dead_reckon", "MOTION_COLUMNS", "motion_row", "motion_rows"]
 
 MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status",
                   # beyond SPEC's minimum: the full step (translation in the first frame's camera axes, rotation
@@ -226,15 +226,18 @@ def resolve_mask(seq: Sequence, mask: str | None, n_sample: int = 30) -> np.ndar
     return img > 0
 
 
+def motion_row(frame: int, t_s: float, s: StepMotion) -> list:
+    """One ``motion.csv`` row (``MOTION_COLUMNS``) for the step into ``frame`` (plain Python numbers)."""
+    t = s.t_c1_c2_m if s.t_c1_c2_m is not None else np.full(3, np.nan)
+    rv = Rotation.from_matrix(s.R_c1_c2).as_rotvec() if s.R_c1_c2 is not None else np.full(3, np.nan)
+    return [int(frame), float(t_s), float(s.distance_m), float(s.roll_rad), float(s.pitch_rad), float(s.yaw_rad),
+            float(s.tilt_rad), int(s.n_matches), s.status, *map(float, t), *map(float, rv),
+            float(s.sigma_distance_m), float(s.sigma_rotation_rad)]
+
+
 def motion_rows(steps: list[StepMotion], frame_rate_hz: float) -> list[list]:
     """Rows of ``motion.csv`` (SPEC.md): step ``k`` is the motion from frame ``k-1`` to frame ``k``."""
-    rows = []
-    for k, s in enumerate(steps, start=1):
-        t = s.t_c1_c2_m if s.t_c1_c2_m is not None else np.full(3, np.nan)
-        rv = Rotation.from_matrix(s.R_c1_c2).as_rotvec() if s.R_c1_c2 is not None else np.full(3, np.nan)
-        rows.append([k, k / frame_rate_hz, s.distance_m, s.roll_rad, s.pitch_rad, s.yaw_rad, s.tilt_rad, s.n_matches,
-                     s.status, *map(float, t), *map(float, rv), s.sigma_distance_m, s.sigma_rotation_rad])
-    return rows
+    return [motion_row(k, k / frame_rate_hz, s) for k, s in enumerate(steps, start=1)]
 
 
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:

@@ -1,0 +1,119 @@
+"""`bodyslam batch` on whole-exam stand-ins: frames per second and peak memory against exam length.
+
+Renders the `exam` scenario (320x320, 2 frames/s, 6 m of small bowel) at each length (cached under --keep),
+then runs the whole `bodyslam batch` process as a user would (fast mode, both cores, no RF so the trajectory is
+the streaming dead reckoning) and samples the resident memory of its whole process tree (the coordinator and
+its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole process, start-up included) and
+the peak tree memory per length, and the ratio of the longest to the shortest.
+
+    .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch]
+
+Goal (issue 7): >= 100 frames/s in fast mode on this 2-core machine; peak memory at 10,000 frames no more than
+10% above that at 2,000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+
+def tree_rss_bytes(pid: int) -> int:
+    """Resident memory of ``pid`` and all its descendants (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    rss = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                parts = f.read().rsplit(")", 1)[1].split()
+            ppid = int(parts[1])
+            rss[int(d)] = int(parts[21]) * os.sysconf("SC_PAGE_SIZE")
+            children.setdefault(ppid, []).append(int(d))
+        except (OSError, ValueError, IndexError):
+            continue
+    total, todo = 0, [pid]
+    while todo:
+        p = todo.pop()
+        total += rss.get(p, 0)
+        todo.extend(children.get(p, []))
+    return total
+
+
+def run_measured(cmd: list[str]) -> tuple[float, int, int]:
+    """``(seconds, peak tree RSS bytes, return code)`` of a command."""
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    peak = 0
+    stop = threading.Event()
+
+    def sample():
+        nonlocal peak
+        while not stop.is_set():
+            peak = max(peak, tree_rss_bytes(p.pid))
+            time.sleep(0.2)
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    out, _ = p.communicate()
+    stop.set()
+    th.join()
+    el = time.perf_counter() - t0
+    if p.returncode not in (0, 3):
+        print(out)
+    return el, peak, p.returncode
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", default="2000,10000")
+    ap.add_argument("--mode", default="fast")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--keep", type=Path, default=Path("/tmp/bench_batch"))
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    lengths = [int(x) for x in args.frames.split(",")]
+    args.keep.mkdir(parents=True, exist_ok=True)
+    res = {}
+    for n in lengths:
+        seq = args.keep / f"exam_{args.seed}_{n}"
+        if not (seq / "meta.json").exists():
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", "exam", "--seed", str(args.seed),
+                            "--frames", str(n), "--out", str(seq), "--force"], check=True)
+            print(f"rendered {n} frames in {time.perf_counter() - t0:.0f} s", flush=True)
+        # the frames only (a plain folder + the calibration): no RF, so memory is the streaming path's
+        folder = args.keep / f"frames_{args.seed}_{n}"
+        if not folder.exists():
+            folder.symlink_to(seq / "frames")
+        meta = json.loads((seq / "meta.json").read_text())
+        calib = args.keep / "calib.json"
+        calib.write_text(json.dumps(meta["camera"]))
+        out = args.keep / f"out_{args.mode}_{n}"
+        shutil.rmtree(out, ignore_errors=True)
+        cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode,
+               "--calib", str(calib), "--fps", "2", "--radius-m", str(meta["tube_radius_m"])]
+        el, peak, rc = run_measured(cmd)
+        summ = json.loads((out / "summary.json").read_text())["exams"][0]
+        res[n] = {"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20, "rc": rc,
+                  "steps": summ["steps"], "path_m": summ["path_travelled_m"]}
+        print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
+              f"(whole process, 2 cores); peak memory (process tree) {peak / 2**20:.0f} MiB; steps {summ['steps']}",
+              flush=True)
+    if len(lengths) > 1:
+        a, b = res[min(lengths)], res[max(lengths)]
+        print(f"peak memory {max(lengths)} vs {min(lengths)} frames: {b['peak_tree_rss_mib'] / a['peak_tree_rss_mib']:.3f}x")
+    if args.json:
+        args.json.write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()

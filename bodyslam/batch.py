@@ -1,0 +1,938 @@
+"""Whole exams: frame folders, videos and manifests, processed in resumable chunks on both cores or a Dask
+cluster (``bodyslam batch``).
+
+An *exam* is one capsule recording: a folder of frames (a sequence directory with ``meta.json``, or a plain
+folder of image files), or a video file. For each exam the run writes, under ``OUT/<exam>/``:
+
+- ``frames.csv``: ``frame,file,t,class,status`` per frame (FT/FL from the kernel SVM; status ``ok``, ``dark``,
+  ``saturated``, ``unreadable``, ``bad_size``);
+- ``motion.csv``: per-step motion (SPEC.md columns and the full step, as ``bodyslam motion`` writes it); ``frame``
+  is the step's later frame;
+- ``trajectory.tum``: fused and smoothed (RF given: :func:`bodyslam.fusion.fuse` + RTS) or dead reckoning (the
+  first camera frame is the world frame), and ``uncertainty.csv`` (position 1-sigma per frame);
+- ``marks.csv`` for marked frames (``--mark``): position, 1-sigma, path travelled from the first frame and from
+  each landmark frame, with 1-sigma;
+- ``summary.json`` and plots. ``OUT/problems.csv`` lists every problem of every exam
+  (``exam,file,frame,severity,reason``); ``OUT/summary.json`` gathers the exams.
+
+Frames and time
+---------------
+Frames of a folder are its image files in the order of the last number in their names (``000123.png``,
+``img_0042.jpg``); that number is the frame index and ``t = index / frame_rate``. Missing numbers are reported as
+a gap (one problem per gap) and the step across the gap is estimated between the frames on either side. Files
+that are not images (by extension) are reported and skipped. A video's frames are numbered from 0; its frame
+rate is the container's unless given.
+
+Chunks, checkpoints, resuming
+-----------------------------
+An exam's frames are cut into chunks of ``chunk_frames`` that overlap by one frame (chunk ``i`` computes the
+steps into its frames, so every step belongs to exactly one chunk). A chunk's result is a small JSON file in
+``OUT/<exam>/chunks/``, written atomically; its computation depends only on its own frames, so results do not
+depend on the order, the number of workers or where they ran. ``OUT/batch.json`` holds the plan (inputs, a
+fingerprint of the files, settings, chunking). Running the same command again resumes: finished chunks are
+reused, the rest computed, and the outputs (always rebuilt from the chunk files) are identical to an
+uninterrupted run's. A plan that differs from the one in ``OUT`` (other inputs or settings) is refused unless
+``force`` (which clears ``OUT`` first); a non-empty ``OUT`` without a plan is never written into without it.
+
+Memory
+------
+Workers hold one chunk's frames at a time; the coordinator streams chunk files into the outputs and keeps a few
+numbers per frame (positions and path lengths for the marks and plots: ~100 bytes per frame). With RF, fusion
+and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per frame).
+
+Dead reckoning and path length (no RF)
+--------------------------------------
+Steps are accumulated with the fusion's process model (:class:`bodyslam.fusion.DeadReckoner`): a step without an
+estimate repeats the last estimated one with a 1-sigma as large as that step (a capsule facing the wall or after a
+jump is still moving; assuming a stop biased the path on thesis seeds). The path travelled is the sum of the
+applied step lengths, its variance the sum of the steps' variances; that is the "how far along the gut" figure.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import cv2
+import numpy as np
+
+from bodyslam.camera import FisheyeCamera, camera_from_dict
+from bodyslam.errors import ConfigError, InputError
+from bodyslam.io import atomic_path, read_json, write_csv, write_image, write_json
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BatchSettings", "Exam", "open_exams", "read_calibration", "list_frames", "run_batch", "BatchReport",
+           "parse_frame_list", "read_marks", "process_chunk", "IMAGE_EXTS", "VIDEO_EXTS"]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
+VIDEO_EXTS = (".mp4", ".avi", ".wmv", ".mov", ".mkv", ".mpg", ".mpeg", ".m4v", ".asf")
+SIDECARS = {"meta.json", "rf.csv", "sensors.csv", "labels.csv", "groundtruth.tum", "motion_truth.csv",
+            "centerline.csv", "truth.json", "calibration.json", "mask.png"}
+FRAME_COLUMNS = ["frame", "file", "t", "class", "status"]
+PROBLEM_COLUMNS = ["exam", "file", "frame", "severity", "reason"]
+PLAN_VERSION = 1
+DEFAULT_FOV_DEG = 156.0  # PillCam SB
+DEFAULT_RADIUS_M = 0.0125  # small intestine, 2.5 cm lumen diameter (the thesis's testbed: 1.5 cm radius)
+DEFAULT_FPS = 2.0
+
+
+# -- exams ------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BatchSettings:
+    match_mode: str = "fast"
+    estimator: str = "tube"
+    classify: bool = True
+    model: str | None = None
+    min_matches: int = 20
+    chunk_frames: int = 100
+    fusion: str = "rss"
+
+
+@dataclass
+class Exam:
+    """One exam to process. ``frames``: ``(index, file name)`` for folders; ``n_frames`` for videos."""
+
+    name: str
+    kind: str  # "folder" or "video"
+    source: str  # frames folder or video file
+    camera: dict
+    frame_rate_hz: float
+    radius_m: float
+    frames: list[tuple[int, str]] = field(default_factory=list, repr=False)
+    n_frames: int = 0
+    mask: str | None = None  # None: camera image circle; "auto"; or a PNG path
+    rf: str | None = None
+    sensors: str | None = None
+    pathloss: dict | None = None
+    marks: list[tuple[int, str]] = field(default_factory=list)
+    landmarks: list[int] = field(default_factory=list)
+    assumed: list[str] = field(default_factory=list)
+    problems: list[list] = field(default_factory=list, repr=False)  # found while listing (gaps, non-images)
+
+    def index_of(self, pos: int) -> int:
+        return self.frames[pos][0] if self.kind == "folder" else pos
+
+    def describe(self) -> dict:
+        """What the plan fingerprints: everything that changes results."""
+        h = hashlib.sha256()
+        if self.kind == "folder":
+            for idx, name in self.frames:
+                try:
+                    size = os.path.getsize(os.path.join(self.source, name))
+                except OSError:
+                    size = -1
+                h.update(f"{idx}\t{name}\t{size}\n".encode())
+        else:
+            st = os.stat(self.source)
+            h.update(f"{st.st_size}".encode())
+        return {"name": self.name, "kind": self.kind, "source": os.path.abspath(self.source), "camera": self.camera,
+                "frame_rate_hz": self.frame_rate_hz, "radius_m": self.radius_m, "n_frames": self.n_positions,
+                "mask": self.mask, "rf": self.rf, "sensors": self.sensors, "files_sha256": h.hexdigest()}
+
+    @property
+    def n_positions(self) -> int:
+        return len(self.frames) if self.kind == "folder" else self.n_frames
+
+
+_NUM = re.compile(r"(\d+)")
+
+
+def list_frames(folder: str | os.PathLike) -> tuple[list[tuple[int, str]], list[list]]:
+    """Image files of a folder in frame order, and the problems found (non-image files, numbering gaps).
+
+    Returns ``([(index, name)], [[file, frame, severity, reason]])``. The index is the last number in the file
+    name; when names carry no numbers, the sorted position.
+    """
+    folder = Path(folder)
+    problems: list[list] = []
+    imgs, numbered = [], True
+    for entry in sorted(os.scandir(folder), key=lambda e: e.name):
+        if entry.name.startswith(".") or not entry.is_file() or entry.name in SIDECARS:
+            continue
+        ext = os.path.splitext(entry.name)[1].lower()
+        if ext not in IMAGE_EXTS:
+            problems.append([str(folder / entry.name), "", "warning", "not an image file (by extension): skipped"])
+            continue
+        nums = _NUM.findall(os.path.splitext(entry.name)[0])
+        numbered &= bool(nums)
+        imgs.append((int(nums[-1]) if nums else -1, entry.name))
+    if not numbered:
+        imgs = [(i, name) for i, (_, name) in enumerate(sorted(imgs, key=lambda x: x[1]))]
+    imgs.sort()
+    frames: list[tuple[int, str]] = []
+    for idx, name in imgs:
+        if frames and idx == frames[-1][0]:
+            problems.append([str(folder / name), idx, "warning",
+                             f"frame number {idx} also used by {frames[-1][1]}: skipped"])
+            continue
+        if frames and idx > frames[-1][0] + 1:
+            a, b = frames[-1][0] + 1, idx - 1
+            problems.append([str(folder), a, "warning",
+                             f"numbering gap: frame{'s' if b > a else ''} {a}{f'-{b}' if b > a else ''} missing "
+                             f"(the step from {frames[-1][0]} to {idx} spans {idx - frames[-1][0]} frame intervals)"])
+        frames.append((idx, name))
+    return frames, problems
+
+
+def read_calibration(path: str | os.PathLike, width: int | None = None, height: int | None = None) -> dict:
+    """A camera description (``camera_from_dict`` form) from a calibration file.
+
+    Accepted: JSON in :func:`bodyslam.camera.camera_from_dict` form; JSON with ``cv2.fisheye`` results
+    ``{"K": 3x3, "D": [k1..k4], "width", "height"[, "fov_deg"]}``; OpenCV FileStorage YAML/XML with ``K`` (or
+    ``camera_matrix``), ``D`` (or ``distortion_coefficients``), ``image_width``, ``image_height``. Without
+    ``fov_deg`` the field of view is the largest circle about the principal point inside the image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: calibration file not found")
+    if path.suffix.lower() == ".json":
+        d = read_json(path)
+        if not isinstance(d, dict):
+            raise InputError(f"{path}: calibration must be a JSON object")
+        if "model" in d:
+            camera_from_dict(d)  # validates, names a missing parameter
+            return d
+        try:
+            K = np.asarray(d["K"], float).reshape(3, 3)
+            D = np.asarray(d.get("D", [0, 0, 0, 0]), float).reshape(-1)
+            w, h = int(d.get("width", width or 0)), int(d.get("height", height or 0))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise InputError(f"{path}: calibration needs K (3x3), D (4) and width/height ({exc})") from None
+        fov = d.get("fov_deg")
+    else:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        if not fs.isOpened():
+            raise InputError(f"{path}: not a readable OpenCV calibration file (YAML/XML)")
+
+        def node(*names):
+            for n in names:
+                v = fs.getNode(n)
+                if not v.empty():
+                    return v
+            return None
+
+        kn, dn = node("K", "camera_matrix"), node("D", "distortion_coefficients")
+        if kn is None:
+            raise InputError(f"{path}: no K / camera_matrix in the calibration file")
+        K = np.asarray(kn.mat(), float).reshape(3, 3)
+        D = np.asarray(dn.mat(), float).reshape(-1) if dn is not None else np.zeros(4)
+        wn, hn = node("image_width", "width"), node("image_height", "height")
+        w = int(wn.real()) if wn is not None else int(width or 0)
+        h = int(hn.real()) if hn is not None else int(height or 0)
+        fn = node("fov_deg")
+        fov = fn.real() if fn is not None else None
+        fs.release()
+    if w <= 0 or h <= 0:
+        raise InputError(f"{path}: calibration gives no image size (width/height)")
+    if len(D) != 4:
+        raise InputError(f"{path}: D must have 4 cv2.fisheye coefficients, got {len(D)}")
+    cam = {"model": "opencv_fisheye", "width": w, "height": h, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2],
+           "cy": K[1, 2], "k": [float(x) for x in D]}
+    if fov is None:
+        r = min(K[0, 2], K[1, 2], w - 1 - K[0, 2], h - 1 - K[1, 2])
+        probe = FisheyeCamera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], 179.0, tuple(D))
+        ray, _ = probe.unproject(np.array([[K[0, 2] + r, K[1, 2]]]))
+        fov = 2 * math.degrees(math.acos(float(np.clip(ray[0, 2], -1, 1))))
+    cam["fov_deg"] = float(fov)
+    camera_from_dict(cam)
+    return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in cam.items()}
+
+
+def _first_frame_size(exam: Exam) -> tuple[int, int] | None:
+    if exam.kind == "video":
+        cap = cv2.VideoCapture(exam.source)
+        ok, img = cap.read()
+        cap.release()
+        return (img.shape[1], img.shape[0]) if ok else None
+    for _, name in exam.frames[:50]:
+        img = cv2.imread(os.path.join(exam.source, name), cv2.IMREAD_UNCHANGED)
+        if img is not None:
+            return img.shape[1], img.shape[0]
+    return None
+
+
+def parse_frame_list(text: str) -> list[int]:
+    """``"120,455,1000-1002"`` -> ``[120, 455, 1000, 1001, 1002]``."""
+    out = []
+    for part in str(text).replace(";", ",").split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if "-" in part[1:]:
+                a, b = part.split("-", 1)
+                out.extend(range(int(a), int(b) + 1))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise InputError(f"not a frame number or range: {part!r}") from None
+    return out
+
+
+def read_marks(path: str | os.PathLike, exams: list[Exam]) -> None:
+    """Add the marked frames of a CSV (``frame[,label][,exam]``) to the exams (all exams when no ``exam``).
+
+    Raises
+    ------
+    InputError
+        A malformed line or an unknown exam (file and line are named).
+    """
+    from bodyslam.io import csv_rows
+
+    by_name = {e.name: e for e in exams}
+    with csv_rows(path, ("frame",)) as lines:
+        for lineno, row in lines:
+            try:
+                f = int(str(row["frame"]).strip())
+            except (TypeError, ValueError):
+                raise InputError(f"{path}:{lineno}: frame {row.get('frame')!r} is not a frame number") from None
+            name = (row.get("exam") or "").strip()
+            if name and name not in by_name:
+                raise InputError(f"{path}:{lineno}: unknown exam {name!r} (exams: {', '.join(by_name)})")
+            for e in ([by_name[name]] if name else exams):
+                e.marks.append((f, (row.get("label") or "").strip()))
+
+
+def _unique_name(name: str, taken: set[str]) -> str:
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "exam"
+    out, i = name, 2
+    while out in taken:
+        out, i = f"{name}_{i}", i + 1
+    taken.add(out)
+    return out
+
+
+def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = None,
+               radius_m: float | None = None, mask: str | None = None, rf: str | None = None,
+               sensors: str | None = None, marks: list[tuple[int, str]] | None = None,
+               landmarks: list[int] | None = None) -> list[Exam]:
+    """Exams from command-line inputs: frame folders, sequence directories, videos, manifests (CSV/JSON).
+
+    A manifest lists one exam per row (CSV with a header) or object (JSON list): ``input`` and optionally
+    ``name, calib, fps, radius_m, mask, rf, sensors, marks, landmarks`` (frame lists as ``"120;455"``);
+    relative paths are relative to the manifest. Command-line options are defaults for every exam.
+
+    Raises
+    ------
+    InputError
+        An input that is none of these, or unusable as a whole (no frames, unreadable video) -- one clear line.
+    """
+    exams: list[Exam] = []
+    taken: set[str] = set()
+    base = {"calib": calib, "fps": fps, "radius_m": radius_m, "mask": mask, "rf": rf, "sensors": sensors,
+            "marks": marks or [], "landmarks": landmarks or []}
+    for inp in inputs:
+        p = Path(inp)
+        if p.is_file() and p.suffix.lower() in (".csv", ".json") and p.name not in SIDECARS:
+            for row in _read_manifest(p):
+                opts = dict(base)
+                for k in ("calib", "mask", "rf", "sensors"):
+                    if row.get(k):
+                        opts[k] = str((p.parent / row[k]).resolve()) if row[k] != "auto" else "auto"
+                for k in ("fps", "radius_m"):
+                    if row.get(k) not in (None, ""):
+                        try:
+                            opts[k] = float(row[k])
+                        except ValueError:
+                            raise InputError(f"{p}: {k} {row[k]!r} is not a number") from None
+                if row.get("marks"):
+                    opts["marks"] = [(f, "") for f in parse_frame_list(row["marks"])]
+                if row.get("landmarks"):
+                    opts["landmarks"] = parse_frame_list(row["landmarks"])
+                src = (p.parent / row["input"]).resolve()
+                exams.append(_open_exam(src, row.get("name") or src.stem, taken, **opts))
+        else:
+            exams.append(_open_exam(p, p.stem if p.is_file() else p.name, taken, **base))
+    if not exams:
+        raise InputError("no exams to process")
+    return exams
+
+
+def _read_manifest(path: Path) -> list[dict]:
+    if path.suffix.lower() == ".json":
+        rows = read_json(path)
+        if not isinstance(rows, list) or not all(isinstance(r, dict) and "input" in r for r in rows):
+            raise InputError(f"{path}: a JSON manifest is a list of objects with an 'input' each")
+        return [{k: ("" if v is None else (";".join(map(str, v)) if isinstance(v, list) else str(v)))
+                 for k, v in r.items()} for r in rows]
+    with path.open(newline="", encoding="utf-8") as f:
+        r = csv.DictReader(f)
+        if "input" not in (r.fieldnames or []):
+            raise InputError(f"{path}: not a manifest (no 'input' column; header is {r.fieldnames})")
+        rows = [row for row in r if row.get("input")]
+    if not rows:
+        raise InputError(f"{path}: manifest lists no exams")
+    return rows
+
+
+def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask, rf, sensors, marks,
+               landmarks) -> Exam:
+    assumed: list[str] = []
+    meta: dict[str, Any] = {}
+    if src.is_dir():
+        kind = "folder"
+        frames_dir = src
+        if (src / "meta.json").is_file():
+            meta = read_json(src / "meta.json")
+            if not isinstance(meta, dict):
+                raise InputError(f"{src}/meta.json: not a JSON object")
+            frames_dir = src / meta.get("frames", {}).get("dir", "frames")
+            if not frames_dir.is_dir():
+                raise InputError(f"{frames_dir}: frames directory not found")
+        frames, problems = list_frames(frames_dir)
+        if not frames:
+            raise InputError(f"{src}: no image files found (looked in {frames_dir})")
+        n_meta = meta.get("n_frames")
+        if isinstance(n_meta, int) and frames[-1][0] < n_meta - 1:
+            a = frames[-1][0] + 1
+            problems.append([str(frames_dir), a, "warning", f"frames {a}-{n_meta - 1} missing at the end "
+                                                             f"(meta.json says {n_meta})"])
+        exam = Exam(name, kind, str(frames_dir), {}, 0.0, 0.0, frames=frames, problems=problems)
+    elif src.is_file() and src.suffix.lower() in VIDEO_EXTS:
+        cap = cv2.VideoCapture(str(src))
+        if not cap.isOpened():
+            raise InputError(f"{src}: cannot open the video (unsupported codec or not a video)")
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        vfps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        ok, _ = cap.read()
+        cap.release()
+        if not ok:
+            raise InputError(f"{src}: the video has no decodable frame")
+        if n <= 0:  # container without a frame count: count by decoding
+            cap = cv2.VideoCapture(str(src))
+            n = 0
+            while cap.grab():
+                n += 1
+            cap.release()
+        exam = Exam(name, "video", str(src), {}, 0.0, 0.0, n_frames=n)
+        if fps is None and vfps > 0:
+            fps = vfps
+    elif src.exists():
+        raise InputError(f"{src}: not a frame folder, a video ({', '.join(VIDEO_EXTS)}) or a manifest (.csv/.json)")
+    else:
+        raise InputError(f"{src}: no such file or directory")
+    exam.name = _unique_name(name, taken)
+    # camera: calibration file > meta.json > default (assumed)
+    if calib:
+        exam.camera = read_calibration(calib)
+    elif isinstance(meta.get("camera"), dict):
+        exam.camera = meta["camera"]
+    else:
+        size = _first_frame_size(exam)
+        if size is None:
+            raise InputError(f"{src}: no readable frame to take the image size from")
+        exam.camera = {"model": "equidistant", "width": size[0], "height": size[1], "fov_deg": DEFAULT_FOV_DEG}
+        assumed.append(f"camera: equidistant fisheye {DEFAULT_FOV_DEG:g} deg at {size[0]}x{size[1]} (no calibration)")
+    camera_from_dict(exam.camera)
+    if fps is None:
+        fps = meta.get("frame_rate_hz")
+    if fps is None:
+        fps = DEFAULT_FPS
+        assumed.append(f"frame rate {DEFAULT_FPS:g} frames/s")
+    if not float(fps) > 0:
+        raise InputError(f"{src}: frame rate must be positive, got {fps}")
+    exam.frame_rate_hz = float(fps)
+    r = radius_m if radius_m is not None else meta.get("tube_radius_m")
+    if r is None:
+        r = DEFAULT_RADIUS_M
+        assumed.append(f"lumen radius {DEFAULT_RADIUS_M * 100:g} cm (distances scale with it)")
+    exam.radius_m = float(r)
+    exam.mask = mask
+    rf_meta = meta.get("rf") if isinstance(meta.get("rf"), dict) else {}
+    if rf is None and sensors is None and src.is_dir() and rf_meta:
+        cand_rf, cand_s = src / rf_meta.get("file", "rf.csv"), src / rf_meta.get("sensors", "sensors.csv")
+        if cand_rf.is_file() and cand_s.is_file():
+            rf, sensors = str(cand_rf), str(cand_s)
+    if (rf is None) != (sensors is None):
+        raise InputError(f"{src}: RF fusion needs both an rf.csv and a sensors.csv")
+    exam.rf, exam.sensors = rf, sensors
+    exam.pathloss = rf_meta.get("pathloss") if rf else None
+    exam.marks = list(marks)
+    exam.landmarks = list(landmarks)
+    exam.assumed = assumed
+    return exam
+
+
+# -- per chunk (workers) ----------------------------------------------------------------------------------------
+_CACHE: dict = {}
+
+
+def _tools(camera_d: dict, settings: BatchSettings, mask: np.ndarray | None):
+    """Matcher, classifier and field of view for a worker, built once per process and settings."""
+    key = (json.dumps(camera_d, sort_keys=True), settings, None if mask is None else hashlib.sha1(mask).hexdigest())
+    if key not in _CACHE:
+        from bodyslam.classify import TunnelClassifier
+        from bodyslam.matching import Matcher
+
+        _CACHE.clear()
+        cam = camera_from_dict(camera_d)
+        clf = None
+        if settings.classify:
+            clf = TunnelClassifier.load(settings.model) if settings.model else TunnelClassifier.default()
+        fov = cam.fov_mask() if mask is None else mask
+        _CACHE[key] = (cam, Matcher(cam, settings.match_mode, mask=mask), clf, fov)
+    return _CACHE[key]
+
+
+def _decode(data: bytes, name: str) -> tuple[np.ndarray | None, list[tuple[str, str]]]:
+    """A frame's bytes -> RGB uint8, with ``(severity, reason)`` notes. ``None`` when unusable."""
+    if len(data) == 0:
+        return None, [("error", "empty file (0 bytes)")]
+    ext = os.path.splitext(name)[1].lower()
+    if ext in (".jpg", ".jpeg") and data[:2] == b"\xff\xd8" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        # libjpeg decodes a cut file into a grey-filled frame with only a warning: refuse it here
+        return None, [("error", "truncated JPEG (no end-of-image marker)")]
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        return None, [("error", "not a decodable image (corrupt, truncated or not an image)")]
+    notes = []
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+        notes.append(("warning", "16-bit frame: scaled to 8 bits"))
+    elif img.dtype != np.uint8:
+        return None, [("error", f"unsupported pixel type {img.dtype}")]
+    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
+        img = cv2.cvtColor(img.reshape(img.shape[:2]), cv2.COLOR_GRAY2RGB)
+        notes.append(("warning", "grayscale frame: read as RGB"))
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    else:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img, notes
+
+
+def _chunk_frames(task: dict) -> Iterator[tuple[int, int, str, np.ndarray | None, list]]:
+    """``(position, index, file, rgb or None, notes)`` for the chunk's positions; a video that ends early
+    yields a last item with index -1."""
+    if task["kind"] == "folder":
+        for pos, (idx, name) in zip(range(task["first"], task["last"] + 1), task["frames"]):
+            path = os.path.join(task["source"], name)
+            try:
+                with open(path, "rb") as f:
+                    data = f.read()
+            except OSError as exc:
+                yield pos, idx, path, None, [("error", f"cannot read ({exc.strerror or exc})")]
+                continue
+            img, notes = _decode(data, name)
+            yield pos, idx, path, img, notes
+        return
+    cap = cv2.VideoCapture(task["source"])
+    try:
+        if task["first"] > 0:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, task["first"])
+        for pos in range(task["first"], task["last"] + 1):
+            ok, bgr = cap.read()
+            if not ok:
+                yield pos, -1, task["source"], None, [("error", f"video unreadable from frame {pos} on "
+                                                               f"(the container says {task['n_total']} frames)")]
+                return
+            yield pos, pos, task["source"], cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), []
+    finally:
+        cap.release()
+
+
+def process_chunk(task: dict) -> dict:
+    """Frames ``first..last`` of one exam: class and status per frame, motion of every step into them.
+
+    Pure and deterministic (the result depends only on the frames and settings), so chunks can run anywhere,
+    in any order. Returns a JSON-serialisable dict (see module docstring).
+    """
+    from bodyslam.classify import frame_features, frame_status
+    from bodyslam.motion import StepMotion, estimate_thesis, estimate_tube
+    from bodyslam.tracking import motion_row
+    from bodyslam.unroll import Unroller
+
+    cv2.setNumThreads(1)
+    settings = BatchSettings(**task["settings"])
+    mask = None if task["mask"] is None else np.asarray(task["mask"], bool)
+    cam, matcher, clf, fov = _tools(task["camera"], settings, mask)
+    fps = task["frame_rate_hz"]
+    frames_out, steps_out, problems = [], [], []
+    prev = None  # (index, features or None, class)
+    eof = None
+    for pos, idx, path, img, notes in _chunk_frames(task):
+        if idx < 0:
+            problems.append([path, pos, "error", notes[0][1]])
+            eof = pos
+            break
+        own = pos > task["first"] or task["first"] == 0  # the seam frame belongs to the previous chunk
+        if img is not None and img.shape[:2] != (cam.height, cam.width):
+            notes = notes + [("error", f"size {img.shape[1]}x{img.shape[0]} is not the camera's "
+                                       f"{cam.width}x{cam.height}")]
+            img, status = None, "bad_size"
+        else:
+            status = "unreadable" if img is None else "ok"
+        if own:
+            problems.extend([path, idx, sev, reason] for sev, reason in notes)
+        feats, cls = None, ""
+        if img is not None:
+            feats = matcher.features(img)
+            if clf is None:
+                cls = "FT"
+            else:
+                status = frame_status(img, fov)
+                cls = "FL" if status != "ok" else str(clf.predict(frame_features(img, fov)[None])[0])
+        if own:
+            frames_out.append([idx, os.path.basename(path) if task["kind"] == "folder" else f"#{idx}",
+                               idx / fps, cls, status])
+        if pos > task["first"]:
+            if prev is None or prev[1] is None or feats is None:
+                s = StepMotion(status="bad_frame")
+            elif prev[2] != "FT" or cls != "FT":
+                s = StepMotion(status="no_lumen")
+            else:
+                m = matcher.match_features(prev[1], feats)
+                if settings.estimator == "tube":
+                    s = estimate_tube(m, cam, task["radius_m"], min_matches=settings.min_matches)
+                else:
+                    s = estimate_thesis(m, Unroller(cam), task["radius_m"], min_matches=settings.min_matches)
+            steps_out.append(motion_row(idx, idx / fps, s))
+        prev = (idx, feats, cls)
+    return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"], "frames": frames_out,
+            "steps": steps_out, "problems": problems, "eof": eof}
+
+
+# -- the run ----------------------------------------------------------------------------------------------------
+@dataclass
+class BatchReport:
+    out: Path
+    exams: list[dict]
+    n_problems: int
+    n_errors: int
+    chunks_computed: int
+    chunks_reused: int
+
+
+def _chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
+    if n <= 1:
+        return [(0, max(n - 1, 0))]
+    b = list(range(0, n - 1, size)) + [n - 1]
+    return [(b[i], b[i + 1]) for i in range(len(b) - 1)]
+
+
+def _prepare_out(out: Path, plan: dict, force: bool) -> None:
+    plan_file = out / "batch.json"
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()):
+        old = None
+        if plan_file.is_file():
+            try:
+                old = read_json(plan_file).get("plan")
+            except (InputError, AttributeError):
+                old = None
+        if old == json.loads(json.dumps(plan)):
+            log.info("%s: resuming (same inputs and settings)", out)
+            return
+        if not force:
+            why = ("it holds a run with other inputs or settings" if old is not None
+                   else "it is not empty and holds no batch run")
+            raise InputError(f"{out}: {why}; use --force to overwrite (the same command resumes its own run)")
+        for child in out.iterdir():
+            if child.is_dir() and not child.is_symlink():
+                shutil.rmtree(child)
+            else:
+                child.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(plan_file, {"plan": plan, "format": "bodyslam-batch/1"})
+
+
+def _mask_for(exam: Exam) -> np.ndarray | None:
+    if exam.mask is None:
+        return None
+    if exam.mask == "auto":
+        from bodyslam.matching import detect_fov_mask
+
+        n = exam.n_positions
+        ks = np.unique(np.linspace(0, n - 1, min(30, n)).astype(int))
+        task = {"kind": exam.kind, "source": exam.source, "n_total": n}
+        frames = []
+        for k in ks:
+            t = dict(task, first=int(k), last=int(k), frames=exam.frames[k:k + 1])
+            for _, _, _, img, _ in _chunk_frames(t):
+                if img is not None:
+                    frames.append(img)
+        return detect_fov_mask(frames)
+    img = cv2.imread(exam.mask, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError(f"{exam.mask}: mask is not a readable image")
+    cam = exam.camera
+    if img.shape != (cam["height"], cam["width"]):
+        raise InputError(f"{exam.mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are "
+                         f"{cam['width']}x{cam['height']}")
+    return img > 0
+
+
+def _run_tasks(tasks: list[dict], jobs: int | None, scheduler: str | None) -> Iterator[dict]:
+    """Results of ``process_chunk`` as they finish (any order)."""
+    if not tasks:
+        return
+    if scheduler:
+        try:
+            from distributed import Client, as_completed
+        except ImportError:
+            raise ConfigError("--scheduler needs Dask distributed (pip install 'dask[distributed]')") from None
+        try:
+            client = Client(scheduler, timeout=30)
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+        try:
+            futures = client.map(process_chunk, tasks, pure=False)
+            for fut in as_completed(futures):
+                yield fut.result()
+        finally:
+            client.close()
+        return
+    from bodyslam.parallel import imap_tasks
+
+    yield from imap_tasks(process_chunk, tasks, jobs, ordered=False)
+
+
+def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings = BatchSettings(),
+              jobs: int | None = None, scheduler: str | None = None, force: bool = False,
+              progress: Callable[[int, int], None] | None = None) -> BatchReport:
+    """Process every exam into ``out`` (module docstring): resumable, streaming, parallel."""
+    out = Path(out)
+    if settings.chunk_frames < 2:
+        raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
+    plan = {"version": PLAN_VERSION, "settings": asdict(settings), "exams": [e.describe() for e in exams]}
+    _prepare_out(out, plan, force)
+    t0 = time.monotonic()
+    tasks, reused, total = [], 0, sum(e.n_positions for e in exams)
+    done_frames = 0
+    for e in exams:
+        (out / e.name / "chunks").mkdir(parents=True, exist_ok=True)
+        mask = _mask_for(e)
+        for i, (a, b) in enumerate(_chunk_bounds(e.n_positions, settings.chunk_frames)):
+            f = out / e.name / "chunks" / f"chunk_{i:06d}.json"
+            if _valid_chunk(f, i):
+                reused += 1
+                done_frames += b - a + (a == 0)
+                continue
+            tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "kind": e.kind, "source": e.source,
+                          "frames": e.frames[a:b + 1] if e.kind == "folder" else [], "n_total": e.n_positions,
+                          "camera": e.camera, "frame_rate_hz": e.frame_rate_hz, "radius_m": e.radius_m,
+                          "settings": asdict(settings), "mask": mask})
+    if reused:
+        log.info("%d chunk(s) reused from an earlier run", reused)
+    if progress:
+        progress(done_frames, total)
+    by_key = {(t["exam"], t["chunk"]): t for t in tasks}
+    for res in _run_tasks(tasks, jobs, scheduler):
+        task = by_key[(res["exam"], res["chunk"])]
+        # the JSON text of a result is the checkpoint; it is read back the same way on resume
+        path = out / task["exam"] / "chunks" / f"chunk_{task['chunk']:06d}.json"
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(res), encoding="utf-8")
+        done_frames += task["last"] - task["first"] + (task["first"] == 0)
+        if progress:
+            progress(done_frames, total)
+    summaries, all_problems = [], []
+    for e in exams:
+        s, probs = _finalize(e, out / e.name, settings)
+        summaries.append(s)
+        all_problems.extend([e.name, *p] for p in probs)
+    write_csv(out / "problems.csv", PROBLEM_COLUMNS, all_problems)
+    n_err = sum(p[3] == "error" for p in all_problems)
+    elapsed = time.monotonic() - t0
+    write_json(out / "summary.json", {"exams": summaries, "n_problems": len(all_problems), "n_errors": n_err,
+                                      "chunks_computed": len(tasks), "chunks_reused": reused,
+                                      "seconds": round(elapsed, 3)})
+    return BatchReport(out, summaries, len(all_problems), n_err, len(tasks), reused)
+
+
+def _valid_chunk(path: Path, i: int) -> bool:
+    if not path.is_file():
+        return False
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+        return d.get("chunk") == i and "steps" in d
+    except (OSError, ValueError):
+        return False
+
+
+def _iter_chunks(exam_dir: Path) -> Iterator[dict]:
+    for f in sorted((exam_dir / "chunks").glob("chunk_*.json")):
+        yield json.loads(f.read_text(encoding="utf-8"))
+
+
+def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[list]]:
+    """Rebuild an exam's outputs from its chunk files (streamed)."""
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.fusion import DeadReckoner
+    from bodyslam.io import read_motion_csv
+    from bodyslam.tracking import MOTION_COLUMNS
+
+    problems = [list(p) for p in exam.problems]
+    n_expected = exam.n_positions
+    stamps, pos_w, quat, sd_pos, path_m, path_var = [], [], [], [], [], []
+    frame_idx: list[int] = []
+    classes = {"FT": 0, "FL": 0, "": 0}
+    statuses: dict[str, int] = {}
+    dr = DeadReckoner()
+    eof = None
+    with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
+            open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
+        fw, mw = csv.writer(ff), csv.writer(mf)
+        fw.writerow(FRAME_COLUMNS)
+        mw.writerow(MOTION_COLUMNS)
+        for ch in _iter_chunks(d):
+            problems.extend(ch["problems"])
+            fr = iter(ch["frames"])
+            if ch["first"] == 0 and ch["frames"]:
+                row = next(fr)
+                fw.writerow(row)
+                _record(row, dr, stamps, pos_w, quat, sd_pos, path_m, path_var, frame_idx, classes)
+            for row, step in zip(fr, ch["steps"]):
+                fw.writerow(row)
+                mw.writerow(step)
+                statuses[step[8]] = statuses.get(step[8], 0) + 1
+                dr.step(_step_of(step))
+                _record(row, dr, stamps, pos_w, quat, sd_pos, path_m, path_var, frame_idx, classes)
+            if ch["eof"] is not None:
+                eof = ch["eof"]
+                break
+    n = len(frame_idx)
+    t = np.asarray(stamps)
+    P = np.asarray(pos_w).reshape(-1, 3)
+    Q = np.asarray(quat).reshape(-1, 4)
+    sd = np.asarray(sd_pos)
+    fused = None
+    if exam.rf and n >= 2:
+        fused = _fuse(exam, d, t, read_motion_csv(d / "motion.csv"), frame_idx, settings, problems)
+        if fused is not None:
+            P, Q, sd = fused
+    from bodyslam.io import write_tum
+
+    write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q))
+    write_csv(d / "uncertainty.csv", ["frame", "t", "sd_position_m", "path_m", "sd_path_m"],
+              [[frame_idx[k], t[k], sd[k], path_m[k], math.sqrt(path_var[k])] for k in range(n)])
+    marks = _marks(exam, d, frame_idx, t, P, sd, np.asarray(path_m), np.asarray(path_var), problems)
+    _plots(exam, d, t, P, np.asarray(path_m), fused is not None)
+    summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
+               "frames_expected": n_expected, "video_ended_at": eof,
+               "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
+               "classes": {"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]},
+               "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
+               "sd_path_travelled_m": math.sqrt(path_var[-1]) if n else 0.0,
+               "trajectory": "fused (RF + vision, RTS-smoothed)" if fused is not None else "dead reckoning",
+               "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
+               "camera": exam.camera, "radius_m": exam.radius_m}
+    write_json(d / "summary.json", summary)
+    return summary, problems
+
+
+def _record(row, dr, stamps, pos_w, quat, sd_pos, path_m, path_var, frame_idx, classes) -> None:
+    frame_idx.append(int(row[0]))
+    stamps.append(float(row[2]))
+    classes[row[3]] = classes.get(row[3], 0) + 1
+    pos_w.append(dr.p_w_m.copy())
+    quat.append(dr.R_w_c.as_quat())
+    sd_pos.append(math.sqrt(max(float(np.trace(dr.P[:3, :3])), 0.0)))
+    path_m.append(dr.path_m)
+    path_var.append(dr.path_var_m2)
+
+
+def _step_of(row: list):
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.fusion import Step
+
+    if row[8] != "ok":
+        return Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False)
+    v = np.array(row[9:17], float)
+    if not np.isfinite(v[:6]).all():
+        return Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False)
+    return Step(Rotation.from_rotvec(v[3:6]), v[:3], v[6] if np.isfinite(v[6]) else 1e-3,
+                v[7] if np.isfinite(v[7]) else math.radians(1.0), True)
+
+
+def _fuse(exam: Exam, d: Path, t: np.ndarray, rows: dict, frame_idx: list[int], settings: BatchSettings,
+          problems: list[list]):
+    from bodyslam.fusion import fuse, rts_smooth
+    from bodyslam.io import write_tum
+    from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
+
+    try:
+        names, spos, snrm = read_sensors(exam.sensors)
+        stamps, rss_t, rf_probs = read_rf(exam.rf, names)
+    except InputError as exc:
+        problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
+        return None
+    problems.extend([exam.rf, "", "warning", msg] for msg in rf_probs)
+    pl = PathLossModel.from_dict(exam.pathloss) if exam.pathloss else PathLossModel()
+    rss = rss_per_frame(stamps, rss_t, t, exam.frame_rate_hz)
+    steps = [_step_of(_row_list(rows.get(k))) for k in frame_idx[1:]]
+    fixes = [locate_ml(spos, snrm, r, pl) for r in rss]
+    if sum(f.status == "ok" for f in fixes) < 3:
+        problems.append([exam.rf, "", "error", "RF not used: fewer than 3 frames with an RF fix"])
+        return None
+    ekf = fuse(steps, fixes, rss, spos, snrm, pl, mode=settings.fusion)
+    res = rts_smooth(ekf)
+    write_tum(d / "trajectory_filter.tum", t, ekf.positions_w_m, ekf.rotations_w_c)
+    sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
+    return res.positions_w_m, res.rotations_w_c.as_quat(), sd
+
+
+def _row_list(r: dict | None) -> list:
+    from bodyslam.tracking import MOTION_COLUMNS
+
+    if r is None:
+        return [0] * 8 + ["missing"] + [float("nan")] * 8
+    return [r.get(c, float("nan")) for c in MOTION_COLUMNS]
+
+
+def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var, problems) -> list[list]:
+    if not exam.marks:
+        return []
+    where = {f: k for k, f in enumerate(frame_idx)}
+    lms = [lm for lm in exam.landmarks if lm in where]
+    for lm in exam.landmarks:
+        if lm not in where:
+            problems.append([exam.source, lm, "error", "landmark frame not in the exam (or unreadable)"])
+    header = ["frame", "label", "t", "x_m", "y_m", "z_m", "sd_position_m", "path_from_start_m",
+              "sd_path_from_start_m"]
+    for lm in lms:
+        header += [f"path_from_{lm}_m", f"sd_path_from_{lm}_m"]
+    rows = []
+    for f, label in exam.marks:
+        k = where.get(f)
+        if k is None:
+            problems.append([exam.source, f, "error", "marked frame not in the exam (or unreadable)"])
+            continue
+        row = [f, label, t[k], *P[k], sd[k], path_m[k], math.sqrt(path_var[k])]
+        for lm in lms:
+            j = where[lm]
+            row += [path_m[k] - path_m[j], math.sqrt(abs(path_var[k] - path_var[j]))]
+        rows.append(row)
+    write_csv(d / "marks.csv", header, rows)
+    return rows
+
+
+def _plots(exam: Exam, d: Path, t, P, path_m, fused: bool) -> None:
+    from bodyslam.plots import Figure
+
+    if len(t) < 2:
+        return
+    step = max(1, len(t) // 4000)  # plots need no more points than pixels
+    tt, PP, pm = t[::step], P[::step], path_m[::step]
+    fig = Figure(f"{exam.name}: path travelled", "time (min)", "path (cm)", size=(640, 400))
+    fig.line(tt / 60.0, pm * 100)
+    write_image(d / "path.png", fig.image())
+    for a, b in ((0, 2), (0, 1)):
+        what = "fused trajectory" if fused else "dead reckoning (first camera frame)"
+        fig = Figure(f"{exam.name}: {what}", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)", size=(640, 520))
+        fig.line(PP[:, a] * 100, PP[:, b] * 100)
+        write_image(d / f"trajectory_{'xyz'[a]}{'xyz'[b]}.png", fig.image())

@@ -1,0 +1,251 @@
+"""bodyslam batch: outputs, marks, resuming after kill -9, bad files, videos, calibration files, Dask."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from bodyslam.batch import BatchSettings, list_frames, open_exams, read_calibration, run_batch
+from bodyslam.cli import main as cli_main
+from bodyslam.errors import InputError
+
+DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+OUTPUTS = ("frames.csv", "motion.csv", "trajectory.tum", "uncertainty.csv", "marks.csv")
+FAST = BatchSettings(chunk_frames=8)
+
+
+def _rows(path: Path) -> list[dict]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _plain_folder(dst: Path, n: int, start: int = 0) -> Path:
+    dst.mkdir(parents=True)
+    for k in range(start, start + n):
+        shutil.copy(DEMO / "frames" / f"{k:06d}.png", dst / f"capsule_{k:05d}.png")
+    return dst
+
+
+def _same_outputs(a: Path, b: Path) -> None:
+    for name in OUTPUTS:
+        if (a / name).exists() or (b / name).exists():
+            assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
+    exams = open_exams([str(DEMO)], marks=[(10, "polyp"), (30, "")], landmarks=[5])
+    rep = run_batch(exams, tmp_path / "out", FAST, jobs=1)
+    d = tmp_path / "out" / "demo_seed0"
+    frames = _rows(d / "frames.csv")
+    steps = _rows(d / "motion.csv")
+    assert len(frames) == 40 and len(steps) == 39  # every frame once, every step once, across chunk seams
+    assert [int(r["frame"]) for r in steps] == list(range(1, 40))
+    assert [int(r["frame"]) for r in frames] == list(range(40))
+    assert sum(r["status"] == "ok" for r in steps) >= 30  # fast mode estimates most demo steps
+    marks = _rows(d / "marks.csv")
+    assert [m["frame"] for m in marks] == ["10", "30"] and marks[0]["label"] == "polyp"
+    # the path from the landmark is the path from the start minus the landmark's own
+    m = marks[1]
+    k5 = next(r for r in _rows(d / "uncertainty.csv") if r["frame"] == "5")
+    assert float(m["path_from_5_m"]) == pytest.approx(float(m["path_from_start_m"]) - float(k5["path_m"]), abs=1e-9)
+    # demo truth: the capsule travels ~15 cm in 40 frames; fast mode should be within a few cm of that path
+    truth = np.loadtxt(DEMO / "motion_truth.csv", delimiter=",", skiprows=1, usecols=2)
+    assert rep.exams[0]["path_travelled_m"] == pytest.approx(np.abs(truth).sum(), rel=0.25)
+    assert rep.exams[0]["trajectory"].startswith("fused")  # the sequence's rf.csv + sensors.csv are used
+    assert rep.n_problems == 0 and (tmp_path / "out" / "problems.csv").read_text().startswith("exam,file,frame")
+
+
+def test_chunking_and_workers_do_not_change_results(tmp_path):
+    e = open_exams([str(DEMO)])
+    run_batch(e, tmp_path / "a", BatchSettings(chunk_frames=40), jobs=1)
+    run_batch(open_exams([str(DEMO)]), tmp_path / "b", BatchSettings(chunk_frames=7), jobs=2)
+    # chunk size is part of the plan but not of the results
+    _same_outputs(tmp_path / "a" / "demo_seed0", tmp_path / "b" / "demo_seed0")
+
+
+def test_kill_9_then_same_command_resumes_with_identical_results(tmp_path):
+    src = _plain_folder(tmp_path / "exam", 40)
+    cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(src), "--out", str(tmp_path / "run"), "--jobs", "1",
+           "--chunk-frames", "4", "--mark", "20", "--radius-m", "0.015"]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    chunks = tmp_path / "run" / "exam" / "chunks"
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 120 and len(list(chunks.glob("chunk_*.json"))) < 3 and p.poll() is None:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    done_before = len(list(chunks.glob("chunk_*.json")))
+    assert 3 <= done_before < 10, "the kill must land mid-run for this test to mean anything"
+    assert not (tmp_path / "run" / "exam" / "frames.csv").exists()
+    p2 = subprocess.run(cmd, capture_output=True, text=True)
+    assert p2.returncode == 0, p2.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["chunks_reused"] == done_before and summary["chunks_computed"] == 10 - done_before
+    ref = subprocess.run([str(tmp_path / "ref") if c == str(tmp_path / "run") else c for c in cmd],
+                         capture_output=True, text=True)
+    assert ref.returncode == 0, ref.stderr
+    _same_outputs(tmp_path / "run" / "exam", tmp_path / "ref" / "exam")
+
+
+def test_existing_output_is_not_overwritten_without_force(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "precious.txt").write_text("keep me")
+    src = _plain_folder(tmp_path / "exam", 6)
+    with pytest.raises(InputError, match="not empty and holds no batch run"):
+        run_batch(open_exams([str(src)]), out, FAST, jobs=1)
+    assert (out / "precious.txt").read_text() == "keep me"
+    out2 = tmp_path / "out2"
+    run_batch(open_exams([str(src)]), out2, FAST, jobs=1)
+    with pytest.raises(InputError, match="other inputs or settings"):
+        run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1)
+    rep = run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1,
+                    force=True)
+    assert rep.chunks_computed == 1 and rep.chunks_reused == 0
+
+
+def _write_bad_folder(d: Path) -> dict[str, str]:
+    """A frame folder seeded with every kind of bad file; returns file name -> expected reason fragment."""
+    _plain_folder(d, 12)
+    img = cv2.imread(str(d / "capsule_00003.png"), cv2.IMREAD_COLOR)
+    (d / "capsule_00004.png").write_bytes(b"")  # zero bytes
+    data = (d / "capsule_00005.png").read_bytes()
+    (d / "capsule_00005.png").write_bytes(data[: len(data) // 3])  # truncated
+    (d / "capsule_00006.png").write_bytes(b"this is not a PNG at all" * 10)  # corrupt
+    cv2.imwrite(str(d / "capsule_00007.png"), cv2.resize(img, (200, 200)))  # odd size
+    cv2.imwrite(str(d / "capsule_00008.png"), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))  # grayscale
+    cv2.imwrite(str(d / "capsule_00009.png"), img.astype(np.uint16) * 257)  # 16-bit
+    ok, jpg = cv2.imencode(".jpg", img)
+    (d / "capsule_00010.png").unlink()
+    (d / "capsule_00010.jpg").write_bytes(jpg.tobytes()[: len(jpg) // 2])  # truncated JPEG
+    (d / "capsule_00011.png").unlink()  # a gap: frame 11 missing (frames go on at 12)
+    shutil.copy(DEMO / "frames" / "000012.png", d / "capsule_00012.png")
+    (d / "notes.txt").write_text("exam notes")  # not an image
+    return {"capsule_00004.png": "empty file", "capsule_00005.png": "not a decodable image",
+            "capsule_00006.png": "not a decodable image", "capsule_00007.png": "is not the camera's",
+            "capsule_00008.png": "grayscale", "capsule_00009.png": "16-bit", "capsule_00010.jpg": "truncated JPEG",
+            "notes.txt": "not an image file", "exam": "numbering gap: frame 11 missing"}
+
+
+def test_bad_files_are_listed_and_the_run_completes(tmp_path, capsys):
+    expected = _write_bad_folder(tmp_path / "exam")
+    rc = cli_main(["batch", str(tmp_path / "exam"), "--out", str(tmp_path / "out"), "--jobs", "1",
+                   "--chunk-frames", "5", "--calib", str(_calib_json(tmp_path))])
+    assert rc == 3  # finished, with problems
+    probs = _rows(tmp_path / "out" / "problems.csv")
+    for name, reason in expected.items():
+        hits = [p for p in probs if Path(p["file"]).name == name and reason in p["reason"]]
+        assert hits, f"{name}: no problem mentioning {reason!r} in {probs}"
+    frames = {r["file"]: r for r in _rows(tmp_path / "out" / "exam" / "frames.csv")}
+    assert frames["capsule_00004.png"]["status"] == "unreadable"
+    assert frames["capsule_00007.png"]["status"] == "bad_size"
+    assert frames["capsule_00008.png"]["status"] == "ok"  # converted, processed, and reported as a warning
+    steps = {int(r["frame"]): r["status"] for r in _rows(tmp_path / "out" / "exam" / "motion.csv")}
+    assert steps[4] == steps[5] == "bad_frame" and 12 in steps and 11 not in steps
+    assert "problem(s)" in capsys.readouterr().out
+
+
+def test_unusable_input_is_one_clear_line(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert cli_main(["batch", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert "no image files found" in err and "Traceback" not in err
+    (tmp_path / "clip.mp4").write_bytes(b"\x00" * 1000)
+    assert cli_main(["batch", str(tmp_path / "clip.mp4"), "--out", str(tmp_path / "o")]) == 1
+    assert "clip.mp4" in capsys.readouterr().err
+
+
+def _write_video(path: Path, n: int) -> None:
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, (320, 320))
+    assert w.isOpened()
+    for k in range(n):
+        w.write(cv2.imread(str(DEMO / "frames" / f"{k:06d}.png")))
+    w.release()
+
+
+def test_video_chunks_seek_exactly_and_a_broken_tail_is_reported(tmp_path):
+    vid = tmp_path / "exam.avi"
+    _write_video(vid, 20)
+    run_batch(open_exams([str(vid)], radius_m=0.015), tmp_path / "one", BatchSettings(chunk_frames=20), jobs=1)
+    run_batch(open_exams([str(vid)], radius_m=0.015), tmp_path / "many", BatchSettings(chunk_frames=6), jobs=1)
+    _same_outputs(tmp_path / "one" / "exam", tmp_path / "many" / "exam")
+    assert len(_rows(tmp_path / "one" / "exam" / "frames.csv")) == 20
+    # cut the file: the frames that remain are processed, the tail is one problem
+    data = vid.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    rep = run_batch(open_exams([str(cut)], radius_m=0.015), tmp_path / "cut_out", BatchSettings(chunk_frames=6),
+                    jobs=1)
+    n = rep.exams[0]["frames"]
+    assert 5 <= n < 20
+    probs = _rows(tmp_path / "cut_out" / "problems.csv")
+    assert any("video unreadable from frame" in p["reason"] for p in probs)
+
+
+def _calib_json(tmp_path: Path) -> Path:
+    meta = json.loads((DEMO / "meta.json").read_text())
+    c = meta["camera"]
+    p = tmp_path / "calib.json"
+    p.write_text(json.dumps({"K": [[c["fx"], 0, c["cx"]], [0, c["fy"], c["cy"]], [0, 0, 1]], "D": c["k"],
+                             "width": 320, "height": 320, "fov_deg": c["fov_deg"]}))
+    return p
+
+
+def test_calibration_files_json_and_opencv_yaml(tmp_path):
+    cam = read_calibration(_calib_json(tmp_path))
+    assert cam["model"] == "opencv_fisheye" and cam["fov_deg"] == pytest.approx(156.0)
+    fs = cv2.FileStorage(str(tmp_path / "calib.yaml"), cv2.FILE_STORAGE_WRITE)
+    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+    fs.write("K", K)
+    fs.write("D", np.zeros((4, 1)))
+    fs.write("image_width", 320)
+    fs.write("image_height", 320)
+    fs.release()
+    cam2 = read_calibration(tmp_path / "calib.yaml")
+    # no fov_deg in the file: the largest circle about the principal point (159.5 px) of an equidistant lens
+    # with f = 117.53 px is 2 * 159.5 / 117.53 rad = 155.5 deg
+    assert cam2["fov_deg"] == pytest.approx(np.degrees(2 * 159.5 / cam["fx"]), abs=0.05)
+    (tmp_path / "bad.json").write_text(json.dumps({"K": [1, 2]}))
+    with pytest.raises(InputError, match="bad.json"):
+        read_calibration(tmp_path / "bad.json")
+
+
+def test_manifest_lists_exams_with_their_options(tmp_path):
+    _plain_folder(tmp_path / "a", 6)
+    _plain_folder(tmp_path / "b", 6, start=10)
+    (tmp_path / "m.csv").write_text("input,name,fps,radius_m,marks\na,first,4,0.015,2;3\nb,,,,\n")
+    exams = open_exams([str(tmp_path / "m.csv")])
+    assert [e.name for e in exams] == ["first", "b"]
+    assert exams[0].frame_rate_hz == 4.0 and exams[0].marks == [(2, ""), (3, "")]
+    assert any("frame rate" in a for a in exams[1].assumed) and any("radius" in a for a in exams[1].assumed)
+    assert [i for i, _ in exams[1].frames] == list(range(10, 16))
+
+
+def test_list_frames_orders_by_number_and_reports_gaps(tmp_path):
+    for name in ("img_10.png", "img_9.png", "img_12.png", "Thumbs.db"):
+        (tmp_path / name).write_bytes(b"x")
+    frames, probs = list_frames(tmp_path)
+    assert frames == [(9, "img_9.png"), (10, "img_10.png"), (12, "img_12.png")]
+    assert any("frame 11 missing" in p[3] for p in probs) and any("Thumbs.db" in p[0] for p in probs)
+
+
+def test_dask_local_cluster_gives_the_same_results(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    src = _plain_folder(tmp_path / "exam", 16)
+    run_batch(open_exams([str(src)], radius_m=0.015), tmp_path / "local", FAST, jobs=1)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
+        rep = run_batch(open_exams([str(src)], radius_m=0.015), tmp_path / "dask", FAST,
+                        scheduler=cluster.scheduler_address)
+    assert rep.chunks_computed == 2
+    _same_outputs(tmp_path / "local" / "exam", tmp_path / "dask" / "exam")
