@@ -65,7 +65,9 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
     for seed in seeds:
         d = root / f"thesis_{seed}"
         t0 = time.perf_counter()
-        simulate(scn, seed, d, n_frames=frames, force=True)
+        meta = d / "meta.json"
+        if not (keep and meta.exists() and json.loads(meta.read_text()).get("n_frames") == frames):
+            simulate(scn, seed, d, n_frames=frames, force=True)  # (a kept sequence of that length is reused)
         t_sim = time.perf_counter() - t0
         seq = Sequence.open(d)
         matcher = Matcher(seq.camera, mode)
@@ -76,8 +78,12 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
         for k in range(1, seq.n_frames):
             f = matcher.features(seq.frame(k))
             m = matcher.match_features(prev, f)
+            tube = estimate_tube(m, seq.camera, seq.radius_m)
+            if not tube.ok and m.method == "lk":  # as bodyslam.tracking.estimate_pair
+                m = matcher.match_features(prev, f, "descriptors")
+                tube = estimate_tube(m, seq.camera, seq.radius_m)
             prev = f
-            steps["tube"].append(estimate_tube(m, seq.camera, seq.radius_m))
+            steps["tube"].append(tube)
             steps["thesis"].append(estimate_thesis(m, un, seq.radius_m))
         t_mot = time.perf_counter() - t0
         off = off_centre_steps(d, seq.radius_m)

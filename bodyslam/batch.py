@@ -97,6 +97,7 @@ class BatchSettings:
     min_matches: int = 20
     chunk_frames: int = 100
     fusion: str = "rss"
+    classify_px: int | None = None  # see bodyslam.tracking.classify_work_px
 
 
 @dataclass
@@ -550,7 +551,7 @@ def process_chunk(task: dict) -> dict:
     """
     from bodyslam.classify import frame_features, frame_status
     from bodyslam.motion import StepMotion, estimate_thesis, estimate_tube
-    from bodyslam.tracking import motion_row
+    from bodyslam.tracking import classify_work_px, estimate_pair, motion_row
     from bodyslam.unroll import Unroller
 
     cv2.setNumThreads(1)
@@ -558,6 +559,7 @@ def process_chunk(task: dict) -> dict:
     mask = None if task["mask"] is None else np.asarray(task["mask"], bool)
     cam, matcher, clf, fov = _tools(task["camera"], settings, mask)
     fps = task["frame_rate_hz"]
+    px = classify_work_px(settings)
     frames_out, steps_out, problems = [], [], []
     prev = None  # (index, features or None, class)
     eof = None
@@ -582,7 +584,7 @@ def process_chunk(task: dict) -> dict:
                 cls = "FT"
             else:
                 status = frame_status(img, fov)
-                cls = "FL" if status != "ok" else str(clf.predict(frame_features(img, fov)[None])[0])
+                cls = "FL" if status != "ok" else str(clf.predict(frame_features(img, fov, work_px=px)[None])[0])
         if own:
             frames_out.append([idx, os.path.basename(path) if task["kind"] == "folder" else f"#{idx}",
                                idx / fps, cls, status])
@@ -592,11 +594,12 @@ def process_chunk(task: dict) -> dict:
             elif prev[2] != "FT" or cls != "FT":
                 s = StepMotion(status="no_lumen")
             else:
-                m = matcher.match_features(prev[1], feats)
                 if settings.estimator == "tube":
-                    s = estimate_tube(m, cam, task["radius_m"], min_matches=settings.min_matches)
+                    est = lambda m: estimate_tube(m, cam, task["radius_m"], min_matches=settings.min_matches)  # noqa: E731
                 else:
-                    s = estimate_thesis(m, Unroller(cam), task["radius_m"], min_matches=settings.min_matches)
+                    est = lambda m: estimate_thesis(m, Unroller(cam), task["radius_m"],  # noqa: E731
+                                                    min_matches=settings.min_matches)
+                s = estimate_pair(matcher, prev[1], feats, est)
             steps_out.append(motion_row(idx, idx / fps, s))
         prev = (idx, feats, cls)
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"], "frames": frames_out,

@@ -40,7 +40,7 @@ from bodyslam.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MATCH_MODES", "Matches", "Matcher", "detect_fov_mask"]
+__all__ = ["MATCH_MODES", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask"]
 
 MATCH_MODES = ("asift", "sift", "fast")
 # per mode: (detect_scale, max_features, max_matches); see the module docstring
@@ -52,9 +52,21 @@ class Matches:
     pts1_px: np.ndarray
     pts2_px: np.ndarray
     n_candidates: int
+    method: str = "descriptors"  # how they were found: "descriptors" (SIFT/ASIFT) or "lk" (tracking)
 
     def __len__(self) -> int:
         return len(self.pts1_px)
+
+
+@dataclass(eq=False)
+class FrameFeatures:
+    """One frame's matching inputs: the brightness-normalised gray image (for tracking), the raw gray image
+    (for the specular mask), and keypoints ``(pts_px (n, 2), descriptors)`` computed on first use."""
+
+    gray: np.ndarray
+    raw_gray: np.ndarray
+    kp: tuple[np.ndarray, np.ndarray | None] | None = None
+    corners: np.ndarray | None = None
 
 
 def detect_fov_mask(frames: list[np.ndarray], threshold: int = 12, min_fraction: float = 0.02) -> np.ndarray:
@@ -135,17 +147,29 @@ class Matcher:
         else:
             self._det = cv2.SIFT_create(contrastThreshold=0.01)
         self._bf = cv2.BFMatcher(cv2.NORM_L2)
+        # fast mode tracks first (module docstring): at most lk_corners corners, forward-backward check
+        self.lk_corners, self.lk_fb_px, self.lk_min_matches = 300, 0.5, 60
+        self._lk = dict(winSize=(15, 15), maxLevel=3,
+                        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
     # -- features -------------------------------------------------------------------------------------------
-    def features(self, rgb: np.ndarray):
-        """Per-frame features, computed once and reused for both pairs a frame belongs to."""
+    def features(self, rgb: np.ndarray) -> "FrameFeatures":
+        """Per-frame features, computed once (lazily) and reused for both pairs a frame belongs to."""
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
         if gray.shape != self.mask.shape:
             raise ConfigError(f"frame is {gray.shape[1]}x{gray.shape[0]}, camera is "
                               f"{self.mask.shape[1]}x{self.mask.shape[0]}")
         if gray.dtype != np.uint8:
             raise ConfigError(f"frames must be 8-bit, got {gray.dtype}")
-        gray = self._normalise(gray)
+        f = FrameFeatures(self._normalise(gray), gray)
+        if self.mode != "fast":
+            self.keypoints(f)
+        return f
+
+    def keypoints(self, f: "FrameFeatures") -> tuple[np.ndarray, np.ndarray | None]:
+        if f.kp is not None:
+            return f.kp
+        gray = f.gray
         if self.detect_scale < 1.0:
             small = cv2.resize(gray, self._mask_small.shape[::-1], interpolation=cv2.INTER_AREA)
             kp, desc = self._det.detectAndCompute(small, self._mask_small)
@@ -167,11 +191,23 @@ class Matcher:
         if len(kp) > self.max_features:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
             keep = np.argsort([-k.response for k in kp], kind="stable")[: self.max_features]
             kp, desc = [kp[i] for i in keep], desc[keep]
-        pts = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
-        return pts, desc
+        f.kp = (np.array([k.pt for k in kp], np.float64).reshape(-1, 2), desc)
+        return f.kp
 
-    def match_features(self, f1, f2) -> Matches:
-        (pts1, d1), (pts2, d2) = f1, f2
+    def match_features(self, f1: "FrameFeatures", f2: "FrameFeatures", method: str | None = None) -> Matches:
+        """Verified matches from frame 1 to frame 2. ``method``: ``"lk"`` (tracking), ``"descriptors"``, or
+        ``None``: the mode's first choice (fast: tracking, then descriptors when tracking verifies too few)."""
+        if method is None:
+            if self.mode == "fast":
+                m = self._track(f1, f2)
+                if len(m) >= self.lk_min_matches:
+                    return m
+            method = "descriptors"
+        if method == "lk":
+            return self._track(f1, f2)
+        if method != "descriptors":
+            raise ConfigError(f"match method must be 'lk' or 'descriptors', got {method!r}")
+        (pts1, d1), (pts2, d2) = self.keypoints(f1), self.keypoints(f2)
         if d1 is None or d2 is None or len(pts1) < 2 or len(pts2) < 2:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
         q, t = self._ratio_matches(d1, d2, pts2)
@@ -192,6 +228,37 @@ class Matcher:
         return self.match_features(self.features(rgb1), self.features(rgb2))
 
     # -- internals ------------------------------------------------------------------------------------------
+    def _track(self, f1: FrameFeatures, f2: FrameFeatures) -> Matches:
+        """Pyramidal Lucas-Kanade tracking of frame 1's corners into frame 2, kept when the track back lands
+        within ``lk_fb_px`` of its start, then verified like descriptor matches. Corners avoid specular
+        highlights (they move with the capsule's light, not with the wall)."""
+        if f1.corners is None:
+            mask = self.mask
+            spec = f1.raw_gray >= 245
+            if spec.any():
+                mask = mask.copy()
+                mask[cv2.dilate(spec.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0] = 0
+            c = cv2.goodFeaturesToTrack(f1.gray, self.lk_corners, 0.005, 7, mask=mask)
+            f1.corners = np.zeros((0, 1, 2), np.float32) if c is None else c
+        p0 = f1.corners
+        empty = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0, "lk")
+        if len(p0) < 8:
+            return empty
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(f1.gray, f2.gray, p0, None, **self._lk)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(f2.gray, f1.gray, p1, None, **self._lk)
+        a, b = p0.reshape(-1, 2).astype(np.float64), p1.reshape(-1, 2).astype(np.float64)
+        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb.reshape(-1, 2) - a, axis=1) < self.lk_fb_px)
+        h, w = self.mask.shape
+        ij = np.rint(b).astype(int)
+        ok &= (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        ok[ok] &= self.mask[ij[ok, 1], ij[ok, 0]] > 0
+        a, b = a[ok], b[ok]
+        if len(a) > self.max_matches:
+            sel = np.linspace(0, len(a) - 1, self.max_matches).astype(int)
+            a, b = a[sel], b[sel]
+        inl = self._verify(a, b)
+        return Matches(a[inl], b[inl], len(a), "lk")
+
     def _ratio_matches(self, d1: np.ndarray, d2: np.ndarray, pts2: np.ndarray, k: int = 4,
                        min_sep_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
         """Indices ``(query, train)`` passing the ratio test against the nearest neighbour that is a different

@@ -90,21 +90,18 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
     sums = flat.tolist()  # per-pixel [r, g, b] running sums of each root
     b2_of = [k * (math.log(2.0) + log_term)] * (h * w)  # b2 of a one-pixel region
 
-    def find(x):
-        root = x
-        while parent[root] != root:
-            root = parent[root]
-        while parent[x] != root:  # path compression
-            parent[x], x = root, parent[x]
-        return root
-
+    # Kruskal-style merging in edge order. The union-find is inlined (no function calls: the loop is the cost of
+    # classification) with path halving; the result does not depend on how the roots are found.
     for a, b in zip(pa, pb):
-        ra, rb = find(a), find(b)
-        if ra == rb:
+        while parent[a] != a:
+            parent[a] = a = parent[parent[a]]
+        while parent[b] != b:
+            parent[b] = b = parent[parent[b]]
+        if a == b:
             continue
-        na, nb = size[ra], size[rb]
-        sa, sb = sums[ra], sums[rb]
-        thr = b2_of[ra] + b2_of[rb]
+        na, nb = size[a], size[b]
+        sa, sb = sums[a], sums[b]
+        thr = b2_of[a] + b2_of[b]
         d0 = sa[0] / na - sb[0] / nb
         if d0 * d0 > thr:
             continue
@@ -115,14 +112,19 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
         if d2 * d2 > thr:
             continue
         if na < nb:
-            ra, rb, na, nb, sa, sb = rb, ra, nb, na, sb, sa
-        parent[rb] = ra
+            a, b, na, nb, sa, sb = b, a, nb, na, sb, sa
+        parent[b] = a
         n = na + nb
-        size[ra] = n
-        sums[ra] = [sa[0] + sb[0], sa[1] + sb[1], sa[2] + sb[2]]
-        b2_of[ra] = k / n * (min(g, n) * math.log(1.0 + n) + log_term)
+        size[a] = n
+        sums[a] = [sa[0] + sb[0], sa[1] + sb[1], sa[2] + sb[2]]
+        b2_of[a] = k / n * (min(g, n) * math.log(1.0 + n) + log_term)
 
-    roots = np.array([find(i) for i in range(h * w)])
+    roots = np.asarray(parent)
+    while True:  # pointer jumping: every pixel's root, vectorised
+        nxt = roots[roots]
+        if np.array_equal(nxt, roots):
+            break
+        roots = nxt
     roots[~m.ravel()] = -1
     uniq, labels = np.unique(roots, return_inverse=True)
     labels = labels.astype(np.int32) - (1 if uniq[0] == -1 else 0)

@@ -6,7 +6,7 @@ simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
 centerline MESH --out centerline.csv [--voxel-size X Y Z] [--pitch-mm P] [--reference CSV]
 score-motion SEQDIR motion.csv [--json report.json]   Table 4.1: per-step motion errors against the truth
-evaluate SCENARIO --seeds N|A-B|a,b --out DIR [--frames K]   every algorithm on the same runs: report.json
+evaluate SCENARIO --seeds N|A-B|a,b --out DIR [--frames K] [--jobs J]   every algorithm on the same runs: report.json + report.html
 scenarios      list the shipped scenarios
 """
 
@@ -56,6 +56,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ev.add_argument("--keep-frames", action="store_true", help="keep the rendered frames (default: deleted)")
     ev.add_argument("--force", action="store_true")
+    ev.add_argument("--jobs", type=int, default=None,
+                    help="seeds run in parallel, one per core by default (1: one seed at a time on every core)")
 
     e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY)")
     e.add_argument("mesh")
@@ -117,7 +119,7 @@ def _evaluate(args) -> int:
 
     scn = load_scenario(args.scenario, args.overrides)
     report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force,
-                      keep=args.keep_frames, progress=lambda msg: print(msg, flush=True))
+                      keep=args.keep_frames, progress=lambda msg: print(msg, flush=True), jobs=args.jobs)
     print(main_report_line(report))
     print(f"wrote {args.out}/report.json and plots")
     return 0

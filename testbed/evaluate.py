@@ -93,36 +93,70 @@ def _stats(e_m: np.ndarray, pcrb_m2: np.ndarray) -> dict:
             "rmse_over_sqrt_pcrb": rmse / float(np.sqrt(pcrb_m2.mean()) * 100)}
 
 
+def _run_seed(args) -> dict:
+    """One evaluation run (a worker's task): render, motion from the frames, every algorithm, scores."""
+    import time
+
+    scenario, seed, d, n_frames, render_jobs, motion_jobs, keep = args
+    d = Path(d)
+    t0 = time.perf_counter()
+    simulate(scenario, seed, d, n_frames=n_frames, jobs=render_jobs, force=True)
+    t1 = time.perf_counter()
+    cmd = [sys.executable, "-m", "bodyslam.cli", "motion", str(d), "--out", str(d / "motion.csv")]
+    if motion_jobs:
+        cmd += ["--jobs", str(motion_jobs)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode:
+        raise RuntimeError(f"bodyslam motion failed on seed {seed}: {r.stderr.strip()}")
+    t2 = time.perf_counter()
+    res = evaluate_sequence(d)
+    t3 = time.perf_counter()
+    if not keep:
+        for sub in ("frames", "depth"):
+            p = d / sub
+            if p.is_dir():
+                for f in p.iterdir():
+                    f.unlink()
+                p.rmdir()
+    res["seconds"] = {"render": t1 - t0, "motion": t2 - t1, "filters_and_scoring": t3 - t2}
+    res["seed"] = seed
+    return res
+
+
 def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_frames: int | None = None,
-             force: bool = False, keep: bool = False, progress: Callable[[str], None] | None = None) -> dict:
+             force: bool = False, keep: bool = False, progress: Callable[[str], None] | None = None,
+             jobs: int | None = 1) -> dict:
+    """Evaluate every algorithm over ``seeds`` (module docstring). ``jobs``: seeds run in parallel worker
+    processes (each renders and estimates with one core); ``1``: seeds one after another, each using every
+    core for rendering and motion."""
+    import time
+
+    from bodyslam.parallel import available_cores, imap_tasks
+
     out = Path(out_dir)
     prepare_output_dir(out, force)
-    per_seed, errs, pcrbs, motion = [], {a: [] for a in ALGORITHMS}, [], []
+    jobs = available_cores() if jobs is None else max(1, int(jobs))
+    jobs = min(jobs, len(seeds))
+    per_seed, errs, pcrbs, motion, timing = [], {a: [] for a in ALGORITHMS}, [], [], []
     first = None
-    for seed in seeds:
-        d = out / "sequences" / f"seed_{seed}"
-        simulate(scenario, seed, d, n_frames=n_frames, force=True)
-        r = subprocess.run([sys.executable, "-m", "bodyslam.cli", "motion", str(d), "--out", str(d / "motion.csv")],
-                           capture_output=True, text=True)
-        if r.returncode:
-            raise RuntimeError(f"bodyslam motion failed on seed {seed}: {r.stderr.strip()}")
-        res = evaluate_sequence(d)
+    t_start = time.perf_counter()
+    tasks = [(scenario, seed, str(out / "sequences" / f"seed_{seed}"), n_frames, 1 if jobs > 1 else None,
+              1 if jobs > 1 else None, keep) for seed in seeds]
+    for res in imap_tasks(_run_seed, tasks, jobs):
+        seed = res["seed"]
         first = first or res
         for a in ALGORITHMS:
             errs[a].append(res["errors"][a])
         pcrbs.append(res["pcrb_m2"])
         motion.append(res["motion"]["all"])
+        timing.append(res["seconds"])
         per_seed.append({"seed": seed, **{a: _stats(res["errors"][a], res["pcrb_m2"]) for a in ALGORITHMS},
-                         "sqrt_mean_pcrb_cm": float(np.sqrt(res["pcrb_m2"].mean()) * 100)})
-        if not keep:
-            for sub in ("frames", "depth"):
-                p = d / sub
-                if p.is_dir():
-                    for f in p.iterdir():
-                        f.unlink()
-                    p.rmdir()
+                         "sqrt_mean_pcrb_cm": float(np.sqrt(res["pcrb_m2"].mean()) * 100),
+                         "seconds": {k: round(v, 2) for k, v in res["seconds"].items()}})
         if progress:
-            progress(f"seed {seed}: fused {per_seed[-1]['ekf_rss_rts']['mean_error_cm']:.2f} cm, RF only "
+            progress(f"seed {seed} ({len(per_seed)}/{len(seeds)}): Body-SLAM (RTS) "
+                     f"{per_seed[-1]['ekf_rss_rts']['mean_error_cm']:.2f} cm, EKF "
+                     f"{per_seed[-1]['ekf_rss']['mean_error_cm']:.2f} cm, RF only "
                      f"{per_seed[-1]['rf_ml']['mean_error_cm']:.2f} cm")
     pc = np.concatenate(pcrbs)
     report = {
@@ -132,13 +166,61 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         "sqrt_mean_pcrb_cm": float(np.sqrt(pc.mean()) * 100),
         "table_4_1": {k: float(np.mean([m[k] for m in motion])) for k in motion[0] if k.endswith(("_cm", "_deg"))},
         "per_seed": per_seed,
+        "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
+                    **{f"{k}_total": round(sum(t[k] for t in timing), 2) for k in timing[0]}},
         "notes": "errors per frame against groundtruth.tum; PCRB bounds causal filtering (paper 000 Eq. 28-29); "
                  "RTS smoothing uses future readings and may go below it",
     }
     write_json(out / "report.json", report)
     _plots(out, first, np.concatenate(errs["ekf_rss_rts"]), np.concatenate(errs["rf_ml"]),
            np.concatenate(errs["dead_reckoning"]))
+    _html(out, report)
     return report
+
+
+LABELS = {"rf_ml": "RF only (ML)", "rf_nls": "RF only (NLS, Eq. 3.36)", "dead_reckoning": "dead reckoning",
+          "thesis_kf": "dissertation's KF (Eq. 3.26-3.38)", "ekf_fixes": "EKF on RF fixes",
+          "ekf_rss": "EKF on RSS (online)", "ekf_rss_rts": "EKF on RSS + RTS smoother (offline)"}
+
+
+def _html(out: Path, report: dict) -> None:
+    """``report.html``: the tables and the plots, one self-contained page next to report.json."""
+    import html
+
+    a = report["algorithms"]
+    rows = "".join(
+        f"<tr><td>{html.escape(LABELS[k])}</td><td>{v['mean_error_cm']:.2f}</td><td>{v['rmse_cm']:.2f}</td>"
+        f"<td>{v['median_error_cm']:.2f}</td><td>{v['p90_error_cm']:.2f}</td><td>{v['rmse_over_sqrt_pcrb']:.2f}</td></tr>"
+        for k, v in a.items())
+    t41 = report["table_4_1"]
+    t41_rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.4f}</td></tr>" for k, v in t41.items())
+    imgs = "".join(f'<figure><img src="{n}" alt="{n}"><figcaption>{n}</figcaption></figure>'
+                   for n in ("trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png",
+                             "error_histogram.png", "error_cdf.png"))
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>Evaluation: {html.escape(str(report['scenario']))}</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}td:first-child{{text-align:left}}
+figure{{display:inline-block;margin:8px}}</style></head><body>
+<h1>Evaluation of {html.escape(str(report['scenario']))}</h1>
+<p>{report['n_runs']} runs (seeds {html.escape(_seed_text(report['seeds']))}), {report['frames_per_run']} frames each;
+errors per frame against the ground truth. sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm.
+{html.escape(report['notes'])}.</p>
+<table><tr><th>algorithm</th><th>mean (cm)</th><th>RMSE (cm)</th><th>median (cm)</th><th>p90 (cm)</th>
+<th>RMSE / sqrt(PCRB)</th></tr>{rows}</table>
+<h2>Per-step motion (Table 4.1)</h2><table>{t41_rows}</table>
+<h2>Plots (Fig. 4.20-4.24)</h2>{imgs}
+</body></html>
+"""
+    from bodyslam.io import write_text_atomic
+
+    write_text_atomic(out / "report.html", page)
+
+
+def _seed_text(seeds: list[int]) -> str:
+    if seeds and seeds == list(range(seeds[0], seeds[0] + len(seeds))):
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ", ".join(map(str, seeds))
 
 
 def _plots(out: Path, first: dict, e_fused: np.ndarray, e_rf: np.ndarray, e_dr: np.ndarray) -> None:

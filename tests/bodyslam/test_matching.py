@@ -43,7 +43,8 @@ def test_features_avoid_a_given_mask():
     cam = FisheyeCamera.equidistant(200, 200, 156.0)
     mask = disc.copy()
     mask[:, :100] = False  # only the right half is valid
-    pts, _ = Matcher(cam, "sift", mask=mask).features(frames[0])
+    mt = Matcher(cam, "sift", mask=mask)
+    pts, _ = mt.keypoints(mt.features(frames[0]))
     assert len(pts) > 20 and (pts[:, 0] >= 100 - 0.5).all()
     with pytest.raises(ConfigError, match="mask is"):
         Matcher(cam, "sift", mask=np.ones((10, 10), bool))

@@ -39,7 +39,7 @@ def test_dead_reckoning_of_true_steps_reproduces_the_trajectory():
 def test_features_stay_inside_the_field_of_view(mode):
     cam = camera_from_dict(read_meta(DEMO)["camera"])
     matcher = Matcher(cam, mode)
-    pts, _ = matcher.features(read_image(DEMO / "frames" / "000003.png"))
+    pts, _ = matcher.keypoints(matcher.features(read_image(DEMO / "frames" / "000003.png")))
     assert len(pts) > 100
     ij = np.rint(pts).astype(int)
     assert (matcher.mask[ij[:, 1], ij[:, 0]] > 0).all()

@@ -23,3 +23,18 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
                 "error_cdf.png"):
         assert (out / png).stat().st_size > 1000
     assert not (out / "sequences" / "seed_0" / "frames").exists()  # frames are not kept by default
+
+
+def test_seeds_in_parallel_give_the_same_report_and_an_html_page(tmp_path):
+    reps = {}
+    for jobs in ("1", "2"):
+        out = tmp_path / f"eval_{jobs}"
+        p = subprocess.run([sys.executable, "-m", "testbed.cli", "evaluate", "demo", "--seeds", "3-4", "--frames", "12",
+                            "--out", str(out), "--jobs", jobs], capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        reps[jobs] = json.loads((out / "report.json").read_text())
+        page = (out / "report.html").read_text()
+        assert "RMSE / sqrt(PCRB)" in page and 'src="error_cdf.png"' in page and "seeds 3-4" in page
+    assert reps["2"]["seconds"]["jobs"] == 2 and reps["1"]["seeds"] == reps["2"]["seeds"] == [3, 4]
+    # each seed is computed the same way whatever the parallelism: identical figures
+    assert reps["1"]["algorithms"] == reps["2"]["algorithms"]
