@@ -853,7 +853,7 @@ def _step_of(row: list):
 
     from bodyslam.fusion import Step
 
-    if row[8] != "ok":
+    if row[8] not in ("ok", "bridged"):
         return Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False)
     v = np.array(row[9:17], float)
     if not np.isfinite(v[:6]).all():

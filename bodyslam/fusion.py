@@ -298,7 +298,7 @@ def steps_from_motion_rows(rows: dict[int, dict], n_frames: int) -> list[Step]:
     for k in range(1, n_frames):
         r = rows.get(k)
         vals = None
-        if r is not None and r.get("status") == "ok":
+        if r is not None and r.get("status") in ("ok", "bridged"):  # bridged: a share of a gap's motion
             try:
                 vals = [float(r[c]) for c in ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad",
                                                  "sigma_distance_m", "sigma_rotation_rad")]

@@ -72,6 +72,11 @@ class StepMotion:
     def ok(self) -> bool:
         return self.status == "ok"
 
+    @property
+    def has_estimate(self) -> bool:
+        """``ok``, or ``bridged``: a share of the motion measured across a gap (:func:`bodyslam.tracking.split_motion`)."""
+        return self.status in ("ok", "bridged") and self.R_c1_c2 is not None
+
 
 def motion_from_transform(R_c1_c2: Rotation, t_c1_c2_m: np.ndarray, n_matches: int) -> StepMotion:
     """Report a relative pose with the conventions of :mod:`bodyslam.geometry`."""

@@ -19,8 +19,9 @@ stopped against it -- and is counted in the summary, never hidden.
 from __future__ import annotations
 
 import logging
+import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -37,7 +38,7 @@ from bodyslam.unroll import Unroller
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MotionSettings", "sequence_motion", "estimate_pair", "classify_work_px", "dead_reckon", "MOTION_COLUMNS", "motion_row", "motion_rows"]
+__all__ = ["MotionSettings", "sequence_motion", "estimate_pair", "classify_work_px", "find_gaps", "split_motion", "dead_reckon", "MOTION_COLUMNS", "motion_row", "motion_rows"]
 
 MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status",
                   # beyond SPEC's minimum: the full step (translation in the first frame's camera axes, rotation
@@ -56,6 +57,8 @@ class MotionSettings:
     classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
     model: str | None = None  # classifier model file (default: the shipped one)
     classify_px: int | None = None  # SRM working size for classification; None: 64 px in fast mode, else 96
+    bridge_gaps: int = 15  # runs of up to this many steps without an estimate are bridged by matching their
+    #                        end frames directly (0: off); see README "gap bridging"
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -220,7 +223,71 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
         steps.extend(s for _, s in chunk)
         if progress:
             progress(len(steps), n - 1)
+    if settings.bridge_gaps and settings.estimator == "tube":
+        gaps = find_gaps(steps, settings.bridge_gaps)
+        if gaps:
+            btasks = [(str(seq.path), seq.radius_m, settings, a, b, camera, mask) for a, b in gaps]
+            for (a, b), T in zip(gaps, imap_tasks(_bridge_task, btasks, jobs)):
+                if T is not None:
+                    for k, s in zip(range(a + 1, b + 1), split_motion(T, b - a)):
+                        steps[k - 1] = s
     return steps
+
+
+def find_gaps(steps: list[StepMotion], max_len: int) -> list[tuple[int, int]]:
+    """Runs of steps without an estimate, as frame pairs ``(a, b)``: steps ``a+1..b`` have none, steps ``a``
+    and ``b+1`` have one (so frames ``a`` and ``b`` face the tunnel and are readable); at most ``max_len``."""
+    out, k, n = [], 0, len(steps)
+    while k < n:
+        if steps[k].ok:
+            k += 1
+            continue
+        j = k
+        while j < n and not steps[j].ok:
+            j += 1
+        # steps k..j-1 (0-based) are the moves into frames k+1..j: the gap spans frames a = k .. b = j
+        if k > 0 and j < n and j - k <= max_len and all(s.status != "bad_frame" for s in steps[k:j]):
+            out.append((k, j))
+        k = j
+    return out
+
+
+def _bridge_task(args) -> StepMotion | None:
+    """The motion from frame ``a`` straight to frame ``b`` (a gap's ends), or None."""
+    seq_dir, radius_m, settings, a, b, camera, mask = args
+    import cv2
+
+    cv2.setNumThreads(1)
+    seq = Sequence.open(seq_dir, radius_m, camera)
+    matcher = Matcher(seq.camera, settings.match_mode, mask=mask)
+    try:
+        fa, fb = matcher.features(seq.frame(a)), matcher.features(seq.frame(b))
+    except InputError:
+        return None
+    s = estimate_pair(matcher, fa, fb, lambda m: estimate_tube(m, seq.camera, seq.radius_m,
+                                                                min_matches=settings.min_matches))
+    return seq.to_body(s) if s.ok else None
+
+
+def split_motion(total: StepMotion, n: int) -> list[StepMotion]:
+    """``n`` equal steps whose composition is ``total`` (constant twist: rotation ``R^(1/n)``, translation on
+    the screw), each with status ``bridged`` and a 1-sigma of ``total``'s over sqrt(n) (independent steps)."""
+    R = Rotation.from_matrix(total.R_c1_c2)
+    rv = R.as_rotvec() / n
+    dR = Rotation.from_rotvec(rv)
+    # find t_s with sum_{i<n} dR^i t_s = t_total
+    A = np.zeros((3, 3))
+    Ri = np.eye(3)
+    for _ in range(n):
+        A += Ri
+        Ri = Ri @ dR.as_matrix()
+    t_s = np.linalg.solve(A, np.asarray(total.t_c1_c2_m, float))
+    out = []
+    for _ in range(n):
+        s = motion_from_transform(dR, t_s, total.n_matches)
+        out.append(replace(s, status="bridged", sigma_distance_m=total.sigma_distance_m / math.sqrt(n),
+                           sigma_rotation_rad=total.sigma_rotation_rad / math.sqrt(n)))
+    return out
 
 
 def resolve_mask(seq: Sequence, mask: str | None, n_sample: int = 30) -> np.ndarray | None:
@@ -262,7 +329,7 @@ def motion_rows(steps: list[StepMotion], frame_rate_hz: float) -> list[list]:
 
 
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
-    if not s.ok:
+    if not (s.ok or s.has_estimate):
         return Rotation.identity(), np.zeros(3)
     if s.R_c1_c2 is not None and s.t_c1_c2_m is not None:
         return Rotation.from_matrix(s.R_c1_c2), np.asarray(s.t_c1_c2_m, float)

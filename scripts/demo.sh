@@ -5,7 +5,8 @@
 #   3. write a contact sheet of the sequence;
 #   4. the pipeline: per-step motion from the frames (bodyslam motion), the dead-reckoned trajectory
 #      (bodyslam track), matches drawn for one pair (bodyslam match), and the score against the testbed's truth
-#      (testbed score-motion, Table 4.1); then Body-SLAM: the motion fused with the RF readings (bodyslam localize).
+#      (testbed score-motion, Table 4.1); then Body-SLAM: the motion fused with the RF readings (bodyslam localize);
+#   5. the same exam as a whole-exam batch job with a marked frame (bodyslam batch -> out/demo_batch/).
 # Outputs go to out/ (ignored by git). As the pipeline grows (classification, fusion), this script runs it.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -31,3 +32,4 @@ PY
     --meta data_samples/demo_seed0 --out out/demo_match_10_11.png
 .venv/bin/testbed score-motion data_samples/demo_seed0 out/demo_motion.csv --json out/demo_motion_score.json
 .venv/bin/bodyslam localize data_samples/demo_seed0 --motion out/demo_motion.csv --out out/demo_localize --force
+.venv/bin/bodyslam batch data_samples/demo_seed0 --out out/demo_batch --force --mark 20 --landmark 5

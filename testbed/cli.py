@@ -77,6 +77,17 @@ def _simulate(args) -> int:
     from testbed.simulate import simulate
 
     scn = load_scenario(args.scenario, args.overrides)
+    if scn.get("system", {}).get("kind") == "rf_tracking":  # papers 002/003: RF only, no frames
+        from pathlib import Path
+
+        from testbed.rf_tracking import simulate_rf_tracking
+        from testbed.simulate import prepare_output_dir
+
+        prepare_output_dir(Path(args.out), args.force)
+        s = simulate_rf_tracking(scn, args.seed, args.out)
+        print(f"{args.out}: {s['steps']} RF readings per receiver; path {s['path_travelled_m'] * 100:.1f} cm "
+              f"through {s['waypoints']} waypoints")
+        return 0
     if args.speed_model:
         from bodyslam.speed import load_speed_model
 
@@ -118,6 +129,18 @@ def _evaluate(args) -> int:
     from testbed.scenario import load_scenario
 
     scn = load_scenario(args.scenario, args.overrides)
+    if scn.get("system", {}).get("kind") == "rf_tracking":
+        from pathlib import Path
+
+        from testbed.rf_tracking import evaluate_rf_tracking, report_line
+        from testbed.simulate import prepare_output_dir
+
+        prepare_output_dir(Path(args.out), args.force)
+        rep = evaluate_rf_tracking(scn, parse_seeds(args.seeds), args.out, jobs=args.jobs,
+                                   progress=lambda msg: print(msg, flush=True))
+        print(report_line(rep))
+        print(f"wrote {args.out}/report.json, report.html and plots")
+        return 0
     report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force,
                       keep=args.keep_frames, progress=lambda msg: print(msg, flush=True), jobs=args.jobs)
     print(main_report_line(report))

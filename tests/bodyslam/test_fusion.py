@@ -108,3 +108,30 @@ def test_thesis_kf_runs_and_improves_on_rf(demo):
     init = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss").passes["init"]
     got = kf_thesis(steps, nls, init)
     assert err(got, gt) < err(np.array([f.position_w_m for f in nls]), gt)
+
+
+def test_dead_reckoner_streams_the_filters_prediction(demo):
+    from bodyslam.fusion import DeadReckoner
+    from bodyslam.tracking import dead_reckon
+
+    steps, *_ , gt = demo
+    steps = list(steps)
+    steps[5] = Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False)  # one step without an estimate
+    dr = DeadReckoner()
+    pos, sd = [dr.p_w_m.copy()], [0.0]
+    for s in steps:
+        dr.step(s)
+        pos.append(dr.p_w_m.copy())
+        sd.append(float(np.sqrt(np.trace(dr.P[:3, :3]))))
+    pos = np.array(pos)
+    # the missing step repeats step 4's translation (constant velocity) with no rotation
+    bridged = [s if k != 5 else Step(Rotation.identity(), steps[4].t, 0.0, 0.0, True) for k, s in enumerate(steps)]
+    from bodyslam.motion import StepMotion
+
+    ref, _ = dead_reckon([StepMotion(0.0, 0.0, 0.0, 0.0, 0.0, 10, "ok", s.R.as_matrix(), s.t) for s in bridged])
+    assert np.allclose(pos, ref, atol=1e-12)
+    # the step without an estimate costs far more certainty than an estimated one (its 1-sigma is its own size)
+    assert sd[6] - sd[5] > 5 * abs(sd[5] - sd[4])
+    assert dr.path_m == pytest.approx(sum(np.linalg.norm(s.t) for s in bridged), rel=1e-12)
+    assert dr.path_var_m2 == pytest.approx(sum(max(s.sigma_t_m, 3e-4) ** 2 for s in steps if s.ok)
+                                           + max(np.linalg.norm(steps[4].t), 3e-3) ** 2, rel=1e-12)

@@ -136,3 +136,27 @@ def test_speed_statistics_drive_the_testbed(tmp_path):
     truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
     assert truth["mean_step_cm"] == pytest.approx(model["motion"]["mean_step_m"] * 100, rel=0.02)
     assert truth["mean_roll_deg"] == pytest.approx(model["motion"]["mean_roll_deg"], rel=0.05)
+
+
+def test_gaps_are_found_between_estimated_steps_and_split_exactly():
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.motion import StepMotion, motion_from_transform
+    from bodyslam.tracking import dead_reckon, find_gaps, split_motion
+
+    ok = motion_from_transform(Rotation.from_rotvec([0.01, 0.0, 0.1]), np.array([0.0, 0.001, 0.004]), 50)
+    no = StepMotion(status="no_lumen")
+    bad = StepMotion(status="bad_frame")
+    steps = [no, ok, no, no, ok, ok, no, no, no, ok, bad, ok, no]
+    # step index i is the move into frame i+1: the gap frames 2..4 (steps 2,3 missing) and 6..9; not the leading
+    # gap (no estimated step before it), not the bad frame's, not the trailing one
+    assert find_gaps(steps, 15) == [(2, 4), (6, 9)]
+    assert find_gaps(steps, 2) == [(2, 4)]
+    total = motion_from_transform(Rotation.from_rotvec([0.3, -0.2, 0.6]), np.array([0.002, -0.001, 0.012]), 40)
+    total = StepMotion(**{**total.__dict__, "sigma_distance_m": 4e-4, "sigma_rotation_rad": 0.02})
+    parts = split_motion(total, 4)
+    assert [p.status for p in parts] == ["bridged"] * 4 and all(p.has_estimate for p in parts)
+    pos, rot = dead_reckon(parts)
+    assert np.allclose(pos[-1], total.t_c1_c2_m, atol=1e-12)
+    assert np.allclose(rot[-1].as_matrix(), total.R_c1_c2, atol=1e-12)
+    assert parts[0].sigma_distance_m == pytest.approx(2e-4)  # 4e-4 / sqrt(4): four independent shares
