@@ -73,6 +73,8 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--camera", default="front", choices=("front", "rear"),
                        help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
+        q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
+                       help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
         motion_opts(q)
     sg = sub.add_parser("segment", help="SRM segmentation of a frame, regions in their mean colours")
     sg.add_argument("frame")
@@ -446,7 +448,7 @@ def _motion_or_track(args) -> int:
     from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, dead_reckon, motion_rows, sequence_motion
 
     settings = MotionSettings(args.mode, args.estimator, args.unroll_mode, mask=args.mask,
-                              classify=not args.no_classify, model=args.model)
+                              classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
                             progress=Progress(args.cmd), camera=args.camera)

@@ -48,6 +48,7 @@ class Step:
     sigma_t_m: float
     sigma_r_rad: float
     ok: bool
+    bridged: bool = False  # a share of a gap's end-to-end motion (bodyslam.tracking.split_motion)
 
 
 @dataclass
@@ -309,7 +310,8 @@ def steps_from_motion_rows(rows: dict[int, dict], n_frames: int) -> list[Step]:
         else:
             sig_t = vals[6] if np.isfinite(vals[6]) else 1e-3
             sig_r = vals[7] if np.isfinite(vals[7]) else np.radians(1.0)
-            out.append(Step(Rotation.from_rotvec(vals[3:6]), np.array(vals[:3]), sig_t, sig_r, True))
+            out.append(Step(Rotation.from_rotvec(vals[3:6]), np.array(vals[:3]), sig_t, sig_r, True,
+                            r.get("status") == "bridged"))
     return out
 
 

@@ -77,8 +77,12 @@ def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
     ok = np.array([s.ok for s in steps])
     et = np.array([np.linalg.norm(s.t - t_true[k]) for k, s in enumerate(steps)])
     er = np.array([(s.R.inv() * R_true[k]).magnitude() for k, s in enumerate(steps)])
-    sig_t = np.full(len(steps), np.sqrt(np.mean(et[ok] ** 2) / 3) if ok.any() else 1e-3)
-    sig_r = np.full(len(steps), np.sqrt(np.mean(er[ok] ** 2) / 3) if ok.any() else 1e-2)
+    sig_t = np.full(len(steps), 1e-3)
+    sig_r = np.full(len(steps), 1e-2)
+    for group in (ok & ~np.array([s.bridged for s in steps]), np.array([s.bridged for s in steps])):
+        if group.any():  # measured steps and bridged shares of gaps, each with its own RMS error
+            sig_t[group] = np.sqrt(np.mean(et[group] ** 2) / 3)
+            sig_r[group] = np.sqrt(np.mean(er[group] ** 2) / 3)
     if (~ok).any():
         sig_t[~ok] = np.sqrt(np.mean(np.sum(t_true[~ok] ** 2, axis=1)) / 3)
         sig_r[~ok] = np.sqrt(np.mean([R_true[k].magnitude() ** 2 for k in np.nonzero(~ok)[0]]) / 3)
