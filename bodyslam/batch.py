@@ -780,8 +780,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
-    stamps, pos_w, quat, sd_pos, path_m, path_var = [], [], [], [], [], []
-    frame_idx: list[int] = []
+    acc = _Track(n_expected)  # ~100 bytes per frame, preallocated
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
     dr = DeadReckoner()
@@ -797,21 +796,19 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
             if ch["first"] == 0 and ch["frames"]:
                 row = next(fr)
                 fw.writerow(row)
-                _record(row, dr, stamps, pos_w, quat, sd_pos, path_m, path_var, frame_idx, classes)
+                acc.record(row, dr, classes)
             for row, step in zip(fr, ch["steps"]):
                 fw.writerow(row)
                 mw.writerow(step)
                 statuses[step[8]] = statuses.get(step[8], 0) + 1
                 dr.step(_step_of(step))
-                _record(row, dr, stamps, pos_w, quat, sd_pos, path_m, path_var, frame_idx, classes)
+                acc.record(row, dr, classes)
             if ch["eof"] is not None:
                 eof = ch["eof"]
                 break
-    n = len(frame_idx)
-    t = np.asarray(stamps)
-    P = np.asarray(pos_w).reshape(-1, 3)
-    Q = np.asarray(quat).reshape(-1, 4)
-    sd = np.asarray(sd_pos)
+    n = acc.n
+    t, P, Q, sd = acc.t[:n], acc.pos[:n], acc.quat[:n], acc.sd[:n]
+    path_m, path_var, frame_idx = acc.path[:n], acc.var[:n], acc.frame[:n].tolist()
     fused = None
     if exam.rf and n >= 2:
         fused = _fuse(exam, d, t, read_motion_csv(d / "motion.csv"), frame_idx, settings, problems)
@@ -822,14 +819,14 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q))
     write_csv(d / "uncertainty.csv", ["frame", "t", "sd_position_m", "path_m", "sd_path_m"],
               [[frame_idx[k], t[k], sd[k], path_m[k], math.sqrt(path_var[k])] for k in range(n)])
-    marks = _marks(exam, d, frame_idx, t, P, sd, np.asarray(path_m), np.asarray(path_var), problems)
-    _plots(exam, d, t, P, np.asarray(path_m), fused is not None)
+    marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems)
+    _plots(exam, d, t, P, path_m, fused is not None)
     summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
                "frames_expected": n_expected, "video_ended_at": eof,
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
                "classes": {"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]},
                "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
-               "sd_path_travelled_m": math.sqrt(path_var[-1]) if n else 0.0,
+               "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": "fused (RF + vision, RTS-smoothed)" if fused is not None else "dead reckoning",
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m}
@@ -837,15 +834,31 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     return summary, problems
 
 
-def _record(row, dr, stamps, pos_w, quat, sd_pos, path_m, path_var, frame_idx, classes) -> None:
-    frame_idx.append(int(row[0]))
-    stamps.append(float(row[2]))
-    classes[row[3]] = classes.get(row[3], 0) + 1
-    pos_w.append(dr.p_w_m.copy())
-    quat.append(dr.R_w_c.as_quat())
-    sd_pos.append(math.sqrt(max(float(np.trace(dr.P[:3, :3])), 0.0)))
-    path_m.append(dr.path_m)
-    path_var.append(dr.path_var_m2)
+class _Track:
+    """Per-frame numbers the outputs need after streaming (positions, path length), in preallocated arrays."""
+
+    def __init__(self, n: int):
+        self.n = 0
+        self.frame = np.zeros(n, np.int64)
+        self.t, self.sd, self.path, self.var = (np.zeros(n) for _ in range(4))
+        self.pos = np.zeros((n, 3))
+        self.quat = np.zeros((n, 4))
+
+    def record(self, row: list, dr, classes: dict) -> None:
+        k = self.n
+        if k >= len(self.t):  # more frames than planned (cannot happen for folders; a video may say less)
+            for name in ("frame", "t", "sd", "path", "var", "pos", "quat"):
+                a = getattr(self, name)
+                setattr(self, name, np.concatenate([a, np.zeros_like(a[: max(len(a), 16)])]))
+        self.frame[k] = int(row[0])
+        self.t[k] = float(row[2])
+        classes[row[3]] = classes.get(row[3], 0) + 1
+        self.pos[k] = dr.p_w_m
+        self.quat[k] = dr.R_w_c.as_quat()
+        self.sd[k] = math.sqrt(max(float(np.trace(dr.P[:3, :3])), 0.0))
+        self.path[k] = dr.path_m
+        self.var[k] = dr.path_var_m2
+        self.n = k + 1
 
 
 def _step_of(row: list):

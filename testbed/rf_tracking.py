@@ -229,14 +229,14 @@ def _seed_task(args) -> dict:
 
 
 def _heading_errors(Q: np.ndarray, est: np.ndarray, pos: np.ndarray, t: np.ndarray) -> list[float]:
-    """Angle between each estimated leg (consecutive waypoints) and the true displacement over the same time."""
+    """Angle between each estimated leg (consecutive waypoints) and the true displacement over the same time
+    (each waypoint's time: the step whose estimate it is)."""
     errs = []
     idx = [int(np.argmin(np.linalg.norm(est - q, axis=1))) for q in Q]
-    for a, b in zip(idx[:-1], idx[1:]):
-        if b <= a:
-            continue
-        e, g = Q[idx.index(b)] - Q[idx.index(a)], pos[b] - pos[a]
-        if np.linalg.norm(g) < 1e-6 or np.linalg.norm(e) < 1e-9:
+    for i in range(len(Q) - 1):
+        a, b = idx[i], idx[i + 1]
+        e, g = Q[i + 1] - Q[i], pos[b] - pos[a]
+        if b <= a or np.linalg.norm(g) < 1e-6 or np.linalg.norm(e) < 1e-9:
             continue
         c = np.clip(e @ g / (np.linalg.norm(e) * np.linalg.norm(g)), -1.0, 1.0)
         errs.append(float(np.arccos(c)))
