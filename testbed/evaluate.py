@@ -101,10 +101,13 @@ def _run_seed(args) -> dict:
     """One evaluation run (a worker's task): render, motion from the frames, every algorithm, scores."""
     import time
 
+    from threadpoolctl import threadpool_limits
+
     scenario, seed, d, n_frames, render_jobs, motion_jobs, keep = args
     d = Path(d)
     t0 = time.perf_counter()
-    simulate(scenario, seed, d, n_frames=n_frames, jobs=render_jobs, force=True)
+    with threadpool_limits(1 if render_jobs == 1 else None):  # a worker among others: one BLAS/OpenMP thread
+        simulate(scenario, seed, d, n_frames=n_frames, jobs=render_jobs, force=True)
     t1 = time.perf_counter()
     cmd = [sys.executable, "-m", "bodyslam.cli", "motion", str(d), "--out", str(d / "motion.csv")]
     if motion_jobs:

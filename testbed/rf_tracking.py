@@ -203,7 +203,14 @@ def run_algorithm(name: str, scn: dict, lo, hi, t, rx, meas, rng) -> tuple[np.nd
 
 
 def _seed_task(args) -> dict:
+    from threadpoolctl import threadpool_limits
+
     scn, seed = args
+    with threadpool_limits(1):  # one BLAS thread per worker: spinning BLAS threads of two workers starve both
+        return _seed_run(scn, seed)
+
+
+def _seed_run(scn: dict, seed: int) -> dict:
     lo, hi, t, pos, wps, rx, meas = _world(scn, seed)
     algs = list(_cfg(scn, "filter").get("algorithms", RF_TRACKING_ALGORITHMS))
     out = {"seed": seed, "t": t, "truth": pos, "errors": {}, "estimates": {}, "seconds": {}}
