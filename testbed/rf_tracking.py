@@ -170,7 +170,7 @@ def run_algorithm(name: str, scn: dict, lo, hi, t, rx, meas, rng) -> tuple[np.nd
     # RSSI constrains a step far less than TOA: its filter needs more diffusion to follow a capsule that moves on
     # (with 0.2 mm the estimate lagged centimetres behind; 1 mm chosen on ito_heading seeds 300-309, which no
     # evaluation in the README uses: mean RMS 42.5 / 5.2 / 7.5 mm for 0.2 / 1 / 2 mm)
-    jitter = float(flt.get("rssi_jitter_m", 1e-3)) if name == "rssi_pf" else float(flt.get("jitter_m", 2e-4))
+    jitter = float(flt.get("rssi_jitter_m", 1e-3)) if name == "rssi_pf" else float(flt.get("jitter_m", 5e-4))
     kw = dict(motion=motion, resample_threshold=float(flt.get("resample_threshold", 0.06)),
               jitter_m=jitter, jitter_log_eps=float(flt.get("jitter_log_eps", 0.005)),
               rng=rng)
