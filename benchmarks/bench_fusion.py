@@ -13,12 +13,9 @@ import argparse
 import tempfile
 
 from testbed.cli import parse_seeds
-from testbed.evaluate import evaluate, main_report_line
+from testbed.evaluate import LABELS as NAMES, evaluate, main_report_line
 from testbed.scenario import load_scenario
 
-NAMES = {"rf_ml": "RF only (ML)", "rf_nls": "RF only (NLS, Eq. 3.36)", "dead_reckoning": "dead reckoning",
-         "thesis_kf": "thesis KF (NLS fixes)", "ekf_fixes": "EKF on ML fixes", "ekf_rss": "EKF on RSS",
-         "ekf_rss_rts": "EKF on RSS + RTS"}
 
 
 def main() -> None:

@@ -550,8 +550,8 @@ def process_chunk(task: dict) -> dict:
     in any order. Returns a JSON-serialisable dict (see module docstring).
     """
     from bodyslam.classify import frame_features, frame_status
-    from bodyslam.motion import StepMotion, estimate_thesis, estimate_tube
-    from bodyslam.tracking import classify_work_px, estimate_pair, motion_row
+    from bodyslam.motion import StepMotion
+    from bodyslam.tracking import classify_work_px, estimate_pair, estimate_step, motion_row
     from bodyslam.unroll import Unroller
 
     cv2.setNumThreads(1)
@@ -560,6 +560,7 @@ def process_chunk(task: dict) -> dict:
     cam, matcher, clf, fov = _tools(task["camera"], settings, mask)
     fps = task["frame_rate_hz"]
     px = classify_work_px(settings)
+    unroller = Unroller(cam) if settings.estimator == "thesis" else None  # once per chunk, not per step
     frames_out, steps_out, problems = [], [], []
     prev = None  # (index, features or None, class)
     eof = None
@@ -594,12 +595,8 @@ def process_chunk(task: dict) -> dict:
             elif prev[2] != "FT" or cls != "FT":
                 s = StepMotion(status="no_lumen")
             else:
-                if settings.estimator == "tube":
-                    est = lambda m: estimate_tube(m, cam, task["radius_m"], min_matches=settings.min_matches)  # noqa: E731
-                else:
-                    est = lambda m: estimate_thesis(m, Unroller(cam), task["radius_m"],  # noqa: E731
-                                                    min_matches=settings.min_matches)
-                s = estimate_pair(matcher, prev[1], feats, est)
+                s = estimate_pair(matcher, prev[1], feats,
+                                  lambda m: estimate_step(settings, m, cam, unroller, task["radius_m"]))
             steps_out.append(motion_row(idx, idx / fps, s))
         prev = (idx, feats, cls)
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"], "frames": frames_out,

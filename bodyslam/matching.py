@@ -5,9 +5,10 @@ Modes
 - ``asift`` (the thesis's matcher): ``cv2.AffineFeature`` over SIFT -- SIFT on affine-warped views of the frame
   (tilts up to ``asift_max_tilt``), brute-force 2-NN matching with Lowe's ratio test.
 - ``sift``: plain SIFT, same matching (a middle ground).
-- ``fast`` (whole exams): SIFT detected on the frame scaled by ``detect_scale`` = 0.7 (SIFT doubles its input,
-  so most of its cost is the first octave: 0.7 halves the detection time), at most 800 keypoints, at most 200
-  matches to verify. Cheaper detectors were measured on a thesis frame pair (420x420) and fail on capsule motion:
+- ``fast`` (whole exams): pyramidal Lucas-Kanade tracking of up to 300 corners (forward-backward check,
+  specular highlights masked) first; when fewer than 60 tracks verify, SIFT detected on the frame scaled by
+  ``detect_scale`` = 0.7 (SIFT doubles its input, so most of its cost is the first octave: 0.7 halves the
+  detection time), at most 800 keypoints, at most 200 matches to verify. Cheaper detectors were measured on a thesis frame pair (420x420) and fail on capsule motion:
   ORB found 13-17 verified matches of 1500 keypoints; pyramidal Lucas-Kanade kept 44 of 600 corners in the image
   and 22 of 400 in the unrolled image (a capsule rolls ~8 degrees and the near wall's angular depth jumps by up to
   ~20 degrees per frame at 2 frames/s); SIFT on the half-resolution image verified 32. Dense DIS optical flow

@@ -38,7 +38,7 @@ from bodyslam.unroll import Unroller
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MotionSettings", "sequence_motion", "estimate_pair", "classify_work_px", "find_gaps", "split_motion", "dead_reckon", "MOTION_COLUMNS", "motion_row", "motion_rows"]
+__all__ = ["MotionSettings", "sequence_motion", "estimate_pair", "estimate_step", "classify_work_px", "find_gaps", "split_motion", "dead_reckon", "MOTION_COLUMNS", "motion_row", "motion_rows"]
 
 MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status",
                   # beyond SPEC's minimum: the full step (translation in the first frame's camera axes, rotation
@@ -127,7 +127,8 @@ class Sequence:
         return k / self.frame_rate_hz
 
 
-def _estimate(settings: MotionSettings, matches, camera, unroller, radius_m) -> StepMotion:
+def estimate_step(settings, matches, camera, unroller, radius_m) -> StepMotion:
+    """The settings' estimator (``estimator``, ``min_matches``: MotionSettings or BatchSettings) on one pair."""
     if settings.estimator == "tube":
         return estimate_tube(matches, camera, radius_m, min_matches=settings.min_matches)
     return estimate_thesis(matches, unroller, radius_m, min_matches=settings.min_matches)
@@ -177,7 +178,7 @@ def _chunk_motion(args) -> list[tuple[int, StepMotion]]:
                 out.append((k, StepMotion(status="no_lumen")))
             else:
                 s = estimate_pair(matcher, prev, feats,
-                                  lambda m: _estimate(settings, m, seq.camera, unroller, seq.radius_m))
+                                  lambda m: estimate_step(settings, m, seq.camera, unroller, seq.radius_m))
                 out.append((k, seq.to_body(s)))
         prev, prev_class = feats, cls
     return out
