@@ -100,6 +100,15 @@ def _parser() -> argparse.ArgumentParser:
     rl.add_argument("--meta", default=None, help="meta.json with the path-loss model (default: Table 2.2, -16 dBm)")
     rl.add_argument("--method", default="ml", choices=("lls", "nls", "ml"))
     rl.add_argument("--out", required=True, help="fixes.csv: t,x_m,y_m,z_m,cov_xx..cov_zz,n_sensors,status")
+    hy = sub.add_parser("hybrid-localize",
+                        help="TOA/DOA at two URAs + IMU (paper 000): EKF of Algorithm 1 or a reference scheme")
+    hy.add_argument("seqdir", help="recording: meta.json (arrays, radio, IMU, initial state), rf.csv, imu.csv")
+    hy.add_argument("--scheme", default="toa_doa_imu",
+                    choices=("toa_doa_imu", "doa_imu", "toa_imu", "rf_only_cv", "rf_only", "imu_only"))
+    hy.add_argument("--q-model", default="eq15", choices=("eq15", "discrete"),
+                    help="process noise: Eq. 15 (paper) or the IMU's exact sigma^2 B B^T")
+    hy.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
+    hy.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     lo = sub.add_parser("localize", help="Body-SLAM: motion from the frames fused with RF (EKF + RTS smoother)")
     lo.add_argument("seqdir")
     lo.add_argument("--rf", default=None, help="rf.csv (default: the sequence's rf.csv)")
@@ -265,6 +274,34 @@ def _rf_localize(args) -> int:
     print(f"{args.out}: {len(rows)} fixes ({ok} ok, {args.method}); median predicted 1-sigma {sd * 100:.1f} cm; "
           f"{len(problems)} RF line(s) skipped")
     return 1 if problems else 0
+
+
+def _hybrid_localize(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.errors import InputError
+    from bodyslam.io import write_csv, write_tum
+    from bodyslam.toa_doa import load_recording, run_scheme
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise InputError(f"{out}: output directory is not empty (use --force)")
+    rec = load_recording(args.seqdir)
+    est, cov = run_scheme(args.scheme, rec["x0"], rec["P0"], rec["y"], rec["snr"], rec["imu"], rec["arrays"],
+                          rec["radio"], rec["sigma_acc"], rec["delta_s"], args.q_model)
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum(out / "trajectory.tum", rec["t"], est, Rotation.identity(len(est)))  # position only: no attitude
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m"],
+              [[float(t), *map(float, s), float(np.sqrt(np.sum(s**2)))] for t, s in zip(rec["t"], sd)])
+    for f, ln, why in rec["problems"][:20]:
+        print(f"  {f}:{ln}: {why}")
+    print(f"{out}/trajectory.tum: {len(est)} positions ({args.scheme}); median predicted 1-sigma "
+          f"{np.median(np.sqrt(np.sum(sd[1:] ** 2, axis=1))) * 100:.2f} cm; {len(rec['problems'])} problem(s)")
+    return 3 if rec["problems"] else 0
 
 
 def _localize(args) -> int:
@@ -500,7 +537,7 @@ def _main(argv: list[str] | None) -> int:
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
             "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize,
-            "localize": _localize, "batch": _batch}[args.cmd](args)
+            "localize": _localize, "batch": _batch, "hybrid-localize": _hybrid_localize}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,26 +28,30 @@ def _nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
 class Figure:
     """One axes: lines, step lines and bars in data coordinates, then :meth:`image`."""
 
-    def __init__(self, title: str, xlabel: str, ylabel: str, size=(640, 420)):
+    def __init__(self, title: str, xlabel: str, ylabel: str, size=(640, 420), log_y: bool = False):
         self.title, self.xlabel, self.ylabel = title, xlabel, ylabel
+        self.log_y = log_y  # y drawn as log10, ticks labelled with the values
         self.w, self.h = size
         self.items: list = []
         self.legend: list[tuple[str, tuple]] = []
 
-    def line(self, x, y, label: str | None = None, colour=None, step: bool = False):
+    def line(self, x, y, label: str | None = None, colour=None, step: bool = False, width: int = 2,
+             marker: bool = False):
         c = colour or _COLOURS[len(self.items) % len(_COLOURS)]
         x, y = np.asarray(x, float), np.asarray(y, float)
+        if self.log_y:
+            y = np.log10(np.where(y > 0, y, np.nan))
         if step:
             x = np.repeat(x, 2)[1:]
             y = np.repeat(y, 2)[:-1]
-        self.items.append(("line", x, y, c))
+        self.items.append(("line", x, y, c, width, marker))
         if label:
             self.legend.append((label, c))
         return self
 
     def bars(self, edges, heights, label: str | None = None, colour=None):
         c = colour or _COLOURS[len(self.items) % len(_COLOURS)]
-        self.items.append(("bars", np.asarray(edges, float), np.asarray(heights, float), c))
+        self.items.append(("bars", np.asarray(edges, float), np.asarray(heights, float), c, 0, False))
         if label:
             self.legend.append((label, c))
         return self
@@ -56,7 +60,8 @@ class Figure:
         img = np.full((self.h, self.w, 3), 255, np.uint8)
         L, R, T, B = 70, 20, 36, 50
         xs = np.concatenate([it[1] for it in self.items]) if self.items else np.array([0.0, 1.0])
-        ys = np.concatenate([it[2] for it in self.items] + [np.array([0.0])]) if self.items else np.array([0.0, 1.0])
+        zero = [] if self.log_y else [np.array([0.0])]
+        ys = np.concatenate([it[2] for it in self.items] + zero) if self.items else np.array([0.0, 1.0])
         xs, ys = xs[np.isfinite(xs)], ys[np.isfinite(ys)]
         x0, x1 = (xs.min(), xs.max()) if len(xs) else (0.0, 1.0)
         y0, y1 = (ys.min(), ys.max()) if len(ys) else (0.0, 1.0)
@@ -79,8 +84,9 @@ class Figure:
             _, v = px(x0, t)
             cv2.line(img, (L - 5, int(v)), (L, int(v)), (0, 0, 0), 1)
             cv2.line(img, (L, int(v)), (self.w - R, int(v)), (230, 230, 230), 1)
-            cv2.putText(img, f"{t:g}", (4, int(v) + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        for kind, a, b, c in self.items:
+            lab = f"{10 ** t:.3g}" if self.log_y else f"{t:g}"
+            cv2.putText(img, lab, (4, int(v) + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        for kind, a, b, c, width, marker in self.items:
             if kind == "bars":
                 for i in range(len(b)):
                     (ua, vb), (ub, _) = px(a[i], 0.0), px(a[i + 1], 0.0)
@@ -91,7 +97,10 @@ class Figure:
                 u, v = px(a[ok], b[ok])
                 pts = np.stack([u, v], axis=1).round().astype(np.int32)
                 if len(pts) > 1:
-                    cv2.polylines(img, [pts], False, c, 2, cv2.LINE_AA)
+                    cv2.polylines(img, [pts], False, c, width, cv2.LINE_AA)
+                if marker:
+                    for q in pts:
+                        cv2.circle(img, (int(q[0]), int(q[1])), 3, c, -1, cv2.LINE_AA)
         cv2.rectangle(img, (L, T), (self.w - R, self.h - B), (0, 0, 0), 1)
         cv2.putText(img, self.title, (L, 24), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
         cv2.putText(img, self.xlabel, (L + (self.w - L - R) // 2 - 60, self.h - 12), font, 0.45, (0, 0, 0), 1,

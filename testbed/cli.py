@@ -72,21 +72,34 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _paper_system(scn: dict):
+    """The module that simulates and evaluates a scenario without frames (``[system] kind``), or None."""
+    import importlib
+
+    from bodyslam.errors import ConfigError
+
+    kind = scn.get("system", {}).get("kind", "body_slam")
+    modules = {"rf_tracking": "testbed.rf_tracking", "hybrid_imu": "testbed.jeong"}
+    if kind == "body_slam":
+        return None
+    if kind not in modules:
+        raise ConfigError(f"[system] kind must be one of {['body_slam', *modules]}, got {kind!r}")
+    return importlib.import_module(modules[kind])
+
+
 def _simulate(args) -> int:
     from testbed.scenario import load_scenario
     from testbed.simulate import simulate
 
     scn = load_scenario(args.scenario, args.overrides)
-    if scn.get("system", {}).get("kind") == "rf_tracking":  # papers 002/003: RF only, no frames
+    system = _paper_system(scn)
+    if system is not None:  # papers 000-003: RF (and IMU) readings, no frames
         from pathlib import Path
 
-        from testbed.rf_tracking import simulate_rf_tracking
         from testbed.simulate import prepare_output_dir
 
         prepare_output_dir(Path(args.out), args.force)
-        s = simulate_rf_tracking(scn, args.seed, args.out)
-        print(f"{args.out}: {s['steps']} RF readings per receiver; path {s['path_travelled_m'] * 100:.1f} cm "
-              f"through {s['waypoints']} waypoints")
+        print(f"{args.out}: {system.simulate_scenario(scn, args.seed, args.out)}")
         return 0
     if args.speed_model:
         from bodyslam.speed import load_speed_model
@@ -129,16 +142,16 @@ def _evaluate(args) -> int:
     from testbed.scenario import load_scenario
 
     scn = load_scenario(args.scenario, args.overrides)
-    if scn.get("system", {}).get("kind") == "rf_tracking":
+    system = _paper_system(scn)
+    if system is not None:
         from pathlib import Path
 
-        from testbed.rf_tracking import evaluate_rf_tracking, report_line
         from testbed.simulate import prepare_output_dir
 
         prepare_output_dir(Path(args.out), args.force)
-        rep = evaluate_rf_tracking(scn, parse_seeds(args.seeds), args.out, jobs=args.jobs,
-                                   progress=lambda msg: print(msg, flush=True))
-        print(report_line(rep))
+        rep = system.evaluate_scenario(scn, parse_seeds(args.seeds), args.out, jobs=args.jobs,
+                                       progress=lambda msg: print(msg, flush=True))
+        print(system.report_line(rep))
         print(f"wrote {args.out}/report.json, report.html and plots")
         return 0
     report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force,
