@@ -109,6 +109,11 @@ def _parser() -> argparse.ArgumentParser:
                     help="process noise: Eq. 15 (paper) or the IMU's exact sigma^2 B B^T")
     hy.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
     hy.add_argument("--force", action="store_true", help="write into a non-empty output directory")
+    mgl = sub.add_parser("magnetic-localize",
+                         help="magnetic capsule (paper 001): 6-DOF EKF on recorded Hall readings and actuator poses")
+    mgl.add_argument("seqdir", help="recording: meta.json (sensors, filter calibration), hall.csv, actuator.csv")
+    mgl.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
+    mgl.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     lo = sub.add_parser("localize", help="Body-SLAM: motion from the frames fused with RF (EKF + RTS smoother)")
     lo.add_argument("seqdir")
     lo.add_argument("--rf", default=None, help="rf.csv (default: the sequence's rf.csv)")
@@ -276,32 +281,70 @@ def _rf_localize(args) -> int:
     return 1 if problems else 0
 
 
-def _hybrid_localize(args) -> int:
-    from pathlib import Path
-
+def _write_position_track(out, t, pos, quat_wxyz, cov) -> None:
+    """``trajectory.tum`` and ``uncertainty.csv`` (1-sigma per axis and in all) of a localization run."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from bodyslam.errors import InputError
     from bodyslam.io import write_csv, write_tum
+
+    rot = Rotation.identity(len(pos)) if quat_wxyz is None else Rotation.from_quat(quat_wxyz[:, [1, 2, 3, 0]])
+    write_tum(out / "trajectory.tum", t, pos, rot)
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m"],
+              [[float(a), *map(float, s), float(np.sqrt(np.sum(s**2)))] for a, s in zip(t, sd)])
+
+
+def _print_problems(problems: list) -> int:
+    """Print ``(file, line, reason)`` problems (the first 20); exit status 3 when there were any."""
+    for f, ln, why in problems[:20]:
+        print(f"  {f}:{ln}: {why}")
+    return 3 if problems else 0
+
+
+def _output_dir(path: str, force: bool):
+    from pathlib import Path
+
+    from bodyslam.errors import InputError
+
+    out = Path(path)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise InputError(f"{out}: output directory is not empty (use --force)")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _magnetic_localize(args) -> int:
+    import numpy as np
+
+    from bodyslam.magnetic import load_recording, replay
+
+    out = _output_dir(args.out, args.force)
+    rec = load_recording(args.seqdir)
+    t, states, cov = replay(rec)
+    _write_position_track(out, t, states[:, :3], states[:, 3:] / np.linalg.norm(states[:, 3:], axis=1, keepdims=True),
+                          cov)
+    status = _print_problems(rec["problems"])
+    print(f"{out}/trajectory.tum: {len(t)} poses over {t[-1]:.1f} s; final predicted 1-sigma "
+          f"{np.sqrt(np.trace(cov[-1])) * 1000:.1f} mm; {len(rec['problems'])} problem(s)")
+    return status
+
+
+def _hybrid_localize(args) -> int:
+    import numpy as np
+
     from bodyslam.toa_doa import load_recording, run_scheme
 
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise InputError(f"{out}: output directory is not empty (use --force)")
+    out = _output_dir(args.out, args.force)
     rec = load_recording(args.seqdir)
     est, cov = run_scheme(args.scheme, rec["x0"], rec["P0"], rec["y"], rec["snr"], rec["imu"], rec["arrays"],
                           rec["radio"], rec["sigma_acc"], rec["delta_s"], args.q_model)
-    out.mkdir(parents=True, exist_ok=True)
-    write_tum(out / "trajectory.tum", rec["t"], est, Rotation.identity(len(est)))  # position only: no attitude
+    _write_position_track(out, rec["t"], est, None, cov)
     sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
-    write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m"],
-              [[float(t), *map(float, s), float(np.sqrt(np.sum(s**2)))] for t, s in zip(rec["t"], sd)])
-    for f, ln, why in rec["problems"][:20]:
-        print(f"  {f}:{ln}: {why}")
+    status = _print_problems(rec["problems"])
     print(f"{out}/trajectory.tum: {len(est)} positions ({args.scheme}); median predicted 1-sigma "
           f"{np.median(np.sqrt(np.sum(sd[1:] ** 2, axis=1))) * 100:.2f} cm; {len(rec['problems'])} problem(s)")
-    return 3 if rec["problems"] else 0
+    return status
 
 
 def _localize(args) -> int:
@@ -537,7 +580,8 @@ def _main(argv: list[str] | None) -> int:
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
             "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize,
-            "localize": _localize, "batch": _batch, "hybrid-localize": _hybrid_localize}[args.cmd](args)
+            "localize": _localize, "batch": _batch, "hybrid-localize": _hybrid_localize,
+            "magnetic-localize": _magnetic_localize}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -79,7 +79,7 @@ def _paper_system(scn: dict):
     from bodyslam.errors import ConfigError
 
     kind = scn.get("system", {}).get("kind", "body_slam")
-    modules = {"rf_tracking": "testbed.rf_tracking", "hybrid_imu": "testbed.jeong"}
+    modules = {"rf_tracking": "testbed.rf_tracking", "hybrid_imu": "testbed.jeong", "magnetic": "testbed.popek"}
     if kind == "body_slam":
         return None
     if kind not in modules:

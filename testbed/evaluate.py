@@ -192,36 +192,19 @@ LABELS = {"rf_ml": "RF only (ML)", "rf_nls": "RF only (NLS, Eq. 3.36)", "dead_re
 
 def _html(out: Path, report: dict) -> None:
     """``report.html``: the tables and the plots, one self-contained page next to report.json."""
-    import html
+    from testbed.htmlpage import table, write_report_page
 
-    a = report["algorithms"]
-    rows = "".join(
-        f"<tr><td>{html.escape(LABELS[k])}</td><td>{v['mean_error_cm']:.2f}</td><td>{v['rmse_cm']:.2f}</td>"
-        f"<td>{v['median_error_cm']:.2f}</td><td>{v['p90_error_cm']:.2f}</td><td>{v['rmse_over_sqrt_pcrb']:.2f}</td></tr>"
-        for k, v in a.items())
-    t41 = report["table_4_1"]
-    t41_rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.4f}</td></tr>" for k, v in t41.items())
-    imgs = "".join(f'<figure><img src="{n}" alt="{n}"><figcaption>{n}</figcaption></figure>'
-                   for n in ("trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png",
-                             "error_histogram.png", "error_cdf.png"))
-    page = f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>Evaluation: {html.escape(str(report['scenario']))}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}td:first-child{{text-align:left}}
-figure{{display:inline-block;margin:8px}}</style></head><body>
-<h1>Evaluation of {html.escape(str(report['scenario']))}</h1>
-<p>{report['n_runs']} runs (seeds {html.escape(_seed_text(report['seeds']))}), {report['frames_per_run']} frames each;
-errors per frame against the ground truth. sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm.
-{html.escape(report['notes'])}.</p>
-<table><tr><th>algorithm</th><th>mean (cm)</th><th>RMSE (cm)</th><th>median (cm)</th><th>p90 (cm)</th>
-<th>RMSE / sqrt(PCRB)</th></tr>{rows}</table>
-<h2>Per-step motion (Table 4.1)</h2><table>{t41_rows}</table>
-<h2>Plots (Fig. 4.20-4.24)</h2>{imgs}
-</body></html>
-"""
-    from bodyslam.io import write_text_atomic
-
-    write_text_atomic(out / "report.html", page)
+    rows = [[LABELS[k], f"{v['mean_error_cm']:.2f}", f"{v['rmse_cm']:.2f}", f"{v['median_error_cm']:.2f}",
+             f"{v['p90_error_cm']:.2f}", f"{v['rmse_over_sqrt_pcrb']:.2f}"] for k, v in report["algorithms"].items()]
+    body = (table(["algorithm", "mean (cm)", "RMSE (cm)", "median (cm)", "p90 (cm)", "RMSE / sqrt(PCRB)"], rows)
+            + "<h2>Per-step motion (Table 4.1)</h2>"
+            + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
+            + "<h2>Plots (Fig. 4.20-4.24)</h2>")
+    write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
+                      f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "
+                      f"sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm. {report['notes']}.", body,
+                      ["trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png", "error_histogram.png",
+                       "error_cdf.png"])
 
 
 def _seed_text(seeds: list[int]) -> str:

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 import os
 import time
 from pathlib import Path
@@ -37,10 +36,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import ConfigError
-from bodyslam.io import write_csv, write_image, write_json, write_text_atomic, write_tum
+from bodyslam.io import write_csv, write_image, write_json, write_tum
 from bodyslam.plots import Figure
 from bodyslam.toa_doa import Radio, Ura, channel_draws, pcrb, run_scheme, toa_doa
 from testbed.centerline import Centerline, procedural_centerline
+from testbed.htmlpage import table, write_report_page
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,8 @@ LABELS = {"toa_doa_imu": "Algorithm 1 (TOA/DOA + IMU)", "doa_imu": "DOA + IMU", 
           "rf_only_cv": "RF only (TOA/DOA), Algorithm 1 without the IMU input", "imu_only": "IMU only"}
 _USE = {"toa_doa_imu": "toa_doa", "doa_imu": "doa", "toa_imu": "toa", "imu_only": "none", "rf_only": "toa_doa",
         "rf_only_cv": "toa_doa"}
+SHORT = {"toa_doa_imu": "Alg. 1 TOA/DOA+IMU", "doa_imu": "DOA+IMU", "toa_imu": "TOA+IMU",
+         "rf_only_cv": "RF only (CV EKF)", "rf_only": "RF only (per slot)", "imu_only": "IMU only"}
 _COLOURS = {"toa_doa_imu": (214, 39, 40), "doa_imu": (31, 119, 180), "toa_imu": (44, 160, 44),
             "rf_only": (255, 127, 14), "rf_only_cv": (148, 103, 189), "imu_only": (120, 120, 120)}
 
@@ -349,59 +351,49 @@ evaluate_scenario = evaluate_hybrid  # what ``testbed evaluate`` calls for this 
 
 def _plots(out: Path, main: dict, report: dict, algs: list[str]) -> None:
     t = main["truth"]["t"]
-    f = Figure("RMS error over runs against time, solid; sqrt(PCRB), thin", "time (s)", "error (cm)")
+    f = Figure("RMS error over runs (thick), sqrt(PCRB) (thin)", "time (s)", "error (cm)", size=(760, 460),
+               log_y=True)
     for a in algs:
         e = np.sqrt(np.mean(main["errors"][a] ** 2, axis=0)) * 100
-        f.line(t[1:], e[1:], label=LABELS.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)))
+        f.line(t[1:], e[1:], label=SHORT.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)))
         f.line(t[1:], np.sqrt(main["pcrb_m2"][a][1:]) * 100, colour=_COLOURS.get(a, (0, 0, 0)), width=1)
     write_image(out / "error_vs_time.png", f.image())
     f = Figure("Error CDF, all runs", "error (cm)", "fraction of steps")
     for a in algs:
         x = np.sort(main["errors"][a][:, 1:].ravel()) * 100
-        f.line(x, np.arange(1, len(x) + 1) / len(x), label=LABELS.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)),
+        f.line(x, np.arange(1, len(x) + 1) / len(x), label=SHORT.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)),
                step=True)
     write_image(out / "error_cdf.png", f.image())
     pos = main["truth"]["pos"] * 100
     f = Figure(f"Tract and run {report['seeds'][0]} (x-z, cm)", "x (cm)", "z (cm)", size=(640, 640))
     for a in algs:
         est = main["estimates"][a][0] * 100
-        f.line(est[:, 0], est[:, 2], label=LABELS.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)))
+        f.line(est[:, 0], est[:, 2], label=SHORT.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)))
     f.line(pos[:, 0], pos[:, 2], label="truth", colour=(0, 0, 0))
     write_image(out / "trajectories_xz.png", f.image())
     for fig, entry in report["sweeps"].items():
         x = np.asarray(entry["values"], float) * entry["scale"]
-        f = Figure(f"{fig}: mean RMS error (solid) and mean sqrt(PCRB) (thin), {entry['n_runs']} runs per point",
-                   entry["label"], "error (cm)", log_y=True)
+        f = Figure(f"{fig}: RMS error (thick), sqrt(PCRB) (thin); {entry['n_runs']} runs per point",
+                   entry["label"], "error (cm)", size=(760, 460), log_y=True)
         for a in algs:
             c = _COLOURS.get(a, (0, 0, 0))
-            f.line(x, entry["algorithms"][a]["mean_rms_error_cm"], label=LABELS.get(a, a), colour=c, marker=True)
+            f.line(x, entry["algorithms"][a]["mean_rms_error_cm"], label=SHORT.get(a, a), colour=c, marker=True)
             f.line(x, entry["algorithms"][a]["mean_sqrt_pcrb_cm"], colour=c, width=1)
         write_image(out / f"{fig}.png", f.image())
 
 
 def _html(out: Path, report: dict) -> None:
-    import html
-
     paper = report.get("paper", {})
-    rows = "".join(
-        f"<tr><td>{html.escape(LABELS.get(a, a))}</td><td>{v['drift_cm_per_m']:.3f}</td>"
-        f"<td>{paper.get(a + '_drift_cm_per_m', '')}</td><td>{v['mean_rms_error_cm']:.3f}</td>"
-        f"<td>{v['mean_sqrt_pcrb_cm']:.3f}</td><td>{v['rms_over_sqrt_pcrb']:.2f}</td><td>{v['mean_error_cm']:.3f}</td>"
-        f"<td>{v['p90_error_cm']:.3f}</td></tr>" for a, v in report["algorithms"].items())
-    figs = "".join(f'<figure><img src="{html.escape(k)}.png"></figure>' for k in report["sweeps"])
-    page = f"""<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">
-<title>Evaluation: {html.escape(str(report['scenario']))}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}td:first-child{{text-align:left}}</style></head><body>
-<h1>Evaluation of {html.escape(str(report['scenario']))}</h1>
-<p>{report['n_runs']} runs of {report['duration_s']:.0f} s ({report['steps_per_run']} steps, {report['path_travelled_cm']:.0f} cm
-travelled).</p>
-<table><tr><th>algorithm</th><th>drift (cm/m)</th><th>paper Table 2 (cm/m)</th><th>mean RMS error (cm)</th>
-<th>mean sqrt(PCRB) (cm)</th><th>ratio</th><th>mean error (cm)</th><th>p90 (cm)</th></tr>{rows}</table>
-<figure><img src="error_vs_time.png"></figure><figure><img src="error_cdf.png"></figure>
-<figure><img src="trajectories_xz.png"></figure>{figs}</body></html>
-"""
-    write_text_atomic(out / "report.html", page)
+    rows = [[LABELS.get(a, a), f"{v['drift_cm_per_m']:.3f}", paper.get(a + "_drift_cm_per_m", ""),
+             f"{v['mean_rms_error_cm']:.3f}", f"{v['mean_sqrt_pcrb_cm']:.3f}", f"{v['rms_over_sqrt_pcrb']:.2f}",
+             f"{v['rms_over_sqrt_pcrb_channel']:.2f}", f"{v['mean_error_cm']:.3f}", f"{v['p90_error_cm']:.3f}"]
+            for a, v in report["algorithms"].items()]
+    body = table(["algorithm", "drift (cm/m)", "paper Table 2 (cm/m)", "mean RMS error (cm)", "mean sqrt(PCRB) (cm)",
+                  "RMS / sqrt(PCRB)", "RMS / sqrt(PCRB | channel)", "mean error (cm)", "p90 (cm)"], rows)
+    write_report_page(out, report["scenario"], f"{report['n_runs']} runs of {report['duration_s']:.0f} s "
+                      f"({report['steps_per_run']} steps, {report['path_travelled_cm']:.0f} cm travelled).", body,
+                      ["error_vs_time.png", "error_cdf.png", "trajectories_xz.png",
+                       *(f"{k}.png" for k in report["sweeps"])])
 
 
 def report_line(rep: dict) -> str:

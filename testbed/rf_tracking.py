@@ -34,11 +34,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import ConfigError
-from bodyslam.io import write_csv, write_image, write_json, write_text_atomic, write_tum
+from bodyslam.io import write_csv, write_image, write_json, write_tum
 from bodyslam.pf import (C_MPS, MicsRssiModel, ParticleFilter, RandomWaypoint, field_ratio, loglik_permittivity,
                          loglik_toa, permittivity_from_field, simple_distance, waypoint_distance)
 from bodyslam.plots import Figure
 from testbed.centerline import procedural_centerline
+from testbed.htmlpage import table, write_report_page
 
 log = logging.getLogger(__name__)
 
@@ -338,32 +339,20 @@ def _plots(out: Path, runs: list[dict], algs: list[str]) -> None:
 
 
 def _html(out: Path, report: dict) -> None:
-    import html
-
     paper = report.get("paper", {})
-    rows = "".join(
-        f"<tr><td>{html.escape(LABELS.get(a, a))}</td><td>{v['rms_last_10pct_mm']:.2f}</td>"
-        f"<td>{paper.get(a + '_rms_mm', '')}</td><td>{v['mean_error_mm']:.2f}</td><td>{v['p90_error_mm']:.2f}</td>"
-        f"<td>{v['steps_per_s']:.0f}</td></tr>" for a, v in report["algorithms"].items())
-    extra = ""
+    rows = [[LABELS.get(a, a), f"{v['rms_last_10pct_mm']:.2f}", paper.get(a + "_rms_mm", ""),
+             f"{v['mean_error_mm']:.2f}", f"{v['p90_error_mm']:.2f}", f"{v['steps_per_s']:.0f}"]
+            for a, v in report["algorithms"].items()]
+    body = table(["algorithm", "RMS, last 10% (mm)", "paper (mm)", "mean (mm)", "p90 (mm)", "steps/s"], rows)
     if "moving_distance" in report:
         md, hd = report["moving_distance"], report["heading"]
-        extra = (f"<p>Moving distance at the end: waypoint method error {md['waypoint_mean_error_cm']:.2f} cm "
+        body += (f"<p>Moving distance at the end: waypoint method error {md['waypoint_mean_error_cm']:.2f} cm "
                  f"(mean |error| {md['waypoint_mean_abs_error_cm']:.2f}), simple integration "
                  f"{md['simple_mean_error_cm']:.2f} cm, true {md['true_mean_cm']:.1f} cm; heading RMS error "
                  f"{hd['rms_error_deg']:.1f} deg over {hd['n_legs']} legs.</p>")
-    page = f"""<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">
-<title>Evaluation: {html.escape(str(report['scenario']))}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}td:first-child{{text-align:left}}</style></head><body>
-<h1>Evaluation of {html.escape(str(report['scenario']))}</h1>
-<p>{report['n_runs']} runs of {report['duration_s']:.0f} s ({report['steps_per_run']} steps).</p>
-<table><tr><th>algorithm</th><th>RMS, last 10% (mm)</th><th>paper (mm)</th><th>mean (mm)</th><th>p90 (mm)</th>
-<th>steps/s</th></tr>{rows}</table>{extra}
-<figure><img src="error_vs_time.png"></figure><figure><img src="error_cdf.png"></figure>
-<figure><img src="trajectories_xz.png"></figure></body></html>
-"""
-    write_text_atomic(out / "report.html", page)
+    write_report_page(out, report["scenario"], f"{report['n_runs']} runs of {report['duration_s']:.0f} s "
+                      f"({report['steps_per_run']} steps).", body,
+                      ["error_vs_time.png", "error_cdf.png", "trajectories_xz.png"])
 
 
 def report_line(rep: dict) -> str:
