@@ -109,6 +109,17 @@ def _parser() -> argparse.ArgumentParser:
                     help="process noise: Eq. 15 (paper) or the IMU's exact sigma^2 B B^T")
     hy.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
     hy.add_argument("--force", action="store_true", help="write into a non-empty output directory")
+    rt = sub.add_parser("rf-track", help="particle-filter RF tracking (papers 002/003): UWB TOA with permittivity "
+                                         "estimation, TOA with a known permittivity, or MICS RSSI")
+    rt.add_argument("seqdir", help="recording: rf.csv (t,sensor,rss_dbm[,toa_s,uwb_field_db]), sensors.csv, "
+                                   "meta.json (area_min_m, area_max_m; uwb and mics models)")
+    rt.add_argument("--method", default="toa_rssi_pf", choices=("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf"))
+    rt.add_argument("--particles", type=int, default=20000)
+    rt.add_argument("--eps", type=float, default=None, help="known permittivity for toa_pf_true_eps (default: "
+                                                              "meta.json's uwb.eps_r)")
+    rt.add_argument("--seed", type=int, default=0, help="the particle filter's random seed")
+    rt.add_argument("--out", required=True, help="output directory: trajectory.tum (+ permittivity.csv)")
+    rt.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     mgl = sub.add_parser("magnetic-localize",
                          help="magnetic capsule (paper 001): 6-DOF EKF on recorded Hall readings and actuator poses")
     mgl.add_argument("seqdir", help="recording: meta.json (sensors, filter calibration), hall.csv, actuator.csv")
@@ -312,6 +323,49 @@ def _output_dir(path: str, force: bool):
         raise InputError(f"{out}: output directory is not empty (use --force)")
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def _rf_track(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.errors import InputError
+    from bodyslam.io import read_json, write_csv, write_tum
+    from bodyslam.pf import MicsRssiModel, TrackSettings, track
+    from bodyslam.rf import read_rf_columns, read_sensors
+
+    d = Path(args.seqdir)
+    meta = read_json(d / "meta.json")
+    try:
+        lo, hi = np.asarray(meta["area_min_m"], float), np.asarray(meta["area_max_m"], float)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{d / 'meta.json'}: needs area_min_m and area_max_m (the analysis area, m)") from None
+    uwb, mics = meta.get("uwb", {}), meta.get("mics", {})
+    settings = TrackSettings(particles=args.particles, eps_known=float(args.eps or uwb.get("eps_r", 34.25)),
+                             sigma_toa_s=float(uwb.get("sigma_toa_s", 62.5e-12)),
+                             sigma_s_per_m=float(uwb.get("sigma_s_per_m", 2.17)), freq_hz=float(uwb.get("freq_hz", 4.1e9)),
+                             sigma_e=float(uwb.get("sigma_e", 1.23)),
+                             mics=MicsRssiModel(float(mics.get("log10_alpha", -7.5)), float(mics.get("n", 6.65)),
+                                                float(mics.get("sigma_db", 5.5))))
+    names, rx, _ = read_sensors(d / "sensors.csv")
+    cols = ("rss_dbm",) if args.method == "rssi_pf" else ("toa_s", "uwb_field_db")
+    stamps, readings, problems = read_rf_columns(d / "rf.csv", names, cols)
+    if "rss_dbm" in readings:
+        readings["rss_db"] = readings.pop("rss_dbm")
+    out = _output_dir(args.out, args.force)
+    est, eps = track(args.method, stamps, rx, readings, lo, hi, settings, np.random.default_rng(args.seed),
+                     progress=Progress(f"rf-track {args.method}"))
+    write_tum(out / "trajectory.tum", stamps, est, Rotation.identity(len(est)))  # position only
+    if eps is not None:
+        write_csv(out / "permittivity.csv", ["t", "eps_r"], [[float(a), float(b)] for a, b in zip(stamps, eps)])
+    for msg in problems[:20]:
+        print(f"  skipped {msg}")
+    print(f"{out}/trajectory.tum: {len(est)} positions ({args.method}, {args.particles} particles)"
+          + (f"; permittivity at the end {eps[-1]:.1f}" if eps is not None else "")
+          + f"; {len(problems)} RF line(s) skipped")
+    return 3 if problems else 0
 
 
 def _magnetic_localize(args) -> int:
@@ -581,7 +635,7 @@ def _main(argv: list[str] | None) -> int:
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
             "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize,
             "localize": _localize, "batch": _batch, "hybrid-localize": _hybrid_localize,
-            "magnetic-localize": _magnetic_localize}[args.cmd](args)
+            "magnetic-localize": _magnetic_localize, "rf-track": _rf_track}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,7 +42,7 @@ from bodyslam.errors import ConfigError
 
 __all__ = ["C_MPS", "attenuation_np_per_m", "field_ratio", "permittivity_from_field", "MicsRssiModel",
            "RandomWaypoint", "ParticleFilter", "loglik_toa", "loglik_permittivity", "waypoint_distance",
-           "simple_distance"]
+           "simple_distance", "TRACKERS", "TrackSettings", "track"]
 
 C_MPS = 299_792_458.0
 MU0 = 4e-7 * math.pi
@@ -309,3 +309,77 @@ def waypoint_distance(est_m: np.ndarray, S: int = 20, r_thr_m: float = 0.003,
     d = np.diff(Q, axis=0)
     heads = np.c_[np.arctan2(d[:, 2], d[:, 0]), np.arctan2(d[:, 1], np.hypot(d[:, 0], d[:, 2]))]
     return out, Q, heads
+
+
+# ------------------------------------------------------------------------------------ running on recorded data
+
+TRACKERS = ("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf")
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """Everything a tracker needs besides the readings (002 Table 3 / 003 Table 1 defaults; the scenario files
+    ``ito2016``/``ito_heading`` carry the evaluated values)."""
+
+    particles: int = 20000
+    motion: RandomWaypoint = RandomWaypoint()
+    resample_threshold: float = 0.5
+    jitter_m: float = 5e-4          # TOA filters' resampling jitter floor
+    rssi_jitter_m: float = 1e-3     # the RSSI filter's
+    jitter_log_eps: float = 0.005
+    eps_range: tuple[float, float] = (15.0, 70.0)
+    eps_known: float = 34.25        # ``toa_pf_true_eps``: the tissue's permittivity, known
+    sigma_toa_s: float = 62.5e-12
+    sigma_s_per_m: float = 2.17
+    freq_hz: float = 4.1e9
+    sigma_e: float = 1.23
+    mics: MicsRssiModel = MicsRssiModel()
+
+
+def track(name: str, t_s: np.ndarray, rx_m: np.ndarray, readings: dict[str, np.ndarray], area_min_m, area_max_m,
+          settings: TrackSettings = TrackSettings(), rng=None, progress=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """One particle-filter tracker over a recording: positions ``(T, 3)`` and, for ``toa_rssi_pf``, the
+    estimated permittivity ``(T,)``.
+
+    ``readings`` holds ``(T, M)`` arrays (NaN: no reading) for the receivers ``rx_m (M, 3)``: ``toa_s`` and
+    ``uwb_field_db`` (``20 log10(E / E0)``) for the TOA trackers, ``rss_db`` for ``rssi_pf``. Trackers:
+    ``toa_rssi_pf`` (002: TOA with the permittivity estimated from the UWB field), ``toa_pf_true_eps`` (002's
+    reference: TOA with ``settings.eps_known``), ``rssi_pf`` (003: MICS RSSI). ``progress(done, total)`` is called
+    every 100 steps.
+    """
+    if name not in TRACKERS:
+        raise ConfigError(f"unknown RF tracking algorithm {name!r} (known: {', '.join(TRACKERS)})")
+    need = {"toa_rssi_pf": ("toa_s", "uwb_field_db"), "toa_pf_true_eps": ("toa_s",), "rssi_pf": ("rss_db",)}[name]
+    missing = [k for k in need if k not in readings]
+    if missing:
+        raise ConfigError(f"{name} needs the readings {', '.join(missing)}")
+    st = settings
+    kw = dict(motion=st.motion, resample_threshold=st.resample_threshold,
+              jitter_m=st.rssi_jitter_m if name == "rssi_pf" else st.jitter_m, jitter_log_eps=st.jitter_log_eps,
+              rng=rng)
+    pf = ParticleFilter(st.particles, area_min_m, area_max_m,
+                        eps_range=st.eps_range if name == "toa_rssi_pf" else None, **kw)
+    t_s = np.asarray(t_s, float)
+    est = np.zeros((len(t_s), 3))
+    eps_est = np.zeros(len(t_s)) if pf.log_eps is not None else None
+    for k in range(len(t_s)):
+        if k:
+            pf.predict(float(t_s[k] - t_s[k - 1]))
+        if name == "rssi_pf":
+            ll = st.mics.loglik(pf.pos, readings["rss_db"][k], rx_m)
+        elif name == "toa_pf_true_eps":
+            ll = loglik_toa(pf.pos, st.eps_known, readings["toa_s"][k], rx_m, st.sigma_toa_s)
+        else:
+            # Eq. 11 needs each receiver's distance: the TOA range with the filter's current permittivity
+            d_rng = readings["toa_s"][k] * C_MPS / math.exp(0.5 * pf.estimate_log_eps())
+            eps_obs = permittivity_from_field(10 ** (readings["uwb_field_db"][k] / 20.0), np.maximum(d_rng, 1e-3),
+                                              st.sigma_s_per_m, st.freq_hz)
+            ll = loglik_toa(pf.pos, np.exp(pf.log_eps), readings["toa_s"][k], rx_m, st.sigma_toa_s) + \
+                loglik_permittivity(pf.log_eps, eps_obs, st.sigma_e)
+        pf.update(ll)
+        est[k] = pf.estimate()
+        if eps_est is not None:
+            eps_est[k] = math.exp(pf.estimate_log_eps())
+        if progress is not None and (k % 100 == 99 or k == len(t_s) - 1):
+            progress(k + 1, len(t_s))
+    return est, eps_est

@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from bodyslam.errors import InputError
 from bodyslam.io import csv_rows
 
-__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "rss_per_frame", "rss_to_range", "locate_lls", "locate_nls",
+__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "read_rf_columns", "rss_per_frame", "rss_to_range", "locate_lls", "locate_nls",
            "locate_ml", "RF_METHODS"]
 
 RF_METHODS = ("lls", "nls", "ml")
@@ -118,28 +118,36 @@ def read_rf(path: str | os.PathLike, sensor_names: tuple[str, ...]) -> tuple[np.
 
     Malformed lines and unknown sensors are skipped and reported (``file:line: reason``), never fatal.
     """
+    stamps, cols, problems = read_rf_columns(path, sensor_names, ("rss_dbm",))
+    return stamps, cols["rss_dbm"], problems
+
+
+def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
+                    columns: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
+    """``rf.csv`` (long format: ``t,sensor,<columns>``) -> ``(stamps (T,), {column: (T, n)}, problems)``, NaN
+    where a sensor has no reading. Lines with a non-number or an unknown sensor are skipped and reported
+    (``file:line: reason``), never fatal."""
     index = {n: j for j, n in enumerate(sensor_names)}
     problems: list[str] = []
-    data: dict[float, dict[int, float]] = {}
-    with csv_rows(path, ("t", "sensor", "rss_dbm")) as lines:
+    data: dict[float, dict[int, list[float]]] = {}
+    with csv_rows(path, ("t", "sensor", *columns)) as lines:
         for lineno, row in lines:
             try:
-                t, v = float(row["t"]), float(row["rss_dbm"])
+                t, v = float(row["t"]), [float(row[c]) for c in columns]
             except (TypeError, ValueError):
                 problems.append(f"{path}:{lineno}: not a number ({row})")
                 continue
             if row["sensor"] not in index:
                 problems.append(f"{path}:{lineno}: unknown sensor {row['sensor']!r}")
                 continue
-            if not math.isfinite(v):
-                continue
             data.setdefault(t, {})[index[row["sensor"]]] = v
     stamps = np.array(sorted(data))
-    rss = np.full((len(stamps), len(sensor_names)), np.nan)
+    out = {c: np.full((len(stamps), len(sensor_names)), np.nan) for c in columns}
     for k, t in enumerate(stamps):
         for j, v in data[t].items():
-            rss[k, j] = v
-    return stamps, rss, problems
+            for c, x in zip(columns, v):
+                out[c][k, j] = x if math.isfinite(x) else np.nan
+    return stamps, out, problems
 
 
 def rss_per_frame(stamps_s: np.ndarray, rss_dbm: np.ndarray, frame_stamps_s: np.ndarray,

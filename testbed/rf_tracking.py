@@ -35,8 +35,8 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv, write_image, write_json, write_tum
-from bodyslam.pf import (C_MPS, MicsRssiModel, ParticleFilter, RandomWaypoint, field_ratio, loglik_permittivity,
-                         loglik_toa, permittivity_from_field, simple_distance, waypoint_distance)
+from bodyslam.pf import (C_MPS, TRACKERS, MicsRssiModel, RandomWaypoint, TrackSettings, field_ratio,
+                         simple_distance, track, waypoint_distance)
 from bodyslam.plots import Figure
 from testbed.centerline import procedural_centerline
 from testbed.htmlpage import table, write_report_page
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 __all__ = ["RF_TRACKING_ALGORITHMS", "emulate", "simulate_rf_tracking", "run_algorithm", "evaluate_rf_tracking",
            "report_line"]
 
-RF_TRACKING_ALGORITHMS = ("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf")
+RF_TRACKING_ALGORITHMS = TRACKERS
 LABELS = {"toa_rssi_pf": "TOA + RSSI PF, permittivity estimated (002, proposed)",
           "toa_pf_true_eps": "TOA PF with the true permittivity (002)",
           "rssi_pf": "MICS RSSI PF (003; 002's conventional RSSI method)"}
@@ -166,52 +166,30 @@ def _headings(pos: np.ndarray) -> Rotation:
     return Rotation.from_quat(quats)
 
 
+def track_settings(scn: dict) -> TrackSettings:
+    """The scenario's filter, motion and measurement models as :class:`bodyslam.pf.TrackSettings`."""
+    flt, uwb, mics, mot = _cfg(scn, "filter"), _cfg(scn, "uwb"), _cfg(scn, "mics"), _cfg(scn, "motion")
+    return TrackSettings(
+        particles=int(flt.get("particles", 20000)),
+        motion=RandomWaypoint(float(mot.get("speed_mean_mps", 5e-4)), math.sqrt(float(mot.get("speed_var_m2ps2", 5e-7))),
+                              float(mot.get("stop_max_s", 20.0)), float(flt.get("leg_max_m", 0.03))),
+        resample_threshold=float(flt.get("resample_threshold", 0.06)),
+        # RSSI constrains a step far less than TOA: its filter needs more diffusion to follow a capsule that moves
+        # on (with 0.2 mm the estimate lagged centimetres behind; 1 mm chosen on ito_heading seeds 300-309, which
+        # no evaluation in the README uses: mean RMS 42.5 / 5.2 / 7.5 mm for 0.2 / 1 / 2 mm)
+        jitter_m=float(flt.get("jitter_m", 5e-4)), rssi_jitter_m=float(flt.get("rssi_jitter_m", 1e-3)),
+        jitter_log_eps=float(flt.get("jitter_log_eps", 0.005)), eps_range=tuple(flt.get("eps_range", (15.0, 70.0))),
+        eps_known=float(uwb.get("eps_r", 34.25)), sigma_toa_s=float(uwb.get("sigma_toa_s", 62.5e-12)),
+        sigma_s_per_m=float(uwb.get("sigma_s_per_m", 2.17)), freq_hz=float(uwb.get("freq_hz", 4.1e9)),
+        sigma_e=float(uwb.get("sigma_e", 1.23)),
+        mics=MicsRssiModel(float(mics.get("log10_alpha", -7.5)), float(mics.get("n", 6.65)),
+                           float(mics.get("sigma_db", 5.5))))
+
+
 def run_algorithm(name: str, scn: dict, lo, hi, t, rx, meas, rng) -> tuple[np.ndarray, np.ndarray | None]:
-    """One algorithm on one run: estimated positions ``(T, 3)`` and, where estimated, permittivity ``(T,)``."""
-    flt, uwb, mics = _cfg(scn, "filter"), _cfg(scn, "uwb"), _cfg(scn, "mics")
-    n = int(flt.get("particles", 20000))
-    motion = RandomWaypoint(float(_cfg(scn, "motion").get("speed_mean_mps", 5e-4)),
-                            math.sqrt(float(_cfg(scn, "motion").get("speed_var_m2ps2", 5e-7))),
-                            float(_cfg(scn, "motion").get("stop_max_s", 20.0)), float(flt.get("leg_max_m", 0.03)))
-    eps_true = float(uwb.get("eps_r", 34.25))
-    sig_s = float(uwb.get("sigma_toa_s", 62.5e-12))
-    # RSSI constrains a step far less than TOA: its filter needs more diffusion to follow a capsule that moves on
-    # (with 0.2 mm the estimate lagged centimetres behind; 1 mm chosen on ito_heading seeds 300-309, which no
-    # evaluation in the README uses: mean RMS 42.5 / 5.2 / 7.5 mm for 0.2 / 1 / 2 mm)
-    jitter = float(flt.get("rssi_jitter_m", 1e-3)) if name == "rssi_pf" else float(flt.get("jitter_m", 5e-4))
-    kw = dict(motion=motion, resample_threshold=float(flt.get("resample_threshold", 0.06)),
-              jitter_m=jitter, jitter_log_eps=float(flt.get("jitter_log_eps", 0.005)),
-              rng=rng)
-    if name == "toa_rssi_pf":
-        pf = ParticleFilter(n, lo, hi, eps_range=tuple(flt.get("eps_range", (15.0, 70.0))), **kw)
-    elif name in ("toa_pf_true_eps", "rssi_pf"):
-        pf = ParticleFilter(n, lo, hi, **kw)
-    else:
-        raise ConfigError(f"unknown RF tracking algorithm {name!r} (known: {', '.join(RF_TRACKING_ALGORITHMS)})")
-    model = MicsRssiModel(float(mics.get("log10_alpha", -7.5)), float(mics.get("n", 6.65)), float(mics.get("sigma_db", 5.5)))
-    est = np.zeros((len(t), 3))
-    eps_est = np.zeros(len(t)) if pf.log_eps is not None else None
-    dt = float(t[1] - t[0]) if len(t) > 1 else 0.1
-    sig_c, f_c, sig_e = float(uwb.get("sigma_s_per_m", 2.17)), float(uwb.get("freq_hz", 4.1e9)), float(uwb.get("sigma_e", 1.23))
-    for k in range(len(t)):
-        if k:
-            pf.predict(dt)
-        if name == "rssi_pf":
-            ll = model.loglik(pf.pos, meas["rss_db"][k], rx)
-        elif name == "toa_pf_true_eps":
-            ll = loglik_toa(pf.pos, eps_true, meas["toa_s"][k], rx, sig_s)
-        else:
-            # Eq. 11 needs each receiver's distance: the TOA range with the filter's current permittivity
-            d_rng = meas["toa_s"][k] * C_MPS / math.exp(0.5 * pf.estimate_log_eps())
-            eps_obs = permittivity_from_field(10 ** (meas["uwb_field_db"][k] / 20.0), np.maximum(d_rng, 1e-3),
-                                              sig_c, f_c)
-            ll = loglik_toa(pf.pos, np.exp(pf.log_eps), meas["toa_s"][k], rx, sig_s) + \
-                loglik_permittivity(pf.log_eps, eps_obs, sig_e)
-        pf.update(ll)
-        est[k] = pf.estimate()
-        if eps_est is not None:
-            eps_est[k] = math.exp(pf.estimate_log_eps())
-    return est, eps_est
+    """One algorithm on one run: estimated positions ``(T, 3)`` and, where estimated, permittivity ``(T,)``
+    (``bodyslam.pf.track``: the testbed only supplies the scenario's settings)."""
+    return track(name, t, rx, meas, lo, hi, track_settings(scn), rng)
 
 
 def _seed_task(args) -> dict:

@@ -104,3 +104,27 @@ def test_waypoint_method_beats_simple_integration_on_a_noisy_stop_and_go_track()
     assert heads[0] == pytest.approx([0.0, 0.0], abs=0.05)
     # the chords of the +y leg climb at 90 degrees of elevation, those of the +z leg have azimuth 90 degrees
     assert np.sum(np.abs(heads[:, 1] - math.pi / 2) < 0.1) >= 2 and np.sum(np.abs(heads[:, 0] - math.pi / 2) < 0.1) >= 2
+
+
+def test_rf_track_cli_runs_on_recorded_files_and_reports_bad_lines(tmp_path):
+    # a 30 s ito2016 recording through the user's command: the files alone (no testbed), millimetre tracking
+    from bodyslam.cli import main as bodyslam_main
+    from testbed.rf_tracking import simulate_rf_tracking
+    from testbed.scenario import load_scenario
+
+    scn = load_scenario("ito2016", ["sequence.duration_s=30"])
+    simulate_rf_tracking(scn, 4, tmp_path / "rec")
+    assert bodyslam_main(["rf-track", str(tmp_path / "rec"), "--out", str(tmp_path / "o"), "--particles",
+                          "5000"]) == 0
+    gt = np.loadtxt(tmp_path / "rec" / "groundtruth.tum")
+    est = np.loadtxt(tmp_path / "o" / "trajectory.tum")
+    err = np.linalg.norm(gt[:, 1:4] - est[:, 1:4], axis=1)
+    assert np.sqrt(np.mean(err[-30:] ** 2)) < 0.005  # 002 reaches ~1.3 mm; 5 mm leaves room for 30 s, 5000 particles
+    eps = np.loadtxt(tmp_path / "o" / "permittivity.csv", delimiter=",", skiprows=1)
+    assert abs(eps[-1, 1] - 34.25) < 5.0
+    lines = (tmp_path / "rec" / "rf.csv").read_text().splitlines()
+    lines[5] = lines[5].split(",")[0] + ",rx0,oops,1e-9,-40"
+    (tmp_path / "rec" / "rf.csv").write_text("\n".join(lines) + "\n")
+    assert bodyslam_main(["rf-track", str(tmp_path / "rec"), "--out", str(tmp_path / "o2"), "--particles", "2000",
+                          "--method", "rssi_pf"]) == 3  # the malformed line is reported, the run completes
+    assert (tmp_path / "o2" / "trajectory.tum").exists()
