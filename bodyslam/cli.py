@@ -355,8 +355,8 @@ def _rf_track(args) -> int:
     if "rss_dbm" in readings:
         readings["rss_db"] = readings.pop("rss_dbm")
     out = _output_dir(args.out, args.force)
-    est, eps = track(args.method, stamps, rx, readings, lo, hi, settings, np.random.default_rng(args.seed),
-                     progress=Progress(f"rf-track {args.method}"))
+    est, eps, _ = track(args.method, stamps, rx, readings, lo, hi, settings, np.random.default_rng(args.seed),
+                        progress=Progress(f"rf-track {args.method}"))
     write_tum(out / "trajectory.tum", stamps, est, Rotation.identity(len(est)))  # position only
     if eps is not None:
         write_csv(out / "permittivity.csv", ["t", "eps_r"], [[float(a), float(b)] for a, b in zip(stamps, eps)])

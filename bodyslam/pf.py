@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -42,7 +43,7 @@ from bodyslam.errors import ConfigError
 
 __all__ = ["C_MPS", "attenuation_np_per_m", "field_ratio", "permittivity_from_field", "MicsRssiModel",
            "RandomWaypoint", "ParticleFilter", "loglik_toa", "loglik_permittivity", "waypoint_distance",
-           "simple_distance", "TRACKERS", "TrackSettings", "track"]
+           "simple_distance", "TRACKERS", "TrackSettings", "Track", "track", "converged_from"]
 
 C_MPS = 299_792_458.0
 MU0 = 4e-7 * math.pi
@@ -276,6 +277,13 @@ def simple_distance(est_m: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(est_m, axis=0), axis=1))])
 
 
+def converged_from(spread_m: np.ndarray, threshold_m: float) -> int:
+    """The first step whose particle-cloud spread is below ``threshold_m`` (the filter has found the capsule);
+    the last step when it never is."""
+    below = np.flatnonzero(np.asarray(spread_m) < threshold_m)
+    return int(below[0]) if len(below) else max(len(spread_m) - 1, 0)
+
+
 def waypoint_distance(est_m: np.ndarray, S: int = 20, r_thr_m: float = 0.003,
                       p_thr_m: float = 0.03) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """003 Sec. 3.2-3.3: moving distance from waypoints detected in the estimated track, and headings.
@@ -336,10 +344,19 @@ class TrackSettings:
     mics: MicsRssiModel = MicsRssiModel()
 
 
+class Track(NamedTuple):
+    """A tracker's output per step: weighted-mean positions ``(T, 3)`` (m), the permittivity estimate ``(T,)``
+    (``toa_rssi_pf`` only, else None) and the particle cloud's RMS spread ``(T,)`` (m, sqrt of the covariance's
+    trace: how far from converged the filter is)."""
+
+    positions_m: np.ndarray
+    eps_r: np.ndarray | None
+    spread_m: np.ndarray
+
+
 def track(name: str, t_s: np.ndarray, rx_m: np.ndarray, readings: dict[str, np.ndarray], area_min_m, area_max_m,
-          settings: TrackSettings = TrackSettings(), rng=None, progress=None) -> tuple[np.ndarray, np.ndarray | None]:
-    """One particle-filter tracker over a recording: positions ``(T, 3)`` and, for ``toa_rssi_pf``, the
-    estimated permittivity ``(T,)``.
+          settings: TrackSettings = TrackSettings(), rng=None, progress=None) -> Track:
+    """One particle-filter tracker over a recording (see :class:`Track`).
 
     ``readings`` holds ``(T, M)`` arrays (NaN: no reading) for the receivers ``rx_m (M, 3)``: ``toa_s`` and
     ``uwb_field_db`` (``20 log10(E / E0)``) for the TOA trackers, ``rss_db`` for ``rssi_pf``. Trackers:
@@ -361,6 +378,7 @@ def track(name: str, t_s: np.ndarray, rx_m: np.ndarray, readings: dict[str, np.n
                         eps_range=st.eps_range if name == "toa_rssi_pf" else None, **kw)
     t_s = np.asarray(t_s, float)
     est = np.zeros((len(t_s), 3))
+    spread = np.zeros(len(t_s))
     eps_est = np.zeros(len(t_s)) if pf.log_eps is not None else None
     for k in range(len(t_s)):
         if k:
@@ -378,8 +396,9 @@ def track(name: str, t_s: np.ndarray, rx_m: np.ndarray, readings: dict[str, np.n
                 loglik_permittivity(pf.log_eps, eps_obs, st.sigma_e)
         pf.update(ll)
         est[k] = pf.estimate()
+        spread[k] = math.sqrt(max(float(np.trace(pf.covariance())), 0.0))
         if eps_est is not None:
             eps_est[k] = math.exp(pf.estimate_log_eps())
         if progress is not None and (k % 100 == 99 or k == len(t_s) - 1):
             progress(k + 1, len(t_s))
-    return est, eps_est
+    return Track(est, eps_est, spread)
