@@ -128,3 +128,10 @@ def test_rf_track_cli_runs_on_recorded_files_and_reports_bad_lines(tmp_path):
     assert bodyslam_main(["rf-track", str(tmp_path / "rec"), "--out", str(tmp_path / "o2"), "--particles", "2000",
                           "--method", "rssi_pf"]) == 3  # the malformed line is reported, the run completes
     assert (tmp_path / "o2" / "trajectory.tum").exists()
+
+
+def test_converged_from_finds_the_first_step_below_the_threshold():
+    from bodyslam.pf import converged_from
+
+    assert converged_from(np.array([0.09, 0.03, 0.008, 0.02, 0.004]), 0.01) == 2
+    assert converged_from(np.array([0.09, 0.05]), 0.01) == 1  # never: the last step (nothing before it is trusted)
