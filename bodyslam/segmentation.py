@@ -85,10 +85,14 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
     g = 256.0
     log_term = math.log(6.0 * n_pix * n_pix)
     k = relax * g * g / (2.0 * Q)
+    # b2 of a region of n pixels, for every n (a table: the loop then does no log or min)
+    nn = np.arange(n_pix + 1, dtype=np.float64)
+    nn[0] = 1.0
+    b2_tab = (k / nn * (np.minimum(g, nn) * np.log1p(nn) + log_term)).tolist()
     parent = list(range(h * w))
     size = [1] * (h * w)
-    sums = flat.tolist()  # per-pixel [r, g, b] running sums of each root
-    b2_of = [k * (math.log(2.0) + log_term)] * (h * w)  # b2 of a one-pixel region
+    sr, sg, sb = (flat[:, c].tolist() for c in range(3))  # per-channel running sums of each root
+    b2_of = [b2_tab[1]] * (h * w)
 
     # Kruskal-style merging in edge order. The union-find is inlined (no function calls: the loop is the cost of
     # classification) with path halving; the result does not depend on how the roots are found.
@@ -100,24 +104,25 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
         if a == b:
             continue
         na, nb = size[a], size[b]
-        sa, sb = sums[a], sums[b]
         thr = b2_of[a] + b2_of[b]
-        d0 = sa[0] / na - sb[0] / nb
-        if d0 * d0 > thr:
+        d = sr[a] / na - sr[b] / nb
+        if d * d > thr:
             continue
-        d1 = sa[1] / na - sb[1] / nb
-        if d1 * d1 > thr:
+        d = sg[a] / na - sg[b] / nb
+        if d * d > thr:
             continue
-        d2 = sa[2] / na - sb[2] / nb
-        if d2 * d2 > thr:
+        d = sb[a] / na - sb[b] / nb
+        if d * d > thr:
             continue
         if na < nb:
-            a, b, na, nb, sa, sb = b, a, nb, na, sb, sa
+            a, b = b, a
         parent[b] = a
         n = na + nb
         size[a] = n
-        sums[a] = [sa[0] + sb[0], sa[1] + sb[1], sa[2] + sb[2]]
-        b2_of[a] = k / n * (min(g, n) * math.log(1.0 + n) + log_term)
+        sr[a] += sr[b]
+        sg[a] += sg[b]
+        sb[a] += sb[b]
+        b2_of[a] = b2_tab[n]
 
     roots = np.asarray(parent)
     while True:  # pointer jumping: every pixel's root, vectorised

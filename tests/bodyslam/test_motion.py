@@ -60,6 +60,25 @@ def test_tube_estimator_recovers_the_motion(rv, t, axis, off):
     assert abs(est.yaw_rad - truth.yaw_rad) < math.radians(0.3)
 
 
+@pytest.mark.parametrize("rv, t, axis, off", CASES)
+def test_hand_written_lm_reaches_scipys_solution(rv, t, axis, off):
+    # the default solver (robust Levenberg-Marquardt) and scipy's trust-region solver minimise the same cost:
+    # the same step to well below the estimator's own error (0.3 px noise, outliers added)
+    rng = np.random.default_rng(4)
+    R = Rotation.from_rotvec(rv)
+    m = synth_matches(tube_points(300, rng, axis, off), R, np.array(t), noise_px=0.3, rng=rng)
+    bad = rng.choice(len(m), 15, replace=False)
+    pts2 = m.pts2_px.copy()
+    pts2[bad] += rng.normal(0, 8.0, (15, 2))  # 5% gross mismatches: the soft-L1 loss must carry them
+    m = Matches(m.pts1_px, pts2, len(m))
+    a, b = estimate_tube(m, CAM, R_TUBE, solver="lm"), estimate_tube(m, CAM, R_TUBE, solver="trf")
+    assert a.ok and b.ok
+    assert abs(a.distance_m - b.distance_m) < 2e-6
+    for k in ("roll_rad", "pitch_rad", "yaw_rad"):
+        assert abs(getattr(a, k) - getattr(b, k)) < math.radians(0.02)
+    assert a.sigma_distance_m == pytest.approx(b.sigma_distance_m, rel=0.05)
+
+
 def test_thesis_estimator_signs_are_derived_not_printed():
     """On the axis, moving forward by d and rolling by g: Eq. 3.14 as printed gives -d, Eq. 3.22 gives -g."""
     rng = np.random.default_rng(4)
