@@ -621,6 +621,20 @@ def _chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
     return [(b[i], b[i + 1]) for i in range(len(b) - 1)]
 
 
+def code_fingerprint() -> str:
+    """A hash of the pipeline's code and shipped models: chunks are reused only by the code that computed them
+    (an upgraded toolkit with the same settings could compute different results; without this a resumed run
+    would mix both)."""
+    import hashlib
+
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted([*root.glob("*.py"), *root.glob("models/*")]):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def _prepare_out(out: Path, plan: dict, force: bool) -> None:
     plan_file = out / "batch.json"
     if out.exists() and not out.is_dir():
@@ -636,8 +650,8 @@ def _prepare_out(out: Path, plan: dict, force: bool) -> None:
             log.info("%s: resuming (same inputs and settings)", out)
             return
         if not force:
-            why = ("it holds a run with other inputs or settings" if old is not None
-                   else "it is not empty and holds no batch run")
+            why = ("it holds a run with other inputs or settings, or made by another version of the toolkit"
+                   if old is not None else "it is not empty and holds no batch run")
             raise InputError(f"{out}: {why}; use --force to overwrite (the same command resumes its own run)")
         for child in out.iterdir():
             if child.is_dir() and not child.is_symlink():
@@ -706,7 +720,8 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     out = Path(out)
     if settings.chunk_frames < 2:
         raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
-    plan = {"version": PLAN_VERSION, "settings": asdict(settings), "exams": [e.describe() for e in exams]}
+    plan = {"version": PLAN_VERSION, "code": code_fingerprint(), "settings": asdict(settings),
+            "exams": [e.describe() for e in exams]}
     _prepare_out(out, plan, force)
     t0 = time.monotonic()
     tasks, reused, total = [], 0, sum(e.n_positions for e in exams)

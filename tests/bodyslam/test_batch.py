@@ -112,6 +112,13 @@ def test_existing_output_is_not_overwritten_without_force(tmp_path):
     rep = run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1,
                     force=True)
     assert rep.chunks_computed == 1 and rep.chunks_reused == 0
+    # a run made by another version of the toolkit is not resumed: its chunks could differ from this code's
+    plan_file = out2 / "batch.json"
+    doc = json.loads(plan_file.read_text())
+    doc["plan"]["code"] = "0" * 16
+    plan_file.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="another version of the toolkit"):
+        run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1)
 
 
 def _write_bad_folder(d: Path) -> dict[str, str]:
