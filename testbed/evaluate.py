@@ -53,6 +53,8 @@ def evaluate_sequence(d: Path) -> dict:
         "rf_nls": np.array([f.position_w_m for f in nls]),
         "dead_reckoning": p0 + R0.apply(dr),
         "thesis_kf": kf_thesis(steps, nls, (R0, p0)),
+        # the same filter fed by the dissertation's other RF localizer (ML, Sec. 2.3.3.2) instead of Eq. 3.36's NLS
+        "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0)),
         "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix").positions_w_m,
         "ekf_rss": ekf.positions_w_m,
         "ekf_rss_rts": rts_smooth(ekf).positions_w_m,
@@ -186,7 +188,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
 
 
 LABELS = {"rf_ml": "RF only (ML)", "rf_nls": "RF only (NLS, Eq. 3.36)", "dead_reckoning": "dead reckoning",
-          "thesis_kf": "dissertation's KF (Eq. 3.26-3.38)", "ekf_fixes": "EKF on RF fixes",
+          "thesis_kf": "dissertation's KF (Eq. 3.26-3.38) on NLS fixes", "thesis_kf_ml": "dissertation's KF on ML fixes",
+          "ekf_fixes": "EKF on RF fixes",
           "ekf_rss": "EKF on RSS (online)", "ekf_rss_rts": "EKF on RSS + RTS smoother (offline)"}
 
 

@@ -135,3 +135,28 @@ def test_dead_reckoner_streams_the_filters_prediction(demo):
     assert dr.path_m == pytest.approx(sum(np.linalg.norm(s.t) for s in bridged), rel=1e-12)
     assert dr.path_var_m2 == pytest.approx(sum(max(s.sigma_t_m, 3e-4) ** 2 for s in steps if s.ok)
                                            + max(np.linalg.norm(steps[4].t), 3e-3) ** 2, rel=1e-12)
+
+
+def test_thesis_kf_keeps_its_rotation_on_the_updated_heading():
+    # A capsule turning 5 deg per 1 cm step, started with a 30 deg misaligned camera, 2 cm RF fixes: the steps'
+    # rotations must be carried into the world by a rotation whose optical axis follows the filter's corrected
+    # heading. Mean error over 10 fix draws: 1.30 cm; 1.57 when R_w_c stays dead reckoning's (the margin, 0.13
+    # cm, is 4 standard errors of the 10-draw mean).
+    from bodyslam.fusion import Step, kf_thesis
+    from bodyslam.rf import Fix
+
+    Rs, t = Rotation.from_rotvec([0, np.radians(5), 0]), np.array([0, 0, 0.01])
+    R_true, p, gt, steps = Rotation.identity(), np.zeros(3), [np.zeros(3)], []
+    for _ in range(150):
+        steps.append(Step(Rs, t, 1e-4, 1e-3, True))
+        p = p + R_true.apply(t)
+        R_true = R_true * Rs
+        gt.append(p.copy())
+    gt = np.array(gt)
+    init = (Rotation.from_rotvec([np.radians(30), 0, 0]), np.zeros(3))
+    errs = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        fixes = [Fix(g + rng.normal(0, 0.02, 3), np.eye(3) * 0.02**2, 8) for g in gt]
+        errs.append(np.linalg.norm(kf_thesis(steps, fixes, init) - gt, axis=1).mean())
+    assert np.mean(errs) < 0.0143
