@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["evaluate_sequence", "evaluate"]
 
-ALGORITHMS = ("rf_ml", "rf_nls", "dead_reckoning", "thesis_kf", "ekf_fixes", "ekf_rss", "ekf_rss_rts")
+ALGORITHMS = ("rf_ml", "rf_nls", "dead_reckoning", "thesis_kf", "thesis_kf_ml", "ekf_fixes", "ekf_rss", "ekf_rss_rts")
 
 
 def evaluate_sequence(d: Path) -> dict:
