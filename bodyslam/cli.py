@@ -27,6 +27,8 @@ import sys
 from bodyslam.cliutil import Progress, run_cli
 from bodyslam.matching import MATCH_MODES
 from bodyslam.motion import ESTIMATORS
+from bodyslam.pf import TRACKERS
+from bodyslam.toa_doa import SCHEMES
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -103,8 +105,7 @@ def _parser() -> argparse.ArgumentParser:
     hy = sub.add_parser("hybrid-localize",
                         help="TOA/DOA at two URAs + IMU (paper 000): EKF of Algorithm 1 or a reference scheme")
     hy.add_argument("seqdir", help="recording: meta.json (arrays, radio, IMU, initial state), rf.csv, imu.csv")
-    hy.add_argument("--scheme", default="toa_doa_imu",
-                    choices=("toa_doa_imu", "doa_imu", "toa_imu", "rf_only_cv", "rf_only", "imu_only"))
+    hy.add_argument("--scheme", default="toa_doa_imu", choices=SCHEMES)
     hy.add_argument("--q-model", default="eq15", choices=("eq15", "discrete"),
                     help="process noise: Eq. 15 (paper) or the IMU's exact sigma^2 B B^T")
     hy.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
@@ -113,7 +114,7 @@ def _parser() -> argparse.ArgumentParser:
                                          "estimation, TOA with a known permittivity, or MICS RSSI")
     rt.add_argument("seqdir", help="recording: rf.csv (t,sensor,rss_dbm[,toa_s,uwb_field_db]), sensors.csv, "
                                    "meta.json (area_min_m, area_max_m; uwb and mics models)")
-    rt.add_argument("--method", default="toa_rssi_pf", choices=("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf"))
+    rt.add_argument("--method", default="toa_rssi_pf", choices=TRACKERS)
     rt.add_argument("--particles", type=int, default=20000)
     rt.add_argument("--eps", type=float, default=None, help="known permittivity for toa_pf_true_eps (default: "
                                                               "meta.json's uwb.eps_r)")
@@ -292,8 +293,9 @@ def _rf_localize(args) -> int:
     return 1 if problems else 0
 
 
-def _write_position_track(out, t, pos, quat_wxyz, cov) -> None:
-    """``trajectory.tum`` and ``uncertainty.csv`` (1-sigma per axis and in all) of a localization run."""
+def _write_position_track(out, t, pos, quat_wxyz, cov):
+    """``trajectory.tum`` and ``uncertainty.csv`` (1-sigma per axis and in all) of a localization run; returns
+    the per-axis 1-sigma ``(n, 3)``."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 
@@ -304,6 +306,7 @@ def _write_position_track(out, t, pos, quat_wxyz, cov) -> None:
     sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
     write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m"],
               [[float(a), *map(float, s), float(np.sqrt(np.sum(s**2)))] for a, s in zip(t, sd)])
+    return sd
 
 
 def _print_problems(problems: list) -> int:
@@ -333,7 +336,7 @@ def _rf_track(args) -> int:
 
     from bodyslam.errors import InputError
     from bodyslam.io import read_json, write_csv, write_tum
-    from bodyslam.pf import MicsRssiModel, TrackSettings, track
+    from bodyslam.pf import TrackSettings, track
     from bodyslam.rf import read_rf_columns, read_sensors
 
     d = Path(args.seqdir)
@@ -342,13 +345,8 @@ def _rf_track(args) -> int:
         lo, hi = np.asarray(meta["area_min_m"], float), np.asarray(meta["area_max_m"], float)
     except (KeyError, TypeError, ValueError):
         raise InputError(f"{d / 'meta.json'}: needs area_min_m and area_max_m (the analysis area, m)") from None
-    uwb, mics = meta.get("uwb", {}), meta.get("mics", {})
-    settings = TrackSettings(particles=args.particles, eps_known=float(args.eps or uwb.get("eps_r", 34.25)),
-                             sigma_toa_s=float(uwb.get("sigma_toa_s", 62.5e-12)),
-                             sigma_s_per_m=float(uwb.get("sigma_s_per_m", 2.17)), freq_hz=float(uwb.get("freq_hz", 4.1e9)),
-                             sigma_e=float(uwb.get("sigma_e", 1.23)),
-                             mics=MicsRssiModel(float(mics.get("log10_alpha", -7.5)), float(mics.get("n", 6.65)),
-                                                float(mics.get("sigma_db", 5.5))))
+    settings = TrackSettings.from_tables(meta.get("uwb", {}), meta.get("mics", {}), particles=args.particles,
+                                         **({"eps_known": args.eps} if args.eps else {}))
     names, rx, _ = read_sensors(d / "sensors.csv")
     cols = ("rss_dbm",) if args.method == "rssi_pf" else ("toa_s", "uwb_field_db")
     stamps, readings, problems = read_rf_columns(d / "rf.csv", names, cols)
@@ -393,8 +391,7 @@ def _hybrid_localize(args) -> int:
     rec = load_recording(args.seqdir)
     est, cov = run_scheme(args.scheme, rec["x0"], rec["P0"], rec["y"], rec["snr"], rec["imu"], rec["arrays"],
                           rec["radio"], rec["sigma_acc"], rec["delta_s"], args.q_model)
-    _write_position_track(out, rec["t"], est, None, cov)
-    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    sd = _write_position_track(out, rec["t"], est, None, cov)
     status = _print_problems(rec["problems"])
     print(f"{out}/trajectory.tum: {len(est)} positions ({args.scheme}); median predicted 1-sigma "
           f"{np.median(np.sqrt(np.sum(sd[1:] ** 2, axis=1))) * 100:.2f} cm; {len(rec['problems'])} problem(s)")

@@ -34,7 +34,8 @@ from bodyslam.errors import ConfigError
 
 __all__ = ["MU0", "skew", "rotate", "rotate_inv", "Pi", "Pi_star", "Upsilon", "Upsilon_star", "quat_mul",
            "quat_from_rotvec", "dquat_drotvec", "field_at", "field_gradient", "torque_force", "HallArray",
-           "Propulsion", "process", "process_jacobian", "measure", "measure_jacobian", "MagneticEkf",
+           "Propulsion", "process", "process_jacobian", "process_and_jacobian", "measure", "measure_jacobian",
+           "measure_and_jacobian", "MagneticEkf",
            "cross", "field_in_capsule", "lead_angle", "RotationMonitor", "rotation_axis", "ActuatorController",
            "load_recording", "replay"]
 
@@ -203,16 +204,17 @@ class Propulsion:
 def process(s, o_a, m_a, prop: Propulsion, dt: float) -> np.ndarray:
     """Eq. 19-22: the state after ``dt`` s under the input ``u = [o_a, m_a]`` (the actuator's centre and moment;
     ``s = [p (m), Q]`` in the same frame, so the paper's tool-frame position is ``p - o_a``)."""
-    p, Q = np.asarray(s[:3], float) - np.asarray(o_a, float), s[3:]
-    tau, f = torque_force(p, Q, m_a, np.asarray(prop.m_c_capsule, float))
-    w, v = prop.velocities(rotate_inv(Q, tau), rotate_inv(Q, f))
-    p_new = s[:3] + dt * rotate(Q, np.array([v, 0.0, 0.0]))
-    Q_new = quat_mul(Q, quat_from_rotvec(np.array([w * dt, 0.0, 0.0])))
-    return np.concatenate([p_new, Q_new])
+    return process_and_jacobian(s, o_a, m_a, prop, dt)[0]
 
 
 def process_jacobian(s, o_a, m_a, prop: Propulsion, dt: float) -> np.ndarray:
     """``G = dg/ds`` (7 x 7, Eq. 29-48)."""
+    return process_and_jacobian(s, o_a, m_a, prop, dt)[1]
+
+
+def process_and_jacobian(s, o_a, m_a, prop: Propulsion, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`process` and :func:`process_jacobian` from one evaluation of the field, torque and force (the EKF
+    needs both every sample)."""
     p, Q = np.asarray(s[:3], float) - np.asarray(o_a, float), s[3:]
     mcc = np.asarray(prop.m_c_capsule, float)
     mc = rotate(Q, mcc)
@@ -229,15 +231,17 @@ def process_jacobian(s, o_a, m_a, prop: Propulsion, dt: float) -> np.ndarray:
     dv_dQ = np.outer(ex, prop.e * dct_dQ[0] + prop.l * dcf_dQ[0])
     dw_dp = np.outer(ex, prop.a * dct_dp[0] + prop.e * dcf_dp[0])
     dw_dQ = np.outer(ex, prop.a * dct_dQ[0] + prop.e * dcf_dQ[0])
-    w, v = prop.velocities(rotate_inv(Q, tau), rotate_inv(Q, f))
+    w, v = prop.velocities(U_s @ tau, U_s @ f)
     Qd = quat_from_rotvec(np.array([w * dt, 0.0, 0.0]))
     dQd = _left(Q) @ dquat_drotvec(np.array([w * dt, 0.0, 0.0])) * dt  # d g_Q / d omega
+    R = Upsilon(Q)
     G = np.zeros((7, 7))
-    G[:3, :3] = np.eye(3) + dt * Upsilon(Q) @ dv_dp
-    G[:3, 3:] = dt * (Pi(np.array([v, 0.0, 0.0]), Q) + Upsilon(Q) @ dv_dQ)
+    G[:3, :3] = np.eye(3) + dt * R @ dv_dp
+    G[:3, 3:] = dt * (Pi(np.array([v, 0.0, 0.0]), Q) + R @ dv_dQ)
     G[3:, :3] = dQd @ dw_dp
     G[3:, 3:] = _right(Qd) + dQd @ dw_dQ
-    return G
+    s_new = np.concatenate([s[:3] + dt * R[:, 0] * v, quat_mul(Q, Qd)])
+    return s_new, G
 
 
 def measure(s, o_a, m_a, sensors: HallArray) -> np.ndarray:
@@ -252,15 +256,23 @@ def measure(s, o_a, m_a, sensors: HallArray) -> np.ndarray:
 
 def measure_jacobian(s, o_a, m_a, sensors: HallArray) -> np.ndarray:
     """``H = dh/ds`` (n x 7, Eq. 49-60)."""
+    return measure_and_jacobian(s, o_a, m_a, sensors)[1]
+
+
+def measure_and_jacobian(s, o_a, m_a, sensors: HallArray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`measure` and :func:`measure_jacobian` from one evaluation of the field at each sensor."""
     p, Q = np.asarray(s[:3], float) - np.asarray(o_a, float), s[3:]
     R = Upsilon(Q)
+    h = np.empty(len(sensors.alpha))
     H = np.empty((len(sensors.alpha), 7))
     for i, (d, a) in enumerate(zip(sensors.delta_m, sensors.alpha)):
         pi = p + R @ d
+        b = field_at(pi, m_a)
         Gb = field_gradient(pi, m_a)
+        h[i] = a @ (R.T @ b)
         H[i, :3] = a @ (R.T @ Gb)
-        H[i, 3:] = a @ (R.T @ Gb @ Pi(d, Q) + Pi_star(field_at(pi, m_a), Q))
-    return H
+        H[i, 3:] = a @ (R.T @ Gb @ Pi(d, Q) + Pi_star(b, Q))
+    return h, H
 
 
 @dataclass
@@ -274,9 +286,7 @@ class MagneticEkf:
     sensors: HallArray
     Q_proc: np.ndarray
     N_meas: np.ndarray
-    gate_sigma: float = 0.0  # 0: no gating (the paper's); > 0 drops readings whose innovation exceeds it
     body_sd_rad: tuple[float, float, float] | None = None
-    rejected: int = field(default=0, init=False)
 
     def _q(self) -> np.ndarray:
         """The process noise: the paper's fixed diagonal, or with ``body_sd_rad = (roll, pitch, yaw)`` per step the
@@ -290,24 +300,17 @@ class MagneticEkf:
         return Qp
 
     def predict(self, o_a, m_a, dt: float) -> None:
-        G = process_jacobian(self.s, o_a, m_a, self.prop, dt)
-        self.s = process(self.s, o_a, m_a, self.prop, dt)
+        self.s, G = process_and_jacobian(self.s, o_a, m_a, self.prop, dt)
         self.P = G @ self.P @ G.T + self._q()
 
     def update(self, z, o_a, m_a) -> None:
         z = np.asarray(z, float)
         ok = np.isfinite(z)
-        H = measure_jacobian(self.s, o_a, m_a, self.sensors)[ok]
-        r = (z - measure(self.s, o_a, m_a, self.sensors))[ok]
-        N = self.N_meas[np.ix_(ok, ok)]
-        S = H @ self.P @ H.T + N
-        if self.gate_sigma > 0:
-            keep = np.abs(r) <= self.gate_sigma * np.sqrt(np.diag(S))
-            self.rejected += int((~keep).sum())
-            H, r, N = H[keep], r[keep], N[np.ix_(keep, keep)]
-            S = H @ self.P @ H.T + N
-        if len(r) == 0:
+        if not ok.any():
             return
+        h, H = measure_and_jacobian(self.s, o_a, m_a, self.sensors)
+        H, r, N = H[ok], (z - h)[ok], self.N_meas[np.ix_(ok, ok)]
+        S = H @ self.P @ H.T + N
         K = np.linalg.solve(S, H @ self.P).T
         self.s = self.s + K @ r
         self.P = (np.eye(7) - K @ H) @ self.P  # Eq. 13

@@ -203,6 +203,7 @@ def _lm_soft_l1(p0: np.ndarray, fun_jac, fun, x_scale: np.ndarray, f_scale: floa
     cost = cost_of(f)
     D = 1.0 / (x_scale * x_scale)
     lam = 1e-1  # conservative first steps: from 1e-3 one hard pair in 120 jumped to a worse minimum
+
     def robust_jac(f, J):
         return J * ((1.0 + f * f / c2) ** -0.75)[:, None]
 

@@ -343,6 +343,31 @@ class TrackSettings:
     sigma_e: float = 1.23
     mics: MicsRssiModel = MicsRssiModel()
 
+    @classmethod
+    def from_tables(cls, uwb: dict, mics: dict, filter_: dict | None = None, motion: dict | None = None,
+                    **overrides) -> "TrackSettings":
+        """From the ``uwb``/``mics`` model tables (a recording's ``meta.json`` or a scenario) and, optionally, the
+        ``filter`` and ``motion`` tables of a scenario; ``overrides`` win over all of them."""
+        flt, mot, d = filter_ or {}, motion or {}, cls()
+        kw = dict(
+            particles=int(flt.get("particles", d.particles)),
+            motion=RandomWaypoint(float(mot.get("speed_mean_mps", d.motion.speed_mean_mps)),
+                                  math.sqrt(float(mot["speed_var_m2ps2"])) if "speed_var_m2ps2" in mot
+                                  else d.motion.speed_sd_mps,
+                                  float(mot.get("stop_max_s", d.motion.stop_max_s)),
+                                  float(flt.get("leg_max_m", d.motion.leg_max_m))),
+            resample_threshold=float(flt.get("resample_threshold", d.resample_threshold)),
+            jitter_m=float(flt.get("jitter_m", d.jitter_m)), rssi_jitter_m=float(flt.get("rssi_jitter_m", d.rssi_jitter_m)),
+            jitter_log_eps=float(flt.get("jitter_log_eps", d.jitter_log_eps)),
+            eps_range=tuple(flt.get("eps_range", d.eps_range)), eps_known=float(uwb.get("eps_r", d.eps_known)),
+            sigma_toa_s=float(uwb.get("sigma_toa_s", d.sigma_toa_s)),
+            sigma_s_per_m=float(uwb.get("sigma_s_per_m", d.sigma_s_per_m)), freq_hz=float(uwb.get("freq_hz", d.freq_hz)),
+            sigma_e=float(uwb.get("sigma_e", d.sigma_e)),
+            mics=MicsRssiModel(float(mics.get("log10_alpha", d.mics.log10_alpha)), float(mics.get("n", d.mics.n)),
+                               float(mics.get("sigma_db", d.mics.sigma_db))))
+        kw.update(overrides)
+        return cls(**kw)
+
 
 class Track(NamedTuple):
     """A tracker's output per step: weighted-mean positions ``(T, 3)`` (m), the permittivity estimate ``(T,)``

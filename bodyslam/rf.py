@@ -35,8 +35,8 @@ from scipy.optimize import least_squares
 from bodyslam.errors import InputError
 from bodyslam.io import csv_rows
 
-__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "read_rf_columns", "rss_per_frame", "rss_to_range", "locate_lls", "locate_nls",
-           "locate_ml", "RF_METHODS"]
+__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "read_rf_columns", "rss_per_frame", "rss_to_range",
+           "locate_lls", "locate_nls", "locate_ml", "RF_METHODS"]
 
 RF_METHODS = ("lls", "nls", "ml")
 

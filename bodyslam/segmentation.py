@@ -92,7 +92,6 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
     parent = list(range(h * w))
     size = [1] * (h * w)
     sr, sg, sb = (flat[:, c].tolist() for c in range(3))  # per-channel running sums of each root
-    b2_of = [b2_tab[1]] * (h * w)
 
     # Kruskal-style merging in edge order. The union-find is inlined (no function calls: the loop is the cost of
     # classification) with path halving; the result does not depend on how the roots are found.
@@ -104,7 +103,7 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
         if a == b:
             continue
         na, nb = size[a], size[b]
-        thr = b2_of[a] + b2_of[b]
+        thr = b2_tab[na] + b2_tab[nb]
         d = sr[a] / na - sr[b] / nb
         if d * d > thr:
             continue
@@ -122,7 +121,6 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
         sr[a] += sr[b]
         sg[a] += sg[b]
         sb[a] += sb[b]
-        b2_of[a] = b2_tab[n]
 
     roots = np.asarray(parent)
     while True:  # pointer jumping: every pixel's root, vectorised

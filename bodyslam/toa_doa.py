@@ -45,7 +45,7 @@ from bodyslam.errors import ConfigError
 
 __all__ = ["C_MPS", "Ura", "Radio", "toa_doa", "jacobian", "transition", "q_continuous", "q_discrete",
            "MEASUREMENTS", "HybridEkf", "snapshot_fix", "channel_draws", "measurement_information", "pcrb",
-           "SCHEMES", "run_scheme", "load_recording"]
+           "SCHEMES", "SCHEME_USE", "run_scheme", "scheme_pcrb", "load_recording"]
 
 C_MPS = 299_792_458.0
 MEASUREMENTS = {"toa_doa": (0, 1, 2), "toa": (0,), "doa": (1, 2), "none": ()}
@@ -185,6 +185,13 @@ def _meas_vector(y, snr, arrays, radio, use):
     return y[:, idx].reshape(-1), var[:, idx].reshape(-1)
 
 
+def _valid(y, snr, arrays):
+    """The rows (arrays) with a full reading and an SNR: ``(y, snr, arrays)`` restricted to them."""
+    y, snr = np.asarray(y, float), np.asarray(snr, float)
+    ok = np.all(np.isfinite(y), axis=1) & np.isfinite(snr)
+    return y[ok], snr[ok], [a for a, k in zip(arrays, ok) if k]
+
+
 def _innovation(y, h, use, n_arrays):
     r = (y - h).reshape(n_arrays, -1)
     for j, ch in enumerate(MEASUREMENTS[use]):
@@ -232,12 +239,10 @@ class HybridEkf:
         """Eq. 16-18. ``y (n_arrays, 3)``: tau (s), theta, phi (rad); ``snr (n_arrays,)`` linear."""
         if self.use == "none":
             return
-        y, snr = np.asarray(y, float), np.asarray(snr, float)
-        ok = np.all(np.isfinite(y), axis=1) & np.isfinite(snr)
-        if not ok.any():
+        y, snr, arrays = _valid(y, snr, self.arrays)
+        if not arrays:
             return
-        arrays = [a for a, k in zip(self.arrays, ok) if k]
-        z, var = _meas_vector(y[ok], snr[ok], arrays, self.radio, self.use)
+        z, var = _meas_vector(y, snr, arrays, self.radio, self.use)
         h, Hp = _stack_meas(self.x[:3], arrays, self.radio, self.use)
         H = np.hstack([Hp, np.zeros_like(Hp)])
         S = H @ self.P @ H.T + np.diag(var)
@@ -253,12 +258,10 @@ def snapshot_fix(y, snr, arrays: list[Ura], radio: Radio, p_init_m, iters: int =
     capped at ``max_step_m``); returns ``(p (3,), covariance (3, 3))`` -- the inverse Fisher information at the
     solution -- or NaNs when it does not converge or lands more than ``max_jump_m`` from the start (a reading
     buried in a deep fade). NaN rows of ``y`` (a lost array) are skipped."""
-    y, snr = np.asarray(y, float), np.asarray(snr, float)
-    ok = np.all(np.isfinite(y), axis=1) & np.isfinite(snr)
-    arrays = [a for a, k in zip(arrays, ok) if k]
+    y, snr, arrays = _valid(y, snr, arrays)
     if not arrays:
         return np.full(3, np.nan), np.full((3, 3), np.nan)
-    z, var = _meas_vector(y[ok], snr[ok], arrays, radio, "toa_doa")
+    z, var = _meas_vector(y, snr, arrays, radio, "toa_doa")
     w = 1.0 / var
     p = np.asarray(p_init_m, float).copy()
     converged = False
@@ -353,7 +356,7 @@ def pcrb(truth_m: np.ndarray, arrays: list[Ura], radio: Radio, sigma_acc: float,
 # ------------------------------------------------------------------------------------ running on recorded data
 
 SCHEMES = ("toa_doa_imu", "doa_imu", "toa_imu", "rf_only_cv", "rf_only", "imu_only")
-_SCHEME_USE = {"toa_doa_imu": "toa_doa", "doa_imu": "doa", "toa_imu": "toa", "imu_only": "none",
+SCHEME_USE = {"toa_doa_imu": "toa_doa", "doa_imu": "doa", "toa_imu": "toa", "imu_only": "none",
                "rf_only": "toa_doa", "rf_only_cv": "toa_doa"}
 
 
@@ -366,7 +369,7 @@ def run_scheme(name: str, x0, P0, y, snr, imu, arrays: list[Ura], radio: Radio, 
     ``imu_only``; ``rf_only_cv`` (Algorithm 1 without the IMU input: constant velocity); ``rf_only`` (each slot's
     fix alone, the last fix held through slots without one).
     """
-    if name not in _SCHEME_USE:
+    if name not in SCHEME_USE:
         raise ConfigError(f"unknown scheme {name!r}; expected one of {list(SCHEMES)}")
     x0, P0 = np.asarray(x0, float), np.asarray(P0, float)
     K1 = len(y)
@@ -380,7 +383,7 @@ def run_scheme(name: str, x0, P0, y, snr, imu, arrays: list[Ura], radio: Radio, 
                 p, c = q, qc
             est[k], cov[k] = p, c
         return est, cov
-    ekf = HybridEkf(arrays, radio, x0, P0, sigma_acc, delta_s, use=_SCHEME_USE[name], q_model=q_model)
+    ekf = HybridEkf(arrays, radio, x0, P0, sigma_acc, delta_s, use=SCHEME_USE[name], q_model=q_model)
     no_imu = name == "rf_only_cv"
     for k in range(1, K1):
         u = imu[k - 1]
@@ -388,6 +391,16 @@ def run_scheme(name: str, x0, P0, y, snr, imu, arrays: list[Ura], radio: Radio, 
         ekf.update(y[k], snr[k])
         est[k], cov[k] = ekf.x[:3], ekf.P[:3, :3]
     return est, cov
+
+
+def scheme_pcrb(name: str, truth_m: np.ndarray, arrays: list[Ura], radio: Radio, sigma_acc: float,
+                delta_s: float, rng: np.random.Generator | None = None, draws: int = 400, snr=None) -> np.ndarray:
+    """:func:`pcrb` for a scheme of :func:`run_scheme`: its RF channels, and the IMU's motion model unless it is
+    an RF-only scheme (those get the per-slot bound; the constant-velocity filter has no IMU model to bound)."""
+    if name not in SCHEME_USE:
+        raise ConfigError(f"unknown scheme {name!r}; expected one of {list(SCHEMES)}")
+    return pcrb(truth_m, arrays, radio, sigma_acc, delta_s, SCHEME_USE[name], rng, P0=None,
+                imu=name not in ("rf_only", "rf_only_cv"), draws=draws, snr=snr)
 
 
 def load_recording(seq_dir) -> dict:

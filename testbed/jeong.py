@@ -26,6 +26,8 @@ one row per URA and slot), ``imu.csv`` (``t,ax_mps2,ay_mps2,az_mps2``: the readi
 from __future__ import annotations
 
 import copy
+import functools
+import json
 import logging
 import os
 import time
@@ -38,36 +40,28 @@ from scipy.spatial.transform import Rotation
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv, write_image, write_json, write_tum
 from bodyslam.plots import Figure
-from bodyslam.toa_doa import Radio, Ura, channel_draws, pcrb, run_scheme, toa_doa
+from bodyslam.toa_doa import SCHEMES, Radio, Ura, channel_draws, run_scheme, scheme_pcrb, toa_doa
 from testbed.centerline import Centerline, procedural_centerline
 from testbed.htmlpage import table, write_report_page
+from testbed.scenario import section
 
 log = logging.getLogger(__name__)
 
 __all__ = ["ALGORITHMS", "LABELS", "arrays_from", "radio_from", "truth_motion", "emulate", "simulate_hybrid",
            "run_algorithm", "evaluate_hybrid", "report_line"]
 
-ALGORITHMS = ("toa_doa_imu", "doa_imu", "toa_imu", "rf_only", "rf_only_cv", "imu_only")
+ALGORITHMS = SCHEMES
 LABELS = {"toa_doa_imu": "Algorithm 1 (TOA/DOA + IMU)", "doa_imu": "DOA + IMU", "toa_imu": "TOA + IMU",
           "rf_only": "RF only (TOA/DOA), each slot alone",
           "rf_only_cv": "RF only (TOA/DOA), Algorithm 1 without the IMU input", "imu_only": "IMU only"}
-_USE = {"toa_doa_imu": "toa_doa", "doa_imu": "doa", "toa_imu": "toa", "imu_only": "none", "rf_only": "toa_doa",
-        "rf_only_cv": "toa_doa"}
 SHORT = {"toa_doa_imu": "Alg. 1 TOA/DOA+IMU", "doa_imu": "DOA+IMU", "toa_imu": "TOA+IMU",
          "rf_only_cv": "RF only (CV EKF)", "rf_only": "RF only (per slot)", "imu_only": "IMU only"}
 _COLOURS = {"toa_doa_imu": (214, 39, 40), "doa_imu": (31, 119, 180), "toa_imu": (44, 160, 44),
             "rf_only": (255, 127, 14), "rf_only_cv": (148, 103, 189), "imu_only": (120, 120, 120)}
 
 
-def _cfg(scn: dict, section: str) -> dict:
-    v = scn.get(section, {})
-    if not isinstance(v, dict):
-        raise ConfigError(f"scenario section [{section}] must be a table")
-    return v
-
-
 def arrays_from(scn: dict) -> list[Ura]:
-    a = _cfg(scn, "arrays")
+    a = section(scn, "arrays")
     w, h, n = float(a.get("width_m", 0.4)), float(a.get("height_m", 0.4)), int(a.get("n", 5))
     x0, z0 = float(a.get("centre_x_m", 0.0)) - w / 2, float(a.get("bottom_z_m", -0.5))
     return [Ura.spanning("front", (x0, float(a.get("front_y_m", 0.2)), z0), w, h, n, n),
@@ -75,7 +69,7 @@ def arrays_from(scn: dict) -> list[Ura]:
 
 
 def radio_from(scn: dict) -> Radio:
-    r = _cfg(scn, "radio")
+    r = section(scn, "radio")
     known = {"pt_dbm", "n0_dbm_hz", "fc_hz", "beta_hz", "c_avg_mps"}
     bad = set(r) - known
     if bad:
@@ -84,7 +78,7 @@ def radio_from(scn: dict) -> Radio:
 
 
 def _tract(scn: dict) -> Centerline:
-    p = _cfg(scn, "path")
+    p = section(scn, "path")
     rng = np.random.default_rng(int(p.get("seed", 2017)))
     cl = procedural_centerline(float(p.get("intestine_length_m", 1.5)), rng,
                                radius_max_m=float(p.get("radius_m", 0.0125)),
@@ -102,7 +96,7 @@ def _tract(scn: dict) -> Centerline:
 
 def truth_motion(scn: dict) -> dict[str, np.ndarray]:
     """``t (K+1,)``, ``pos``/``vel`` ``(K+1, 3)``, ``acc (K, 3)`` (slot-constant), ``travelled_m (K+1,)``."""
-    seq, p = _cfg(scn, "sequence"), _cfg(scn, "path")
+    seq, p = section(scn, "sequence"), section(scn, "path")
     delta = float(seq.get("interval_s", 1.0))
     K = int(round(float(seq.get("duration_s", 100.0)) / delta))
     v, ramp = float(p.get("speed_mps", 0.01)), float(p.get("ramp_s", 10.0))
@@ -128,12 +122,25 @@ def truth_motion(scn: dict) -> dict[str, np.ndarray]:
     return {"t": np.arange(K + 1) * delta, "pos": pos, "vel": vel, "acc": acc, "travelled_m": travelled}
 
 
+@functools.lru_cache(maxsize=8)
+def _truth_for(key: str) -> dict[str, np.ndarray]:
+    out = truth_motion(json.loads(key))
+    for v in out.values():
+        v.setflags(write=False)  # shared between the set-ups of one worker
+    return out
+
+
+def _truth(scn: dict) -> dict[str, np.ndarray]:
+    """:func:`truth_motion`, computed once per tract and timing (the sweeps change only the radio, arrays and IMU;
+    building the tract is most of a set-up's time)."""
+    return _truth_for(json.dumps({k: section(scn, k) for k in ("path", "sequence")}, sort_keys=True))
+
+
 def emulate(truth: dict, arrays: list[Ura], radio: Radio, sigma_acc: float,
             rng: np.random.Generator) -> dict[str, np.ndarray]:
     """What the URAs and the IMU report: ``y (K+1, n_arrays, 3)`` (row 0: no reading, NaN), ``snr`` (linear,
     same layout), ``imu (K, 3)``. Channel, RF noise and IMU noise come from separate streams of ``rng``."""
-    r_ch, r_rf, r_imu = (np.random.default_rng(s) for s in rng.bit_generator.seed_seq.spawn(3)) \
-        if hasattr(rng.bit_generator, "seed_seq") else (rng, rng, rng)
+    r_ch, r_rf, r_imu = rng.spawn(3)
     pos = truth["pos"]
     K1, n = len(pos), len(arrays)
     y = np.full((K1, n, 3), np.nan)
@@ -149,7 +156,7 @@ def emulate(truth: dict, arrays: list[Ura], radio: Radio, sigma_acc: float,
 
 
 def _filter_cfg(scn: dict) -> tuple[np.ndarray, str]:
-    f = _cfg(scn, "filter")
+    f = section(scn, "filter")
     P0 = np.diag([float(f.get("p0_pos_var_m2", 5e-4))] * 3 + [float(f.get("p0_vel_var_m2ps2", 1e-5))] * 3)
     return P0, str(f.get("q_model", "eq15"))
 
@@ -162,9 +169,9 @@ def run_algorithm(name: str, x0: np.ndarray, P0: np.ndarray, meas: dict, arrays:
 
 
 def _world(scn: dict, seed: int):
-    truth = truth_motion(scn)
+    truth = _truth(scn)
     arrays, radio = arrays_from(scn), radio_from(scn)
-    sigma = float(_cfg(scn, "imu").get("sigma_acc_mps2", 3e-4))
+    sigma = float(section(scn, "imu").get("sigma_acc_mps2", 3e-4))
     meas = emulate(truth, arrays, radio, sigma, np.random.default_rng(seed))
     return truth, arrays, radio, sigma, meas
 
@@ -229,9 +236,9 @@ def _point_task(args) -> dict:
     scn, seeds, algs, want_estimates = args
     with threadpool_limits(1):
         t0 = time.perf_counter()
-        truth = truth_motion(scn)
+        truth = _truth(scn)
         arrays, radio = arrays_from(scn), radio_from(scn)
-        sigma = float(_cfg(scn, "imu").get("sigma_acc_mps2", 3e-4))
+        sigma = float(section(scn, "imu").get("sigma_acc_mps2", 3e-4))
         delta = float(truth["t"][1] - truth["t"][0])
         P0, q_model = _filter_cfg(scn)
         x0 = np.concatenate([truth["pos"][0], truth["vel"][0]])
@@ -247,16 +254,14 @@ def _point_task(args) -> dict:
                 if want_estimates:
                     estimates[a].append(est)
                 tb = time.perf_counter()
-                cond[a].append(pcrb(truth["pos"], arrays, radio, sigma, delta, _USE[a], None,
-                                    imu=not a.startswith("rf_only"), snr=meas["snr"]))
+                cond[a].append(scheme_pcrb(a, truth["pos"], arrays, radio, sigma, delta, snr=meas["snr"]))
                 t_bound += time.perf_counter() - tb
         t1 = time.perf_counter()
-        draws = int(_cfg(scn, "filter").get("pcrb_draws", 400))
+        draws = int(section(scn, "filter").get("pcrb_draws", 400))
         bound = {}
         for i, a in enumerate(algs):  # the bound's channel draws: their own stream, never the evaluation seeds'
-            rng = np.random.default_rng([2017, i])
-            bound[a] = pcrb(truth["pos"], arrays, radio, sigma, delta, _USE[a], rng, P0=None,
-                            imu=not a.startswith("rf_only"), draws=draws)
+            bound[a] = scheme_pcrb(a, truth["pos"], arrays, radio, sigma, delta, np.random.default_rng([2017, i]),
+                                   draws=draws)
         return {"errors": {a: np.stack(v) for a, v in errors.items()}, "pcrb_m2": bound, "truth": truth,
                 "pcrb_channel_m2": {a: np.stack(v) for a, v in cond.items()},
                 "estimates": {a: v for a, v in estimates.items()} if want_estimates else None,
@@ -294,8 +299,8 @@ def evaluate_hybrid(scn: dict, seeds: list[int], out_dir: str | os.PathLike, job
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    algs = list(_cfg(scn, "filter").get("algorithms", ALGORITHMS))
-    sw = _cfg(scn, "sweeps") if sweeps else {}
+    algs = list(section(scn, "filter").get("algorithms", ALGORITHMS))
+    sw = section(scn, "sweeps") if sweeps else {}
     n_sw = min(int(sw.get("seeds", 10)), len(seeds))
     figs = {k: v for k, v in sw.items() if isinstance(v, dict)}
     # the main set-up split in seed chunks (both cores), then every sweep point
@@ -319,7 +324,7 @@ def evaluate_hybrid(scn: dict, seeds: list[int], out_dir: str | os.PathLike, job
                 "pcrb_channel_m2": {a: np.vstack([main["pcrb_channel_m2"][a], r["pcrb_channel_m2"][a]])
                                     for a in algs}}
     order = [s for c in chunks for s in c]
-    paper = _cfg(scn, "paper")
+    paper = section(scn, "paper")
     report = {"scenario": scn.get("name"), "seeds": order, "n_runs": len(seeds),
               "steps_per_run": int(len(main["truth"]["t"])), "duration_s": float(main["truth"]["t"][-1]),
               "path_travelled_cm": float(main["truth"]["travelled_m"][-1] * 100),

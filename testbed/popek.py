@@ -35,22 +35,16 @@ from bodyslam.magnetic import (ActuatorController, HallArray, MagneticEkf, Propu
                                _force, cross, field_at, field_in_capsule, measure)
 from bodyslam.plots import Figure
 from testbed.htmlpage import table, write_report_page
+from testbed.scenario import section
 
 log = logging.getLogger(__name__)
 
 __all__ = ["simulate_run", "simulate_scenario", "evaluate_scenario", "report_line"]
 
 
-def _cfg(scn: dict, section: str) -> dict:
-    v = scn.get(section, {})
-    if not isinstance(v, dict):
-        raise ConfigError(f"scenario section [{section}] must be a table")
-    return v
-
-
 def _lumen(scn: dict):
     """``frame(s) -> (point, tangent, normal, binormal)`` of the lumen's centre line at arc length s (m)."""
-    p = _cfg(scn, "path")
+    p = section(scn, "path")
     kind = p.get("kind", "straight")
     if kind == "straight":
         def frame(s):
@@ -74,7 +68,7 @@ def _quat(R: np.ndarray) -> np.ndarray:
 
 
 def _sensors(scn: dict) -> tuple[HallArray, np.ndarray, float]:
-    s = _cfg(scn, "sensors")
+    s = section(scn, "sensors")
     arr = HallArray(np.asarray(s["offsets_mm"], float) * 1e-3, np.asarray(s["axes"], float))
     N = np.diag(np.asarray(s["noise_var_t2"], float))
     if N.shape[0] != len(arr.alpha):
@@ -86,7 +80,7 @@ def simulate_run(scn: dict, seed: int, record: bool = False, variant: str = "pap
     """One closed-loop run with the EKF ``variant`` driving the actuator; per-sample errors and regime flags (and,
     with ``record``, the logs). Variants: ``paper`` (Sec. VI's Q) and ``body_q`` (orientation noise in the
     capsule frame: ``[filter] body_sd_rad`` for roll, pitch, yaw per step)."""
-    mg, pr, ac, pa, fl = (_cfg(scn, k) for k in ("magnets", "propulsion", "actuator", "path", "filter"))
+    mg, pr, ac, pa, fl = (section(scn, k) for k in ("magnets", "propulsion", "actuator", "path", "filter"))
     sensors, N, rate_hz = _sensors(scn)
     frame = _lumen(scn)
     r_cal, r_noise, r_init = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
@@ -203,7 +197,7 @@ def simulate_scenario(scn: dict, seed: int, out_dir: str | os.PathLike) -> str:
     """``testbed simulate``: the Hall readings and the actuator's pose as the capsule's PC would log them, the
     filter's calibration and initial localization in ``meta.json``, plus the truth; ``bodyslam magnetic-localize``
     runs the EKF on them without the testbed (the same estimates as the closed loop's, tested)."""
-    r = simulate_run(scn, seed, record=True, variant=str(_cfg(scn, "filter").get("variants", ["paper"])[0]))
+    r = simulate_run(scn, seed, record=True, variant=str(section(scn, "filter").get("variants", ["paper"])[0]))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n = r["hall"].shape[1]
@@ -217,7 +211,7 @@ def simulate_scenario(scn: dict, seed: int, out_dir: str | os.PathLike) -> str:
     write_tum(out / "groundtruth.tum", r["t"], r["true_pos"], _headings_rot(r["true_quat"]))
     write_tum(out / "estimate.tum", r["t"], r["est_pos"], _headings_rot(r["est_quat"]))
     write_json(out / "meta.json", {"scenario": scn.get("name"), "seed": seed, "kind": "magnetic",
-                                   "sensors": _cfg(scn, "sensors"), "magnets": _cfg(scn, "magnets"),
+                                   "sensors": section(scn, "sensors"), "magnets": section(scn, "magnets"),
                                    "filter": r["filter"],
                                    "units": "SI: T, A m^2, m, s; quaternions in TUM order (x y z w)"})
     return (f"{len(r['t'])} Hall samples; capsule travelled {r['s'][-1] * 1000:.0f} mm; mean position error "
@@ -252,8 +246,8 @@ def evaluate_scenario(scn: dict, seeds: list[int], out_dir: str | os.PathLike, j
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    variants = list(_cfg(scn, "filter").get("variants", ["paper"]))
-    length = float(_cfg(scn, "path").get("length_m", 0.24))
+    variants = list(section(scn, "filter").get("variants", ["paper"]))
+    length = float(section(scn, "path").get("length_m", 0.24))
     runs: dict[str, list] = {v: [] for v in variants}
     tasks = [(scn, s, v) for s in seeds for v in variants]
     for i, r in enumerate(imap_tasks(_seed_task, tasks, jobs)):
@@ -261,7 +255,7 @@ def evaluate_scenario(scn: dict, seeds: list[int], out_dir: str | os.PathLike, j
         if progress:
             progress(f"seed {r['seed']} {r['variant']} ({i + 1}/{len(tasks)}): position {r['pos_err'].mean() * 1000:.1f}"
                      f" mm, heading {r['head_err'].mean():.1f} deg, {r['t'][-1]:.1f} s")
-    report = {"scenario": scn.get("name"), "seeds": list(seeds), "n_runs": len(seeds), "paper": _cfg(scn, "paper"),
+    report = {"scenario": scn.get("name"), "seeds": list(seeds), "n_runs": len(seeds), "paper": section(scn, "paper"),
               "variants": {}, "labels": {v: VARIANT_LABELS.get(v, v) for v in variants}}
     for v, rs in runs.items():
         done = [r for r in rs if r["completed"]]

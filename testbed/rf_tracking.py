@@ -40,6 +40,7 @@ from bodyslam.pf import (C_MPS, TRACKERS, MicsRssiModel, RandomWaypoint, Track, 
 from bodyslam.plots import Figure
 from testbed.centerline import procedural_centerline
 from testbed.htmlpage import table, write_report_page
+from testbed.scenario import section
 
 log = logging.getLogger(__name__)
 
@@ -52,20 +53,13 @@ LABELS = {"toa_rssi_pf": "TOA + RSSI PF, permittivity estimated (002, proposed)"
           "rssi_pf": "MICS RSSI PF (003; 002's conventional RSSI method)"}
 
 
-def _cfg(scn: dict, section: str) -> dict:
-    v = scn.get(section, {})
-    if not isinstance(v, dict):
-        raise ConfigError(f"scenario section [{section}] must be a table")
-    return v
-
-
 def _receivers(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
 
 def truth_motion(scn: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(stamps_s (T,), positions_m (T, 3), waypoints_m (K, 3))`` of the random-waypoint capsule."""
-    seq, path, mot = _cfg(scn, "sequence"), _cfg(scn, "path"), _cfg(scn, "motion")
+    seq, path, mot = section(scn, "sequence"), section(scn, "path"), section(scn, "motion")
     dt = float(seq.get("interval_s", 0.1))
     T = int(round(float(seq.get("duration_s", 600.0)) / dt)) + 1
     cl = procedural_centerline(float(path.get("length_m", 1.0)), rng, radius_max_m=float(path.get("radius_m", 0.0125)),
@@ -104,7 +98,7 @@ def truth_motion(scn: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.nd
 
 def emulate(scn: dict, pos_m: np.ndarray, rx_m: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Readings per step and receiver ``(T, M)``: ``toa_s``, ``uwb_field_db``, ``rss_db`` (module docstring)."""
-    uwb, mics = _cfg(scn, "uwb"), _cfg(scn, "mics")
+    uwb, mics = section(scn, "uwb"), section(scn, "mics")
     d = np.linalg.norm(pos_m[:, None, :] - rx_m[None, :, :], axis=2)
     eps = float(uwb.get("eps_r", 34.25))
     toa = math.sqrt(eps) * d / C_MPS + rng.normal(0.0, float(uwb.get("sigma_toa_s", 62.5e-12)), d.shape)
@@ -117,7 +111,7 @@ def emulate(scn: dict, pos_m: np.ndarray, rx_m: np.ndarray, rng: np.random.Gener
 
 
 def _world(scn: dict, seed: int):
-    area = _cfg(scn, "area")
+    area = section(scn, "area")
     lo, hi = np.asarray(area.get("min_m", (-0.2, -0.2, -0.1)), float), np.asarray(area.get("max_m", (0.2, 0.2, 0.1)), float)
     ss = np.random.SeedSequence(seed)
     r_path, r_meas = (np.random.default_rng(s) for s in ss.spawn(2))
@@ -139,11 +133,11 @@ def simulate_rf_tracking(scn: dict, seed: int, out_dir: str | os.PathLike) -> di
              float(meas["uwb_field_db"][k, m])] for k in range(len(t)) for m in range(len(rx))]
     write_csv(out / "rf.csv", ["t", "sensor", "rss_dbm", "toa_s", "uwb_field_db"], rows)
     write_tum(out / "groundtruth.tum", t, pos, _headings(pos))
-    write_json(out / "truth.json", {"eps_r": _cfg(scn, "uwb").get("eps_r", 34.25), "waypoints_m": wps.tolist(),
+    write_json(out / "truth.json", {"eps_r": section(scn, "uwb").get("eps_r", 34.25), "waypoints_m": wps.tolist(),
                                     "path_travelled_m": float(simple_distance(pos)[-1])})
     write_json(out / "meta.json", {"scenario": scn.get("name"), "seed": seed, "kind": "rf_tracking",
                                    "interval_s": float(t[1] - t[0]), "n_steps": len(t), "area_min_m": lo.tolist(),
-                                   "area_max_m": hi.tolist(), "uwb": _cfg(scn, "uwb"), "mics": _cfg(scn, "mics"),
+                                   "area_max_m": hi.tolist(), "uwb": section(scn, "uwb"), "mics": section(scn, "mics"),
                                    "units": "SI; rss in dB (003 Eq. 3 model), uwb_field_db = 20 log10(E/E0)"})
     return {"steps": len(t), "path_travelled_m": float(simple_distance(pos)[-1]), "waypoints": len(wps)}
 
@@ -167,23 +161,13 @@ def _headings(pos: np.ndarray) -> Rotation:
 
 
 def track_settings(scn: dict) -> TrackSettings:
-    """The scenario's filter, motion and measurement models as :class:`bodyslam.pf.TrackSettings`."""
-    flt, uwb, mics, mot = _cfg(scn, "filter"), _cfg(scn, "uwb"), _cfg(scn, "mics"), _cfg(scn, "motion")
-    return TrackSettings(
-        particles=int(flt.get("particles", 20000)),
-        motion=RandomWaypoint(float(mot.get("speed_mean_mps", 5e-4)), math.sqrt(float(mot.get("speed_var_m2ps2", 5e-7))),
-                              float(mot.get("stop_max_s", 20.0)), float(flt.get("leg_max_m", 0.03))),
-        resample_threshold=float(flt.get("resample_threshold", 0.06)),
-        # RSSI constrains a step far less than TOA: its filter needs more diffusion to follow a capsule that moves
-        # on (with 0.2 mm the estimate lagged centimetres behind; 1 mm chosen on ito_heading seeds 300-309, which
-        # no evaluation in the README uses: mean RMS 42.5 / 5.2 / 7.5 mm for 0.2 / 1 / 2 mm)
-        jitter_m=float(flt.get("jitter_m", 5e-4)), rssi_jitter_m=float(flt.get("rssi_jitter_m", 1e-3)),
-        jitter_log_eps=float(flt.get("jitter_log_eps", 0.005)), eps_range=tuple(flt.get("eps_range", (15.0, 70.0))),
-        eps_known=float(uwb.get("eps_r", 34.25)), sigma_toa_s=float(uwb.get("sigma_toa_s", 62.5e-12)),
-        sigma_s_per_m=float(uwb.get("sigma_s_per_m", 2.17)), freq_hz=float(uwb.get("freq_hz", 4.1e9)),
-        sigma_e=float(uwb.get("sigma_e", 1.23)),
-        mics=MicsRssiModel(float(mics.get("log10_alpha", -7.5)), float(mics.get("n", 6.65)),
-                           float(mics.get("sigma_db", 5.5))))
+    """The scenario's filter, motion and measurement models as :class:`bodyslam.pf.TrackSettings`. The RSSI
+    filter's resampling jitter (``rssi_jitter_m``, 1 mm) was chosen on ito_heading seeds 300-309, which no
+    evaluation in the README uses: RSSI constrains a step far less than TOA, and with 0.2 mm the estimate lagged
+    centimetres behind a capsule that moves on (mean RMS 42.5 / 5.2 / 7.5 mm for 0.2 / 1 / 2 mm)."""
+    flt = section(scn, "filter")
+    return TrackSettings.from_tables(section(scn, "uwb"), section(scn, "mics"), flt, section(scn, "motion"),
+                                     resample_threshold=float(flt.get("resample_threshold", 0.06)))  # 002's value
 
 
 def run_algorithm(name: str, scn: dict, lo, hi, t, rx, meas, rng) -> Track:
@@ -201,7 +185,7 @@ def _seed_task(args) -> dict:
 
 def _seed_run(scn: dict, seed: int) -> dict:
     lo, hi, t, pos, wps, rx, meas = _world(scn, seed)
-    algs = list(_cfg(scn, "filter").get("algorithms", RF_TRACKING_ALGORITHMS))
+    algs = list(section(scn, "filter").get("algorithms", RF_TRACKING_ALGORITHMS))
     out = {"seed": seed, "t": t, "truth": pos, "errors": {}, "estimates": {}, "seconds": {}}
     ss = np.random.SeedSequence([seed, 1])
     for name, s in zip(algs, ss.spawn(len(algs))):
@@ -212,8 +196,8 @@ def _seed_run(scn: dict, seed: int) -> dict:
         out.setdefault("spread", {})[name] = spread
         out["errors"][name] = np.linalg.norm(est - pos, axis=1)
         if eps is not None:
-            out["eps_error"] = eps - float(_cfg(scn, "uwb").get("eps_r", 34.25))
-    hd = _cfg(scn, "heading")
+            out["eps_error"] = eps - float(section(scn, "uwb").get("eps_r", 34.25))
+    hd = section(scn, "heading")
     if hd:
         name = hd.get("from", "rssi_pf")
         # 003 takes the first estimate as the first waypoint; the filter's first estimate is the mean of particles
@@ -262,7 +246,7 @@ def evaluate_rf_tracking(scn: dict, seeds: list[int], out_dir: str | os.PathLike
                 f"{a} {np.sqrt(np.mean(e[-int(len(e) * 0.1):] ** 2)) * 1000:.2f} mm" for a, e in r["errors"].items()))
     algs = list(runs[0]["errors"])
     tail = max(1, int(len(runs[0]["t"]) * 0.1))
-    paper = _cfg(scn, "paper")
+    paper = section(scn, "paper")
     report = {"scenario": scn.get("name"), "seeds": list(seeds), "n_runs": len(seeds),
               "steps_per_run": len(runs[0]["t"]), "duration_s": float(runs[0]["t"][-1]), "algorithms": {},
               "paper": paper, "seconds": {"wall": round(time.perf_counter() - t_start, 2)}}

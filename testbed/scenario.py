@@ -87,23 +87,24 @@ def apply_overrides(scn: dict[str, Any], overrides: list[str]) -> dict[str, Any]
     return out
 
 
-def _section(scn: dict, name: str) -> dict:
+def section(scn: dict, name: str) -> dict:
+    """A scenario's ``[name]`` table (empty when absent); anything else there is a ConfigError."""
     sec = scn.get(name, {})
     if not isinstance(sec, dict):
         raise ConfigError(f"scenario section [{name}] must be a table")
     return sec
 
 
-def _dataclass_from(cls, sec: dict, section: str):
+def _dataclass_from(cls, sec: dict, sec_name: str):
     names = {f.name for f in fields(cls)}
     unknown = set(sec) - names
     if unknown:
-        raise ConfigError(f"[{section}] has unknown key(s) {sorted(unknown)}; known: {sorted(names)}")
+        raise ConfigError(f"[{sec_name}] has unknown key(s) {sorted(unknown)}; known: {sorted(names)}")
     kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in sec.items()}
     try:
         return cls(**kw)
     except TypeError as exc:
-        raise ConfigError(f"[{section}]: {exc}") from None
+        raise ConfigError(f"[{sec_name}]: {exc}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,15 +152,15 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
     ss = np.random.SeedSequence(seed)
     rngs = dict(zip(("path", "texture", "motion", "noise", "rf"), (np.random.default_rng(s) for s in ss.spawn(5))))
-    seq = _section(scn, "sequence")
+    seq = section(scn, "sequence")
     n = int(n_frames if n_frames is not None else seq.get("frames", 100))
     if n < 2:
         raise ConfigError(f"need at least 2 frames, got {n}")
-    camera = camera_from_dict(_section(scn, "camera"))
+    camera = camera_from_dict(section(scn, "camera"))
 
-    tube_sec = dict(_section(scn, "tube"))
+    tube_sec = dict(section(scn, "tube"))
     radius_fn, r_max = _radius_fn(tube_sec, rngs["path"])
-    path = _section(scn, "path")
+    path = section(scn, "path")
     kind = path.get("kind", "procedural")
     if kind == "procedural":
         cl = procedural_centerline(
@@ -191,7 +192,7 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     tube = Tube(cl, folds=folds, sections=int(tube_sec.get("sections", 96)),
                 ring_spacing_m=float(tube_sec.get("ring_spacing_m", 0.0015)))
 
-    tex = dict(_section(scn, "texture"))
+    tex = dict(section(scn, "texture"))
     tkind = tex.pop("kind", "procedural")
     if tkind == "procedural":
         try:
@@ -208,23 +209,23 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     else:
         raise ConfigError(f"[texture] kind must be 'procedural' or 'image', got {tkind!r}")
 
-    lighting = _dataclass_from(Lighting, _section(scn, "lighting"), "lighting")
-    noise = _dataclass_from(SensorNoise, _section(scn, "noise"), "noise")
-    msec = dict(_section(scn, "motion"))
+    lighting = _dataclass_from(Lighting, section(scn, "lighting"), "lighting")
+    noise = _dataclass_from(SensorNoise, section(scn, "noise"), "noise")
+    msec = dict(section(scn, "motion"))
     msec.setdefault("frame_rate_hz", float(seq.get("frame_rate_hz", 2.0)))
     motion = _dataclass_from(MotionConfig, msec, "motion")
-    out = _section(scn, "output")
-    backend = str(_section(scn, "render").get("backend", "raycast"))
+    out = section(scn, "output")
+    backend = str(section(scn, "render").get("backend", "raycast"))
     if backend not in RENDER_BACKENDS:
         raise ConfigError(f"[render] backend must be one of {', '.join(RENDER_BACKENDS)}, got {backend!r}")
-    rear = _section(scn, "rear_camera")
+    rear = section(scn, "rear_camera")
     rear_baseline = None
     if rear.get("enabled", False):
         rear_baseline = float(rear.get("baseline_m", 0.026))
         if not 0.0 <= rear_baseline <= 0.05:
             raise ConfigError(f"[rear_camera] baseline_m must be within 0-0.05 m, got {rear_baseline}")
-    bubbles = _dataclass_from(Bubbles, _section(scn, "artifacts"), "artifacts")
-    rf = _rf_from(_section(scn, "rf"), Path(scn["_origin"]).parent if "_origin" in scn else None)
+    bubbles = _dataclass_from(Bubbles, section(scn, "artifacts"), "artifacts")
+    rf = _rf_from(section(scn, "rf"), Path(scn["_origin"]).parent if "_origin" in scn else None)
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
                  backend, rear_baseline, bubbles, rf)
 
