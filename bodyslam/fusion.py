@@ -154,12 +154,130 @@ def align_to_fixes(dr_positions: np.ndarray, fixes: list[Fix]) -> tuple[Rotation
     return Rotation.from_matrix(R), p0, float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
 
 
+class _Ekf:
+    """The filter loop of :func:`fuse` over frames ``0 .. n-1`` from a given start ``(p, R, P)``; it also sums
+    the negative log-likelihood of the readings (per reading for RSS, per fix for fixes; each term capped at
+    the gate so one outlier cannot decide), which ranks initial orientations."""
+
+    def __init__(self, steps, fixes, rss, sensors_w_m, normals_w, pl, mode, max_rejections):
+        self.steps, self.fixes, self.rss, self.pos, self.nrm, self.pl = steps, fixes, rss, sensors_w_m, normals_w, pl
+        self.mode, self.max_rejections = mode, max_rejections
+        self.bridged_t, self.sig_t, self.sig_r = process_noise(steps)
+
+    def run(self, p, R, P, k1: int, keep: bool = True, k0: int = 0,
+            resets: dict | None = None) -> tuple[FusionResult, float]:
+        """Frames ``k0 .. k1-1`` from the state ``(p, R, P)`` at ``k0`` (before its update). ``resets``:
+        ``{frame: (R, sigma_rad)}`` -- after the prediction into that frame its orientation is replaced and
+        its orientation covariance set to ``sigma_rad^2 I`` (uncorrelated with the position)."""
+        self.rejected = self.updates = self.streak = 0
+        self.nll = 0.0
+        self.nll_k = np.zeros(k1 - k0)  # cumulative, after each frame's update
+        resets = resets or {}
+        p = np.asarray(p, float).copy()
+        n = k1 - k0
+        pos = np.zeros((n, 3))
+        quats = np.zeros((n, 4))
+        covs = np.zeros((n, 6, 6))
+        prior = {"p": [], "R": [], "P": [], "F": []}
+        post = {"p": [], "R": [], "P": []}
+        for k in range(k0, k1):
+            if k > k0:
+                s = self.steps[k - 1]
+                ts, Rs = self.bridged_t[k - 1], (s.R if s.ok else Rotation.identity())
+                p, R, P, F = predict(p, R, P, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
+                if k in resets:
+                    R, sig = resets[k]
+                    P = P.copy()
+                    P[3:, :3] = P[:3, 3:] = 0.0
+                    P[3:, 3:] = np.eye(3) * sig**2
+                if keep:
+                    prior["F"].append(F)
+            if keep:
+                prior["p"].append(p.copy())
+                prior["R"].append(R)
+                prior["P"].append(P.copy())
+            p, R, P = self.update(p, R, P, k)
+            if keep:
+                post["p"].append(p.copy())
+                post["R"].append(R)
+                post["P"].append(P.copy())
+            pos[k - k0], quats[k - k0], covs[k - k0] = p, R.as_quat(), P
+            self.nll_k[k - k0] = self.nll
+        res = FusionResult(pos, Rotation.from_quat(quats), covs, self.rejected, self.updates,
+                           {"prior": prior, "post": post})
+        return res, self.nll
+
+    def update(self, p, R, P, k):
+        if self.mode == "fix":
+            f = self.fixes[k]
+            if f.status != "ok":
+                return p, R, P
+            H = np.hstack([np.eye(3), np.zeros((3, 3))])
+            y = f.position_w_m - p
+            S = P[:3, :3] + f.cov_m2
+            d2 = float(y @ np.linalg.solve(S, y))
+            self.nll += 0.5 * (min(d2, CHI2_3_999) + np.linalg.slogdet(S)[1])
+            if d2 > CHI2_3_999:
+                self.rejected += 1
+                self.streak += 1
+                if self.streak < self.max_rejections:
+                    return p, R, P
+                # divergence guard: after max_rejections gated fixes in a row the filter, not RF, is wrong
+                P = P.copy()
+                P[:3, :3] += 4.0 * f.cov_m2
+                P[3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
+            self.streak = 0
+            Rm = f.cov_m2
+        else:
+            r = self.rss[k]
+            ok = np.isfinite(r)
+            if ok.sum() < 1:
+                return p, R, P
+            mean, sigma, Hp = self.pl.predict(p, self.pos[ok], self.nrm[ok])
+            y = r[ok] - mean
+            H = np.hstack([Hp, np.zeros((len(y), 3))])
+            Rm = np.diag(sigma**2)
+            S = H @ P @ H.T + Rm
+            z2 = y * y / np.diag(S)
+            self.nll += 0.5 * float(np.sum(np.minimum(z2, 3.29**2) + np.log(np.diag(S))))
+            keep = z2 < 3.29**2  # per-reading 99.9% gate
+            self.rejected += int((~keep).sum())
+            if keep.mean() < 0.5:  # most readings disagree with the prediction
+                self.streak += 1
+                if self.streak >= self.max_rejections:  # divergence guard (see the fix branch)
+                    P = P.copy()
+                    P[:3, :3] += np.eye(3) * 0.05**2
+                    P[3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
+                    keep[:] = True
+                    self.streak = 0
+            else:
+                self.streak = 0
+            if keep.sum() < 1:
+                return p, R, P
+            H, y, Rm = H[keep], y[keep], Rm[np.ix_(keep, keep)]
+        S = H @ P @ H.T + Rm
+        K = P @ H.T @ np.linalg.inv(S)
+        dx = K @ y
+        p = p + dx[:3]
+        R = R * Rotation.from_rotvec(dx[3:])
+        IKH = np.eye(6) - K @ H
+        P = IKH @ P @ IKH.T + K @ Rm @ K.T  # Joseph form
+        self.updates += 1
+        return p, R, P
+
+
 def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | None = None,
          sensors_w_m: np.ndarray | None = None, normals_w: np.ndarray | None = None,
          pl: PathLossModel | None = None, mode: str = "fix", init_frames: int = 40,
          init: tuple[Rotation, np.ndarray] | None = None, init_spread_m: float = 0.015,
-         max_rejections: int = 5) -> FusionResult:
-    """EKF over ``len(steps) + 1`` frames. ``fixes[k]`` / ``rss[k]`` are the RF readings at frame ``k``."""
+         max_rejections: int = 5, init_search: bool = True, search_frames: int = 80,
+         regap_steps: int | None = 5) -> FusionResult:
+    """EKF over ``len(steps) + 1`` frames. ``fixes[k]`` / ``rss[k]`` are the RF readings at frame ``k``.
+
+    ``init``: a known start ``(R_w_c0, p_w0)``; ``None``: aligned to the fixes (module docstring), and with
+    ``init_search`` checked against other orientations (:func:`_search_orientation`) over ``search_frames``.
+    ``regap_steps``: after a run of at least that many steps without a visual estimate the orientation is
+    searched again the same way (``None``: never)."""
     n = len(steps) + 1
     if mode not in ("fix", "rss"):
         raise InputError(f"fusion mode must be 'fix' or 'rss', got {mode!r}")
@@ -174,6 +292,8 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
     for k, s in enumerate(steps, start=1):
         dr[k] = dr[k - 1] + Rdr.apply(s.t if s.ok else np.zeros(3))
         Rdr = Rdr * (s.R if s.ok else Rotation.identity())
+    ekf = _Ekf(steps, fixes, rss, sensors_w_m, normals_w, pl, mode, max_rejections)
+    search = []
     if init is None:
         # The window grows until the dead-reckoned path bends: its second principal RMS spread must reach
         # init_spread_m. Along a straight path the rotation about the path's direction is unobservable
@@ -185,91 +305,118 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         s2 = max(_second_spread(dr[:m]), 1e-3)
         sig_theta = min(max(rms / (np.sqrt(m) * s2), np.radians(5.0)), np.radians(45.0))
         P = np.diag([rms**2 / m + 1e-4] * 3 + [sig_theta**2] * 3)
+        if init_search and n > 3:
+            okf = [k for k in range(m) if fixes[k].status == "ok"]
+            z = np.array([fixes[k].position_w_m for k in okf])
+            wts = np.array([1.0 / max(np.trace(fixes[k].cov_m2), 1e-8) for k in okf])
+
+            def start_of(R):  # the weighted least-squares translation that goes with orientation R
+                return ((z - R.apply(dr[okf])) * wts[:, None]).sum(0) / wts.sum()
+
+            extra = []
+            ok = np.array([s.ok for s in steps[: m - 1]])
+            first_gap = int(np.argmin(ok)) + 1 if not ok.all() else m
+            if 10 <= first_gap < m:  # dead reckoning across a gap bends the path: align the part before it
+                extra.append(align_to_fixes(dr[:first_gap], fixes[:first_gap])[0])
+            sig = max(sig_theta, np.radians(30.0))
+            P[3:, 3:] = np.eye(3) * sig**2
+            R0, p0, info = _search_orientation(ekf, 0, min(n, search_frames), R0, start_of, P, extra)
+            search.append(info)
     else:
         R0, p0 = init
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
-    p, R = np.asarray(p0, float).copy(), R0
-    pos = np.zeros((n, 3))
-    quats = np.zeros((n, 4))
-    covs = np.zeros((n, 6, 6))
-    prior = {"p": [], "R": [], "P": [], "F": []}
-    post = {"p": [], "R": [], "P": []}
-    rejected = updates = streak = 0
-    bridged_t, sig_t_all, sig_r_all = process_noise(steps)
-    P_init = P.copy()
+    resets: dict = {}
+    res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets)
+    if regap_steps:
+        for b in _gap_ends(steps, regap_steps):
+            pr = res.passes["prior"]
+            p_b, R_b, P_b = pr["p"][b], pr["R"][b], pr["P"][b]
+            sig = max(float(np.sqrt(np.trace(P_b[3:, 3:]) / 3)), np.radians(30.0))
+            P_b = P_b.copy()
+            P_b[3:, :3] = P_b[:3, 3:] = 0.0
+            P_b[3:, 3:] = np.eye(3) * sig**2
+            R_new, _, info = _search_orientation(ekf, b, min(n, b + search_frames), R_b, lambda R: p_b, P_b, [])
+            info["frame"] = b
+            search.append(info)
+            resets[b] = (R_new, sig)
+            res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets)
+    # Online output: inside each decision window (start, after a long gap) the leading candidate of each frame,
+    # so that no estimate uses later readings (except the start's alignment window); the smoother uses the
+    # committed chain (passes), which is one filter run with the decisions taken.
+    committed = res.positions_w_m.copy()
+    for info in search:
+        k0, k1 = info["frames"]
+        res.positions_w_m[k0:k1] = info.pop("leader_positions_w_m")
+        res.cov[k0:k1] = info.pop("leader_cov")
+    res.passes.update({"init": (R0, np.asarray(p0, float)), "P0": P, "dead_reckoning": dr, "search": search,
+                       "committed_positions_w_m": committed, "resets": {k: v[0] for k, v in resets.items()}})
+    return res
 
-    def update(p, R, P, k):
-        nonlocal rejected, updates, streak
-        if mode == "fix":
-            f = fixes[k]
-            if f.status != "ok":
-                return p, R, P
-            H = np.hstack([np.eye(3), np.zeros((3, 3))])
-            y = f.position_w_m - p
-            S = P[:3, :3] + f.cov_m2
-            if y @ np.linalg.solve(S, y) > CHI2_3_999:
-                rejected += 1
-                streak += 1
-                if streak < max_rejections:
-                    return p, R, P
-                # divergence guard: after max_rejections gated fixes in a row the filter, not RF, is wrong
-                P = P.copy()
-                P[:3, :3] += 4.0 * f.cov_m2
-                P[3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
-            streak = 0
-            Rm = f.cov_m2
-        else:
-            r = rss[k]
-            ok = np.isfinite(r)
-            if ok.sum() < 1:
-                return p, R, P
-            mean, sigma, Hp = pl.predict(p, sensors_w_m[ok], normals_w[ok])
-            y = r[ok] - mean
-            H = np.hstack([Hp, np.zeros((len(y), 3))])
-            Rm = np.diag(sigma**2)
-            S = H @ P @ H.T + Rm
-            keep = np.abs(y) / np.sqrt(np.diag(S)) < 3.29  # per-reading 99.9% gate
-            rejected += int((~keep).sum())
-            if keep.mean() < 0.5:  # most readings disagree with the prediction
-                streak += 1
-                if streak >= max_rejections:  # divergence guard (see the fix branch)
-                    P = P.copy()
-                    P[:3, :3] += np.eye(3) * 0.05**2
-                    P[3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
-                    keep[:] = True
-                    streak = 0
-            else:
-                streak = 0
-            if keep.sum() < 1:
-                return p, R, P
-            H, y, Rm = H[keep], y[keep], Rm[np.ix_(keep, keep)]
-        S = H @ P @ H.T + Rm
-        K = P @ H.T @ np.linalg.inv(S)
-        dx = K @ y
-        p = p + dx[:3]
-        R = R * Rotation.from_rotvec(dx[3:])
-        IKH = np.eye(6) - K @ H
-        P = IKH @ P @ IKH.T + K @ Rm @ K.T  # Joseph form
-        updates += 1
-        return p, R, P
 
-    for k in range(n):
-        if k > 0:
-            s = steps[k - 1]
-            ts, Rs = bridged_t[k - 1], (s.R if s.ok else Rotation.identity())
-            p, R, P, F = predict(p, R, P, ts, Rs, sig_t_all[k - 1], sig_r_all[k - 1])
-            prior["F"].append(F)
-        prior["p"].append(p.copy())
-        prior["R"].append(R)
-        prior["P"].append(P.copy())
-        p, R, P = update(p, R, P, k)
-        post["p"].append(p.copy())
-        post["R"].append(R)
-        post["P"].append(P.copy())
-        pos[k], quats[k], covs[k] = p, R.as_quat(), P
-    return FusionResult(pos, Rotation.from_quat(quats), covs, rejected, updates,
-                        {"prior": prior, "post": post, "init": (R0, np.asarray(p0, float)), "P0": P_init,
-                         "dead_reckoning": dr})
+def _gap_ends(steps: list[Step], min_len: int) -> list[int]:
+    """Frames reached by the last step of each run of at least ``min_len`` steps without an estimate."""
+    out, run = [], 0
+    for k, s in enumerate(steps, start=1):
+        run = 0 if s.ok else run + 1
+        if run >= min_len and (k == len(steps) or steps[k].ok):
+            out.append(k)
+    return out
+
+
+def _search_orientation(ekf: _Ekf, k0: int, k1: int, R_centre: Rotation, position_of, P: np.ndarray,
+                        extra: list[Rotation]) -> tuple[Rotation, np.ndarray, dict]:
+    """The orientation at frame ``k0`` under which the filter best explains the readings of frames
+    ``k0 .. k1-1`` (negative log-likelihood, :class:`_Ekf`): ``(R, p, summary)``.
+
+    Used at the start (vision has no world frame; RF no orientation) and after long runs of steps without a
+    visual estimate (the capsule may have turned any way meanwhile, and a linearised filter does not recover
+    from errors of tens of degrees: measured on seeds 301, 306, 308). Candidates: ``R_centre`` (the alignment,
+    or the filter's own prediction), ``R_centre`` turned by each of the 59 other rotations of the icosahedral
+    group (no orientation is more than 44 deg from one of the 60), and ``extra``; the best is then refined by
+    turns of 20 and 10 deg about 14 axes. ``position_of(R)``: the start position that goes with ``R``; every
+    candidate starts from the covariance ``P``. The decision uses readings up to ``k1`` (a fixed lag)."""
+    group = Rotation.create_group("I")
+    cands = [R_centre] + [R_centre * g for g in group if g.magnitude() > 1e-6] + list(extra)
+    pool = []  # (R, p, cumulative nll per frame, positions, covariances, first frame it may be used)
+
+    def add(R, first):
+        p = position_of(R)
+        res, _ = ekf.run(p, R, P.copy(), k1, keep=False, k0=k0)
+        pool.append((R, p, ekf.nll_k.copy(), res.positions_w_m, res.cov, first))
+
+    for R in cands:
+        add(R, k0)
+    # Refinement without looking ahead: at a quarter and at half of the window, turns of 20 and 10 deg about 14
+    # axes (faces and corners of a cube) of the candidate leading on the readings up to then, run from k0.
+    axes = np.array([v for v in np.ndindex(3, 3, 3) if sum(abs(np.array(v) - 1)) in (1, 3)], float) - 1.0
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    for frac, step_deg in ((0.25, 20.0), (0.5, 10.0)):
+        kc = k0 + max(1, int((k1 - k0) * frac))
+        if kc >= k1:
+            break
+        lead = pool[int(np.argmin([c[2][kc - 1 - k0] for c in pool]))][0]
+        for a in axes:
+            add(lead * Rotation.from_rotvec(np.radians(step_deg) * a), kc)
+    # Online output while the decision is open: the mixture of the candidates available at each frame, each
+    # weighted by the likelihood of the readings so far (a Gaussian-sum filter; its covariance includes their
+    # spread). The committed candidate is the one that explains the whole window best.
+    nll_k = np.array([c[2] for c in pool])  # (candidates, frames)
+    frames = np.arange(k0, k1)
+    avail = np.array([c[5] for c in pool])[:, None] <= frames[None, :]
+    nll_k = np.where(avail, nll_k, np.inf)
+    wgt = np.exp(-(nll_k - nll_k.min(axis=0)))
+    wgt /= wgt.sum(axis=0)
+    X = np.array([c[3] for c in pool])  # (c, f, 3)
+    mix_pos = np.einsum("cf,cfi->fi", wgt, X)
+    mix_cov = np.einsum("cf,cfij->fij", wgt, np.array([c[4] for c in pool]))
+    d = X - mix_pos[None]
+    mix_cov[:, :3, :3] += np.einsum("cf,cfi,cfj->fij", wgt, d, d)
+    best = int(np.argmin(nll_k[:, -1]))
+    R, p = pool[best][0], pool[best][1]
+    return R, p, {"n_candidates": len(pool), "frames": [k0, k1],
+                  "turn_from_centre_deg": float(np.degrees((R_centre.inv() * R).magnitude())),
+                  "nll_centre": float(nll_k[0, -1]), "nll_best": float(nll_k[best, -1]),
+                  "leader_positions_w_m": mix_pos, "leader_cov": mix_cov}
 
 
 def rts_smooth(res: FusionResult) -> FusionResult:
@@ -317,7 +464,7 @@ def steps_from_motion_rows(rows: dict[int, dict], n_frames: int) -> list[Step]:
 
 
 def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndarray], sigma_p_m: float = 0.002,
-              sigma_n: float = 0.05) -> np.ndarray:
+              sigma_n: float = 0.05, resets: dict | None = None) -> np.ndarray:
     """The dissertation's Kalman filter (Eq. 3.26-3.33), written so that it runs: state ``[x, y, z, nx, ny, nz]``
     (position and unit heading in the world frame), transition ``p <- p + v dt n`` and ``n <- dR_w n``, RF fixes
     as position measurements (``H = [I 0]``). The printed transition matrix is garbled; ``v dt`` is the visual
@@ -329,6 +476,7 @@ def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndar
     """
     R_wc, p0 = init
     n = len(steps) + 1
+    last_d = 0.0
     x = np.r_[np.asarray(p0, float), R_wc.apply([0.0, 0.0, 1.0])]
     P = np.diag([0.02**2] * 3 + [0.2**2] * 3)
     out = np.zeros((n, 3))
@@ -336,15 +484,24 @@ def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndar
         if k > 0:
             s = steps[k - 1]
             Rs = s.R if s.ok else Rotation.identity()
-            d = (float(np.linalg.norm(s.t)) * (1.0 if s.t[2] >= 0 else -1.0)) if s.ok else 0.0
+            if s.ok:
+                d = float(np.linalg.norm(s.t)) * (1.0 if s.t[2] >= 0 else -1.0)
+                last_d = d
+            else:
+                d = last_d  # no visual estimate: the last step again (constant speed), as the EKF does
             dRw = (R_wc * Rs * R_wc.inv()).as_matrix()
             A = np.eye(6)
             A[:3, 3:] = d * np.eye(3)
             A[3:, 3:] = dRw
             R_wc = R_wc * Rs
             x = A @ x
-            q_p = sigma_p_m if s.ok else 5e-3
+            q_p = sigma_p_m if s.ok else max(abs(d), 5e-3)
             P = A @ P @ A.T + np.diag([q_p**2] * 3 + [sigma_n**2] * 3)
+            if resets and k in resets:
+                R_wc = resets[k]
+                x[3:] = R_wc.apply([0.0, 0.0, 1.0])
+                P[3:, :3] = P[:3, 3:] = 0.0
+                P[3:, 3:] = np.eye(3) * 0.5**2
         f = fixes[k]
         if f.status == "ok":
             H = np.hstack([np.eye(3), np.zeros((3, 3))])

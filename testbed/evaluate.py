@@ -52,9 +52,9 @@ def evaluate_sequence(d: Path) -> dict:
         "rf_ml": np.array([f.position_w_m for f in fixes]),
         "rf_nls": np.array([f.position_w_m for f in nls]),
         "dead_reckoning": p0 + R0.apply(dr),
-        "thesis_kf": kf_thesis(steps, nls, (R0, p0)),
+        "thesis_kf": kf_thesis(steps, nls, (R0, p0), resets=ekf.passes["resets"]),
         # the same filter fed by the dissertation's other RF localizer (ML, Sec. 2.3.3.2) instead of Eq. 3.36's NLS
-        "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0)),
+        "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0), resets=ekf.passes["resets"]),
         "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix").positions_w_m,
         "ekf_rss": ekf.positions_w_m,
         "ekf_rss_rts": rts_smooth(ekf).positions_w_m,
