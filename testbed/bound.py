@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.rf import PathLossModel
 
-__all__ = ["pcrb_positions"]
+__all__ = ["pcrb_positions", "efficient_mean_error"]
 
 
 def _skew(v):
@@ -29,10 +29,11 @@ def _skew(v):
 
 def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
                    sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray, pl: PathLossModel,
-                   P0: np.ndarray) -> np.ndarray:
-    """``tr(J_p^-1)`` per frame (m^2). ``sigma_t_m``, ``sigma_r_rad``: per-step process 1-sigma (n - 1,)."""
+                   P0: np.ndarray, full: bool = False) -> np.ndarray:
+    """``tr(J_p^-1)`` per frame (m^2); with ``full`` the 3x3 position bounds ``J_p^-1`` (n, 3, 3).
+    ``sigma_t_m``, ``sigma_r_rad``: per-step process 1-sigma (n - 1,)."""
     n = len(positions_w_m)
-    out = np.zeros(n)
+    out = np.zeros((n, 3, 3))
 
     def info(p):
         _, sigma, Hp = pl.predict(p, sensors_w_m, normals_w)
@@ -44,7 +45,7 @@ def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
 
     def bound(J):
         Jp = J[:3, :3] - J[:3, 3:] @ np.linalg.solve(J[3:, 3:], J[3:, :3])
-        return float(np.trace(np.linalg.inv(Jp)))
+        return np.linalg.inv(Jp)
 
     out[0] = bound(J)
     for k in range(n - 1):
@@ -60,4 +61,13 @@ def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
         Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
         J = info(positions_w_m[k + 1]) + np.linalg.inv(Q + A @ np.linalg.solve(J, A.T))
         out[k + 1] = bound(J)
-    return out
+    return out if full else np.trace(out, axis1=1, axis2=2)
+
+
+def efficient_mean_error(bounds_m2: np.ndarray, n_samples: int = 20000) -> np.ndarray:
+    """``E||e||`` per frame for ``e ~ N(0, C_k)``, ``C_k`` the 3x3 position bounds (n, 3, 3): the mean Euclidean
+    error of a filter that attains the bound with Gaussian errors (the mean error is what the issue's goals are
+    stated in; the bound itself is on the mean *squared* error). Fixed-seed Monte Carlo (0.3% standard error per frame)."""
+    z = np.random.default_rng(0).normal(size=(n_samples, 3))
+    L = np.linalg.cholesky(bounds_m2 + 1e-18 * np.eye(3))
+    return np.linalg.norm(np.einsum("kij,sj->ksi", L, z), axis=2).mean(axis=1)

@@ -25,7 +25,7 @@ from bodyslam.fusion import fuse, kf_thesis, rts_smooth, steps_from_motion_rows
 from bodyslam.io import read_json, read_motion_csv, read_tum, write_image, write_json
 from bodyslam.plots import Figure
 from bodyslam.rf import PathLossModel, locate_ml, locate_nls, read_rf, read_sensors
-from testbed.bound import pcrb_positions
+from testbed.bound import efficient_mean_error, pcrb_positions
 from testbed.score import score_motion
 from testbed.simulate import prepare_output_dir, simulate
 
@@ -63,9 +63,11 @@ def evaluate_sequence(d: Path) -> dict:
     # prior of the bound: no information beyond the abdomen (10 cm, 45 deg); every RF reading counted once. The
     # filters' start aligns the first window of fixes, so over that window they are not strictly causal.
     P0 = np.diag([0.10**2] * 3 + [np.radians(45.0) ** 2] * 3)
-    pcrb = pcrb_positions(gt, grot, sig_t, sig_r, pos, nrm, pl, P0)
+    bounds = pcrb_positions(gt, grot, sig_t, sig_r, pos, nrm, pl, P0, full=True)
+    pcrb = np.trace(bounds, axis1=1, axis2=2)
     errors = {k: np.linalg.norm(v - gt, axis=1) for k, v in est.items()}
-    return {"estimates": est, "errors": errors, "pcrb_m2": pcrb, "truth": gt, "rf_problems": len(problems),
+    return {"estimates": est, "errors": errors, "pcrb_m2": pcrb, "pcrb_mean_error_m": efficient_mean_error(bounds),
+            "truth": gt, "rf_problems": len(problems),
             "motion": score_motion(d, d / "motion.csv")}
 
 
@@ -146,7 +148,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     prepare_output_dir(out, force)
     jobs = available_cores() if jobs is None else max(1, int(jobs))
     jobs = min(jobs, len(seeds))
-    per_seed, errs, pcrbs, motion, timing = [], {a: [] for a in ALGORITHMS}, [], [], []
+    per_seed, errs, pcrbs, motion, timing, eff = [], {a: [] for a in ALGORITHMS}, [], [], [], []
     first = None
     t_start = time.perf_counter()
     tasks = [(scenario, seed, str(out / "sequences" / f"seed_{seed}"), n_frames, 1 if jobs > 1 else None,
@@ -157,6 +159,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         for a in ALGORITHMS:
             errs[a].append(res["errors"][a])
         pcrbs.append(res["pcrb_m2"])
+        eff.append(res["pcrb_mean_error_m"])
         motion.append(res["motion"]["all"])
         timing.append(res["seconds"])
         per_seed.append({"seed": seed, **{a: _stats(res["errors"][a], res["pcrb_m2"]) for a in ALGORITHMS},
@@ -173,6 +176,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         "frames_per_run": int(len(pcrbs[0])),
         "algorithms": {a: _stats(np.concatenate(errs[a]), pc) for a in ALGORITHMS},
         "sqrt_mean_pcrb_cm": float(np.sqrt(pc.mean()) * 100),
+        # the mean error of a causal filter that attains the bound (testbed.bound.efficient_mean_error)
+        "pcrb_mean_error_cm": float(np.concatenate(eff).mean() * 100),
         "table_4_1": {k: float(np.mean([m[k] for m in motion])) for k in motion[0] if k.endswith(("_cm", "_deg"))},
         "per_seed": per_seed,
         "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
@@ -205,7 +210,8 @@ def _html(out: Path, report: dict) -> None:
             + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "
-                      f"sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm. {report['notes']}.", body,
+                      f"sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm; mean error of a causal filter that attains "
+                      f"the bound: {report['pcrb_mean_error_cm']:.2f} cm. {report['notes']}.", body,
                       ["trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png", "error_histogram.png",
                        "error_cdf.png"])
 
@@ -251,6 +257,7 @@ def main_report_line(report: dict) -> str:
     return (f"{report['n_runs']} runs of {report['scenario']}: mean error RF only {a['rf_ml']['mean_error_cm']:.2f} cm, "
             f"dead reckoning {a['dead_reckoning']['mean_error_cm']:.2f}, thesis KF {a['thesis_kf']['mean_error_cm']:.2f}"
             f", EKF {a['ekf_rss']['mean_error_cm']:.2f}, Body-SLAM (RTS) {a['ekf_rss_rts']['mean_error_cm']:.2f} cm; "
-            f"sqrt(PCRB) {report['sqrt_mean_pcrb_cm']:.2f} cm, EKF RMSE/sqrt(PCRB) "
+            f"sqrt(PCRB) {report['sqrt_mean_pcrb_cm']:.2f} cm (a filter at the bound: mean error "
+            f"{report['pcrb_mean_error_cm']:.2f} cm), EKF RMSE/sqrt(PCRB) "
             f"{a['ekf_rss']['rmse_over_sqrt_pcrb']:.2f}")
 

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bodyslam.io import read_tum
 from bodyslam.rf import PathLossModel, read_sensors
@@ -36,3 +37,12 @@ def test_bound_is_below_rf_alone_and_shrinks_with_better_steps():
     assert np.all(loose[1:] < rf[1:])  # RF plus any motion information beats one RF snapshot
     assert np.all(tight[5:] < loose[5:])  # better visual steps, lower bound
     assert tight[-1] < 0.5 * tight[0]  # information accumulates along the path
+
+
+def test_efficient_mean_error_matches_the_closed_forms():
+    from testbed.bound import efficient_mean_error
+
+    C = np.array([np.eye(3) * 1e-4, np.diag([1e-4, 1e-12, 1e-12])])
+    got = efficient_mean_error(C)
+    # isotropic 3-D: sigma * 2 sqrt(2/pi); one axis: sigma * sqrt(2/pi) (Monte Carlo: 1.5% is 5 standard errors)
+    assert got == pytest.approx([0.01 * 2 * np.sqrt(2 / np.pi), 0.01 * np.sqrt(2 / np.pi)], rel=0.015)
