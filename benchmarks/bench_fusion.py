@@ -36,6 +36,9 @@ def main() -> None:
               f"{a['p90_error_cm']:7.2f} {a['max_error_cm']:7.2f}  {a['rmse_over_sqrt_pcrb']:5.2f}")
     print(f"sqrt(mean PCRB) {rep['sqrt_mean_pcrb_cm']:.2f} cm; mean error of a causal filter attaining the bound "
           f"{rep['pcrb_mean_error_cm']:.2f} cm")
+    sb = rep["smoothing_bound"]
+    print(f"smoothing bound: sqrt(mean) {sb['sqrt_mean_cm']:.2f} cm, mean error of a smoother attaining it "
+          f"{sb['mean_error_cm']:.2f} cm; RTS RMSE / sqrt(smoothing bound) {sb['rts_rmse_over_sqrt_bound']:.2f}")
     print(main_report_line(rep))
     sec = rep["seconds"]
     print(f"wall time {sec['wall']:.0f} s with {sec['jobs']} job(s); stage totals over seeds: render "

@@ -302,6 +302,7 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         while m < n and _second_spread(dr[:m]) < init_spread_m:
             m += 1
         R0, p0, rms = align_to_fixes(dr[:m], fixes[:m])
+        alignment = (R0, p0)
         s2 = max(_second_spread(dr[:m]), 1e-3)
         sig_theta = min(max(rms / (np.sqrt(m) * s2), np.radians(5.0)), np.radians(45.0))
         P = np.diag([rms**2 / m + 1e-4] * 3 + [sig_theta**2] * 3)
@@ -324,6 +325,7 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
             search.append(info)
     else:
         R0, p0 = init
+        alignment = init
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
     resets: dict = {}
     res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets)
@@ -349,6 +351,7 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         res.positions_w_m[k0:k1] = info.pop("leader_positions_w_m")
         res.cov[k0:k1] = info.pop("leader_cov")
     res.passes.update({"init": (R0, np.asarray(p0, float)), "P0": P, "dead_reckoning": dr, "search": search,
+                       "alignment": alignment,  # the rigid fit of the first window, before any search
                        "committed_positions_w_m": committed, "resets": {k: v[0] for k, v in resets.items()}})
     return res
 

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.rf import PathLossModel
 
-__all__ = ["pcrb_positions", "efficient_mean_error"]
+__all__ = ["pcrb_positions", "smoothing_bound_positions", "efficient_mean_error"]
 
 
 def _skew(v):
@@ -62,6 +62,41 @@ def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
         J = info(positions_w_m[k + 1]) + np.linalg.inv(Q + A @ np.linalg.solve(J, A.T))
         out[k + 1] = bound(J)
     return out if full else np.trace(out, axis1=1, axis2=2)
+
+
+def smoothing_bound_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
+                              sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray,
+                              pl: PathLossModel, P0: np.ndarray) -> np.ndarray:
+    """The Cramer-Rao bound of *smoothing* (every reading of the run used for every frame) with the model of
+    :func:`pcrb_positions`: the inverse of the whole run's Fisher information, block tridiagonal over the
+    states ``[p_k, theta_k]`` (prior, RSS information per frame, and per step ``x_(k+1) = A_k x_k + w``); returns
+    its 3x3 position blocks (n, 3, 3), m^2. This is the reference for an offline smoother (RTS), which the causal
+    PCRB does not bound."""
+    n = len(positions_w_m)
+    J = np.zeros((6 * n, 6 * n))
+    J[:6, :6] += np.linalg.inv(P0)
+    for k in range(n):
+        _, sigma, Hp = pl.predict(positions_w_m[k], sensors_w_m, normals_w)
+        J[6 * k:6 * k + 3, 6 * k:6 * k + 3] += Hp.T @ (Hp / (sigma**2)[:, None])
+    for k in range(n - 1):
+        R = rotations_w_c[k]
+        Rs = rotations_w_c[k].inv() * rotations_w_c[k + 1]
+        t = R.inv().apply(positions_w_m[k + 1] - positions_w_m[k])
+        A = np.eye(6)
+        A[:3, 3:] = -R.as_matrix() @ _skew(t)
+        A[3:, 3:] = Rs.as_matrix().T
+        Rm = R.as_matrix()
+        Q = np.zeros((6, 6))
+        Q[:3, :3] = Rm @ (np.eye(3) * sigma_t_m[k] ** 2) @ Rm.T
+        Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
+        Qi = np.linalg.inv(Q)
+        a, b = slice(6 * k, 6 * k + 6), slice(6 * k + 6, 6 * k + 12)
+        J[a, a] += A.T @ Qi @ A
+        J[a, b] -= A.T @ Qi
+        J[b, a] -= Qi @ A
+        J[b, b] += Qi
+    C = np.linalg.inv(J)
+    return np.array([C[6 * k:6 * k + 3, 6 * k:6 * k + 3] for k in range(n)])
 
 
 def efficient_mean_error(bounds_m2: np.ndarray, n_samples: int = 20000) -> np.ndarray:

@@ -46,3 +46,22 @@ def test_efficient_mean_error_matches_the_closed_forms():
     got = efficient_mean_error(C)
     # isotropic 3-D: sigma * 2 sqrt(2/pi); one axis: sigma * sqrt(2/pi) (Monte Carlo: 1.5% is 5 standard errors)
     assert got == pytest.approx([0.01 * 2 * np.sqrt(2 / np.pi), 0.01 * np.sqrt(2 / np.pi)], rel=0.015)
+
+
+def test_smoothing_bound_is_below_filtering_and_equals_it_at_the_last_frame():
+    from testbed.bound import smoothing_bound_positions
+
+    gt, grot, pos, nrm, pl = setup()
+    n = len(gt)
+    P0 = np.diag([0.02**2] * 3 + [np.radians(10) ** 2] * 3)
+    args = (gt, grot, np.full(n - 1, 1e-3), np.full(n - 1, np.radians(0.5)), pos, nrm, pl, P0)
+    filt = pcrb_positions(*args, full=True)
+    smooth = smoothing_bound_positions(*args)
+    # the last frame has no future: smoothing and filtering are the same problem there (batch information
+    # inverted in one go against the recursion: equal to rounding)
+    assert np.allclose(smooth[-1], filt[-1], rtol=1e-8, atol=1e-14)
+    # elsewhere the future's readings only add information: filt - smooth is positive semi-definite
+    for k in range(n - 1):
+        assert np.linalg.eigvalsh(filt[k] - smooth[k]).min() > -1e-14
+    tr_f, tr_s = np.trace(filt, axis1=1, axis2=2), np.trace(smooth, axis1=1, axis2=2)
+    assert tr_s[0] < 0.5 * tr_f[0]
