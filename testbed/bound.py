@@ -27,6 +27,21 @@ def _skew(v):
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
+def _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k):
+    """Step ``k -> k+1`` of the error-state model on the true trajectory: ``(A_k, Q_k)``."""
+    R = rotations_w_c[k]
+    Rs = rotations_w_c[k].inv() * rotations_w_c[k + 1]
+    t = R.inv().apply(positions_w_m[k + 1] - positions_w_m[k])
+    A = np.eye(6)
+    A[:3, 3:] = -R.as_matrix() @ _skew(t)
+    A[3:, 3:] = Rs.as_matrix().T
+    Rm = R.as_matrix()
+    Q = np.zeros((6, 6))
+    Q[:3, :3] = Rm @ (np.eye(3) * sigma_t_m[k] ** 2) @ Rm.T
+    Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
+    return A, Q
+
+
 def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
                    sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray, pl: PathLossModel,
                    P0: np.ndarray, full: bool = False) -> np.ndarray:
@@ -49,16 +64,7 @@ def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
 
     out[0] = bound(J)
     for k in range(n - 1):
-        R = rotations_w_c[k]
-        Rs = rotations_w_c[k].inv() * rotations_w_c[k + 1]
-        t = R.inv().apply(positions_w_m[k + 1] - positions_w_m[k])
-        A = np.eye(6)
-        A[:3, 3:] = -R.as_matrix() @ _skew(t)
-        A[3:, 3:] = Rs.as_matrix().T
-        Rm = R.as_matrix()
-        Q = np.zeros((6, 6))
-        Q[:3, :3] = Rm @ (np.eye(3) * sigma_t_m[k] ** 2) @ Rm.T
-        Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
+        A, Q = _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k)
         J = info(positions_w_m[k + 1]) + np.linalg.inv(Q + A @ np.linalg.solve(J, A.T))
         out[k + 1] = bound(J)
     return out if full else np.trace(out, axis1=1, axis2=2)
@@ -79,16 +85,7 @@ def smoothing_bound_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation
         _, sigma, Hp = pl.predict(positions_w_m[k], sensors_w_m, normals_w)
         J[6 * k:6 * k + 3, 6 * k:6 * k + 3] += Hp.T @ (Hp / (sigma**2)[:, None])
     for k in range(n - 1):
-        R = rotations_w_c[k]
-        Rs = rotations_w_c[k].inv() * rotations_w_c[k + 1]
-        t = R.inv().apply(positions_w_m[k + 1] - positions_w_m[k])
-        A = np.eye(6)
-        A[:3, 3:] = -R.as_matrix() @ _skew(t)
-        A[3:, 3:] = Rs.as_matrix().T
-        Rm = R.as_matrix()
-        Q = np.zeros((6, 6))
-        Q[:3, :3] = Rm @ (np.eye(3) * sigma_t_m[k] ** 2) @ Rm.T
-        Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
+        A, Q = _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k)
         Qi = np.linalg.inv(Q)
         a, b = slice(6 * k, 6 * k + 6), slice(6 * k + 6, 6 * k + 12)
         J[a, a] += A.T @ Qi @ A
