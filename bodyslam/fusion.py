@@ -178,15 +178,17 @@ class _Ekf:
         self.mode, self.max_rejections = mode, max_rejections
         self.bridged_t, self.sig_t, self.sig_r = process_noise(steps)
 
-    def run(self, p, R, P, k1: int, keep: bool = True, k0: int = 0,
-            resets: dict | None = None) -> tuple[FusionResult, float]:
+    def run(self, p, R, P, k1: int, keep: bool = True, k0: int = 0, resets: dict | None = None,
+            decide=None) -> tuple[FusionResult, float]:
         """Frames ``k0 .. k1-1`` from the state ``(p, R, P)`` at ``k0`` (before its update). ``resets``:
         ``{frame: (R, sigma_rad)}`` -- after the prediction into that frame its orientation is replaced and
-        its orientation covariance set to ``sigma_rad^2 I`` (uncorrelated with the position)."""
+        its orientation covariance set to ``sigma_rad^2 I`` (uncorrelated with the position). ``decide(k, p, R,
+        P)``: called after each prediction (frames without a given reset); a ``(R, sigma_rad)`` it returns is
+        applied the same way and recorded in ``resets``. One pass: the cost is linear in the frames."""
         self.rejected = self.updates = self.streak = 0
         self.nll = 0.0
         self.nll_k = np.zeros(k1 - k0)  # cumulative, after each frame's update
-        resets = resets or {}
+        resets = {} if resets is None else resets
         p = np.asarray(p, float).copy()
         n = k1 - k0
         pos = np.zeros((n, 3))
@@ -199,6 +201,10 @@ class _Ekf:
                 s = self.steps[k - 1]
                 ts, Rs = self.bridged_t[k - 1], (s.R if s.ok else Rotation.identity())
                 p, R, P, F = predict(p, R, P, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
+                if k not in resets and decide is not None:
+                    d = decide(k, p, R, P)
+                    if d is not None:
+                        resets[k] = d
                 if k in resets:
                     R, sig = resets[k]
                     P = P.copy()
@@ -435,21 +441,24 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         R0, p0 = init
         alignment = init
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
+    gap_ends = set(_gap_ends(steps, regap_steps)) if regap_steps else set()
+
+    def decide(b, p_b, R_b, P_b):
+        """At the end of a long gap: search the orientation from the predicted pose (position kept)."""
+        if b not in gap_ends:
+            return None
+        sig = max(float(np.sqrt(np.trace(P_b[3:, 3:]) / 3)), np.radians(30.0))
+        P_b = P_b.copy()
+        P_b[3:, :3] = P_b[:3, 3:] = 0.0
+        P_b[3:, 3:] = np.eye(3) * sig**2
+        p_b = p_b.copy()
+        R_new, _, info = _search_orientation(ekf, b, min(n, b + search_frames), R_b, lambda R: p_b, P_b, [])
+        info["frame"] = b
+        search.append(info)
+        return R_new, sig
+
     resets: dict = {}
-    res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets)
-    if regap_steps:
-        for b in _gap_ends(steps, regap_steps):
-            pr = res.passes["prior"]
-            p_b, R_b, P_b = pr["p"][b], pr["R"][b], pr["P"][b]
-            sig = max(float(np.sqrt(np.trace(P_b[3:, 3:]) / 3)), np.radians(30.0))
-            P_b = P_b.copy()
-            P_b[3:, :3] = P_b[:3, 3:] = 0.0
-            P_b[3:, 3:] = np.eye(3) * sig**2
-            R_new, _, info = _search_orientation(ekf, b, min(n, b + search_frames), R_b, lambda R: p_b, P_b, [])
-            info["frame"] = b
-            search.append(info)
-            resets[b] = (R_new, sig)
-            res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets)
+    res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets, decide=decide)
     # Online output: inside each decision window (start, after a long gap) the leading candidate of each frame,
     # so that no estimate uses later readings (except the start's alignment window); the smoother uses the
     # committed chain (passes), which is one filter run with the decisions taken.
