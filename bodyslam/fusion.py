@@ -459,9 +459,9 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
 
     resets: dict = {}
     res, _ = ekf.run(p0, R0, P.copy(), n, resets=resets, decide=decide)
-    # Online output: inside each decision window (start, after a long gap) the leading candidate of each frame,
-    # so that no estimate uses later readings (except the start's alignment window); the smoother uses the
-    # committed chain (passes), which is one filter run with the decisions taken.
+    # Online output: inside each decision window (start, after a long gap) the candidates' mixture on the readings
+    # so far, so that no estimate uses later readings (except the start's alignment window); the smoother uses
+    # the committed chain (passes), which is one filter run with the decisions taken.
     committed = res.positions_w_m.copy()
     for info in search:
         k0, k1 = info["frames"]
@@ -492,9 +492,12 @@ def _search_orientation(ekf: _Ekf, k0: int, k1: int, R_centre: Rotation, positio
     visual estimate (the capsule may have turned any way meanwhile, and a linearised filter does not recover
     from errors of tens of degrees: measured on seeds 301, 306, 308). Candidates: ``R_centre`` (the alignment,
     or the filter's own prediction), ``R_centre`` turned by each of the 59 other rotations of the icosahedral
-    group (no orientation is more than 44 deg from one of the 60), and ``extra``; the best is then refined by
-    turns of 20 and 10 deg about 14 axes. ``position_of(R)``: the start position that goes with ``R``; every
-    candidate starts from the covariance ``P``. The decision uses readings up to ``k1`` (a fixed lag)."""
+    group (no orientation is more than 44 deg from one of the 60), and ``extra``; at a quarter and at half of
+    the window, turns of 20 and 10 deg about 14 axes of the candidate leading then join. ``position_of(R)``: the
+    start position that goes with ``R``; every candidate starts from the covariance ``P``. The committed
+    candidate explains the whole window best (a decision with a ``k1 - k0`` frame lag); the summary carries
+    the candidates' mixture per frame on the readings so far (``leader_positions_w_m``, ``leader_cov``), the
+    causal output while the decision is open."""
     group = Rotation.create_group("I")
     cands = [R_centre] + [R_centre * g for g in group if g.magnitude() > 1e-6] + list(extra)
     pool = []  # (R, p, cumulative nll per frame, positions, covariances, first frame it may be used)
