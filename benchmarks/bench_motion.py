@@ -129,12 +129,10 @@ def speed(runs: list[tuple[str, str, int]]) -> dict:
     res = {}
     size = ["camera.width=320", "camera.height=320"]
     with tempfile.TemporaryDirectory() as tmp:
-        seqs = {}
         for scenario, mode, frames in runs:
             d = Path(tmp) / f"{scenario}_{frames}"
-            if d not in seqs:
+            if not d.exists():  # one sequence per scenario and length, shared by the modes
                 simulate(load_scenario(scenario, size), 7, d, n_frames=frames, force=True)
-                seqs[d] = True
             out = Path(tmp) / f"m_{scenario}_{mode}_{frames}.csv"
             t0 = time.perf_counter()
             p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "motion", str(d), "--out", str(out),

@@ -25,6 +25,7 @@ import argparse
 import sys
 
 from bodyslam.cliutil import Progress, run_cli
+from bodyslam.io import prepare_output_dir
 from bodyslam.matching import MATCH_MODES
 from bodyslam.motion import ESTIMATORS
 from bodyslam.pf import TRACKERS
@@ -316,18 +317,6 @@ def _print_problems(problems: list) -> int:
     return 3 if problems else 0
 
 
-def _output_dir(path: str, force: bool):
-    from pathlib import Path
-
-    from bodyslam.errors import InputError
-
-    out = Path(path)
-    if out.exists() and any(out.iterdir()) and not force:
-        raise InputError(f"{out}: output directory is not empty (use --force)")
-    out.mkdir(parents=True, exist_ok=True)
-    return out
-
-
 def _rf_track(args) -> int:
     from pathlib import Path
 
@@ -352,7 +341,7 @@ def _rf_track(args) -> int:
     stamps, readings, problems = read_rf_columns(d / "rf.csv", names, cols)
     if "rss_dbm" in readings:
         readings["rss_db"] = readings.pop("rss_dbm")
-    out = _output_dir(args.out, args.force)
+    out = prepare_output_dir(args.out, args.force)
     est, eps, _ = track(args.method, stamps, rx, readings, lo, hi, settings, np.random.default_rng(args.seed),
                         progress=Progress(f"rf-track {args.method}"))
     write_tum(out / "trajectory.tum", stamps, est, Rotation.identity(len(est)))  # position only
@@ -371,7 +360,7 @@ def _magnetic_localize(args) -> int:
 
     from bodyslam.magnetic import load_recording, replay
 
-    out = _output_dir(args.out, args.force)
+    out = prepare_output_dir(args.out, args.force)
     rec = load_recording(args.seqdir)
     t, states, cov = replay(rec)
     _write_position_track(out, t, states[:, :3], states[:, 3:] / np.linalg.norm(states[:, 3:], axis=1, keepdims=True),
@@ -387,7 +376,7 @@ def _hybrid_localize(args) -> int:
 
     from bodyslam.toa_doa import load_recording, run_scheme
 
-    out = _output_dir(args.out, args.force)
+    out = prepare_output_dir(args.out, args.force)
     rec = load_recording(args.seqdir)
     est, cov = run_scheme(args.scheme, rec["x0"], rec["P0"], rec["y"], rec["snr"], rec["imu"], rec["arrays"],
                           rec["radio"], rec["sigma_acc"], rec["delta_s"], args.q_model)
@@ -403,7 +392,6 @@ def _localize(args) -> int:
 
     import numpy as np
 
-    from bodyslam.errors import InputError
     from bodyslam.fusion import fuse, rts_smooth, steps_from_motion_rows
     from bodyslam.io import read_json, read_motion_csv, write_csv, write_image, write_tum
     from bodyslam.plots import Figure
@@ -411,10 +399,7 @@ def _localize(args) -> int:
     from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, motion_rows, sequence_motion
 
     seq_dir = Path(args.seqdir)
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise InputError(f"{out}: directory is not empty (use --force to overwrite)")
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_output_dir(args.out, args.force)
     seq = Sequence.open(seq_dir, args.radius_m)
     meta = read_json(seq_dir / "meta.json")
     rf_meta = meta.get("rf") if isinstance(meta.get("rf"), dict) else {}

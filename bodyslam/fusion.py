@@ -52,6 +52,9 @@ from bodyslam.rf import Fix, PathLossModel
 __all__ = ["Step", "FusionResult", "process_noise", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes", "steps_from_motion_rows", "kf_thesis"]
 
 CHI2_3_999 = 16.27
+Z_GATE_999 = 3.29  # per-reading two-sided 99.9% gate on a normalised RSS innovation
+# divergence guard's covariance inflation: position (fixes: 4x their covariance; RSS: 5 cm), orientation 10 deg
+GUARD_FIX_COV_SCALE, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD = 4.0, 0.05, np.radians(10.0)
 
 
 @dataclass(frozen=True)
@@ -149,16 +152,21 @@ def _second_spread(q: np.ndarray) -> float:
     return float(sv[1] / np.sqrt(len(q)))
 
 
-def align_to_fixes(dr_positions: np.ndarray, fixes: list[Fix]) -> tuple[Rotation, np.ndarray, float]:
-    """Weighted Procrustes: ``R, p0`` with ``p0 + R q_k ~= z_k``; returns also the rms residual (m)."""
+def _paired_fixes(dr_positions: np.ndarray, fixes: list[Fix]):
+    """Dead-reckoned points ``q`` and the RF fixes ``z`` of the same frames (fixes that are ``ok``), the weights
+    ``w = 1 / tr(cov)`` and the weighted means ``qm``, ``zm``: the data of :func:`align_to_fixes`."""
     ok = [k for k, f in enumerate(fixes) if f.status == "ok" and k < len(dr_positions)]
     if len(ok) < 3:
         raise InputError("need at least 3 RF fixes to align the visual trajectory to the body frame")
     q = dr_positions[ok]
     z = np.array([fixes[k].position_w_m for k in ok])
     w = np.array([1.0 / max(np.trace(fixes[k].cov_m2), 1e-8) for k in ok])
-    qm = (w[:, None] * q).sum(0) / w.sum()
-    zm = (w[:, None] * z).sum(0) / w.sum()
+    return q, z, w, (w[:, None] * q).sum(0) / w.sum(), (w[:, None] * z).sum(0) / w.sum()
+
+
+def align_to_fixes(dr_positions: np.ndarray, fixes: list[Fix]) -> tuple[Rotation, np.ndarray, float]:
+    """Weighted Procrustes: ``R, p0`` with ``p0 + R q_k ~= z_k``; returns also the rms residual (m)."""
+    q, z, w, qm, zm = _paired_fixes(dr_positions, fixes)
     H = ((q - qm) * w[:, None]).T @ (z - zm)
     U, _, Vt = np.linalg.svd(H)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
@@ -207,9 +215,7 @@ class _Ekf:
                         resets[k] = d
                 if k in resets:
                     R, sig = resets[k]
-                    P = P.copy()
-                    P[3:, :3] = P[:3, 3:] = 0.0
-                    P[3:, 3:] = np.eye(3) * sig**2
+                    P = _with_orientation_sigma(P, sig)
                 if keep:
                     prior["F"].append(F)
             if keep:
@@ -244,8 +250,8 @@ class _Ekf:
                     return p, R, P
                 # divergence guard: after max_rejections gated fixes in a row the filter, not RF, is wrong
                 P = P.copy()
-                P[:3, :3] += 4.0 * f.cov_m2
-                P[3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
+                P[:3, :3] += GUARD_FIX_COV_SCALE * f.cov_m2
+                P[3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
             self.streak = 0
             Rm = f.cov_m2
         else:
@@ -259,15 +265,15 @@ class _Ekf:
             Rm = np.diag(sigma**2)
             S = H @ P @ H.T + Rm
             z2 = y * y / np.diag(S)
-            self.nll += 0.5 * float(np.sum(np.minimum(z2, 3.29**2) + np.log(np.diag(S))))
-            keep = z2 < 3.29**2  # per-reading 99.9% gate
+            self.nll += 0.5 * float(np.sum(np.minimum(z2, Z_GATE_999**2) + np.log(np.diag(S))))
+            keep = z2 < Z_GATE_999**2  # per-reading 99.9% gate
             self.rejected += int((~keep).sum())
             if keep.mean() < 0.5:  # most readings disagree with the prediction
                 self.streak += 1
                 if self.streak >= self.max_rejections:  # divergence guard (see the fix branch)
                     P = P.copy()
-                    P[:3, :3] += np.eye(3) * 0.05**2
-                    P[3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
+                    P[:3, :3] += np.eye(3) * GUARD_RSS_SIGMA_M**2
+                    P[3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
                     keep[:] = True
                     self.streak = 0
             else:
@@ -333,8 +339,8 @@ class _Ekf:
             guard = gated & (streak >= self.max_rejections)
             do = ~gated | guard
             P = P.copy()
-            P[guard, :3, :3] += 4.0 * f.cov_m2
-            P[guard, 3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
+            P[guard, :3, :3] += GUARD_FIX_COV_SCALE * f.cov_m2
+            P[guard, 3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
             streak = np.where(do, 0, streak)
             H = np.repeat(np.hstack([np.eye(3), np.zeros((3, 3))])[None], C, axis=0)
             Rm = np.repeat(f.cov_m2[None], C, axis=0)
@@ -354,14 +360,14 @@ class _Ekf:
             S = H @ P @ H.transpose(0, 2, 1) + sigma[:, :, None] ** 2 * np.eye(len(y[0]))[None]
             dS = np.diagonal(S, axis1=1, axis2=2)
             z2 = y * y / dS
-            nll = nll + 0.5 * np.sum(np.minimum(z2, 3.29**2) + np.log(dS), axis=1)
-            keep = z2 < 3.29**2
+            nll = nll + 0.5 * np.sum(np.minimum(z2, Z_GATE_999**2) + np.log(dS), axis=1)
+            keep = z2 < Z_GATE_999**2
             bad = keep.mean(axis=1) < 0.5
             streak = np.where(bad, streak + 1, 0)
             guard = bad & (streak >= self.max_rejections)
             P = P.copy()
-            P[guard, :3, :3] += np.eye(3) * 0.05**2
-            P[guard, 3:, 3:] += np.eye(3) * np.radians(10.0) ** 2
+            P[guard, :3, :3] += np.eye(3) * GUARD_RSS_SIGMA_M**2
+            P[guard, 3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
             keep[guard] = True
             streak = np.where(guard, 0, streak)
             do = keep.sum(axis=1) >= 1
@@ -421,12 +427,10 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         sig_theta = min(max(rms / (np.sqrt(m) * s2), np.radians(5.0)), np.radians(45.0))
         P = np.diag([rms**2 / m + 1e-4] * 3 + [sig_theta**2] * 3)
         if init_search and n > 3:
-            okf = [k for k in range(m) if fixes[k].status == "ok"]
-            z = np.array([fixes[k].position_w_m for k in okf])
-            wts = np.array([1.0 / max(np.trace(fixes[k].cov_m2), 1e-8) for k in okf])
+            *_, qm, zm = _paired_fixes(dr[:m], fixes[:m])
 
             def start_of(R):  # the weighted least-squares translation that goes with orientation R
-                return ((z - R.apply(dr[okf])) * wts[:, None]).sum(0) / wts.sum()
+                return zm - R.apply(qm)
 
             extra = []
             ok = np.array([s.ok for s in steps[: m - 1]])
@@ -448,11 +452,9 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
         if b not in gap_ends:
             return None
         sig = max(float(np.sqrt(np.trace(P_b[3:, 3:]) / 3)), np.radians(30.0))
-        P_b = P_b.copy()
-        P_b[3:, :3] = P_b[:3, 3:] = 0.0
-        P_b[3:, 3:] = np.eye(3) * sig**2
         p_b = p_b.copy()
-        R_new, _, info = _search_orientation(ekf, b, min(n, b + search_frames), R_b, lambda R: p_b, P_b, [])
+        R_new, _, info = _search_orientation(ekf, b, min(n, b + search_frames), R_b, lambda R: p_b,
+                                             _with_orientation_sigma(P_b, sig), [])
         info["frame"] = b
         search.append(info)
         return R_new, sig
@@ -471,6 +473,14 @@ def fuse(steps: list[Step], fixes: list[Fix] | None = None, rss: np.ndarray | No
                        "alignment": alignment,  # the rigid fit of the first window, before any search
                        "committed_positions_w_m": committed, "resets": {k: v[0] for k, v in resets.items()}})
     return res
+
+
+def _with_orientation_sigma(P: np.ndarray, sig_rad: float) -> np.ndarray:
+    """A copy of ``P`` whose orientation block is ``sig_rad^2 I``, uncorrelated with the position (a re-start)."""
+    P = P.copy()
+    P[3:, :3] = P[:3, 3:] = 0.0
+    P[3:, 3:] = np.eye(3) * sig_rad**2
+    return P
 
 
 def _gap_ends(steps: list[Step], min_len: int) -> list[int]:
@@ -623,7 +633,7 @@ def kf_thesis(steps: list[Step], fixes: list[Fix], init: tuple[Rotation, np.ndar
                 R_wc = resets[k]
                 x[3:] = R_wc.apply([0.0, 0.0, 1.0])
                 P[3:, :3] = P[:3, 3:] = 0.0
-                P[3:, 3:] = np.eye(3) * 0.5**2
+                P[3:, 3:] = np.eye(3) * 0.5**2  # the unit heading vector: 0.5 ~ 30 deg, the EKF's re-start sigma
         f = fixes[k]
         if f.status == "ok":
             H = np.hstack([np.eye(3), np.zeros((3, 3))])

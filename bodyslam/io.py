@@ -28,6 +28,7 @@ from bodyslam.errors import InputError
 
 __all__ = [
     "atomic_path",
+    "prepare_output_dir",
     "write_bytes_atomic",
     "write_text_atomic",
     "write_json",
@@ -80,6 +81,17 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def prepare_output_dir(out_dir: str | os.PathLike, force: bool) -> Path:
+    """Create ``out_dir``; refuse to write into a non-empty directory unless ``force``. Returns it as a Path."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a directory")
+    if out_dir.exists() and any(out_dir.iterdir()) and not force:
+        raise InputError(f"{out_dir}: directory is not empty (use --force to overwrite)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return out_dir
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.rf import PathLossModel
 
-__all__ = ["pcrb_positions", "smoothing_bound_positions", "efficient_mean_error"]
+__all__ = ["pcrb_positions", "smoothing_bound_positions", "position_bounds", "efficient_mean_error"]
 
 
 def _skew(v):
@@ -42,13 +42,13 @@ def _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k):
     return A, Q
 
 
-def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
-                   sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray, pl: PathLossModel,
-                   P0: np.ndarray, full: bool = False) -> np.ndarray:
-    """``tr(J_p^-1)`` per frame (m^2); with ``full`` the 3x3 position bounds ``J_p^-1`` (n, 3, 3).
-    ``sigma_t_m``, ``sigma_r_rad``: per-step process 1-sigma (n - 1,)."""
+def _forward(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, sensors_w_m, normals_w, pl, P0):
+    """The recursion of Eq. 28: per frame the position bound ``J_p^-1`` (n, 3, 3) and the whole filtering
+    bound ``J^-1`` (n, 6, 6); per step ``(A_k, Q_k)``."""
     n = len(positions_w_m)
-    out = np.zeros((n, 3, 3))
+    pos_bound = np.zeros((n, 3, 3))
+    full = np.zeros((n, 6, 6))
+    steps = []
 
     def info(p):
         _, sigma, Hp = pl.predict(p, sensors_w_m, normals_w)
@@ -56,44 +56,62 @@ def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
         Jm[:3, :3] = Hp.T @ (Hp / (sigma**2)[:, None])
         return Jm
 
-    J = np.linalg.inv(P0) + info(positions_w_m[0])
-
-    def bound(J):
+    def keep(k, J):
         Jp = J[:3, :3] - J[:3, 3:] @ np.linalg.solve(J[3:, 3:], J[3:, :3])
-        return np.linalg.inv(Jp)
+        pos_bound[k] = np.linalg.inv(Jp)
+        full[k] = np.linalg.inv(J)
 
-    out[0] = bound(J)
+    J = np.linalg.inv(P0) + info(positions_w_m[0])
+    keep(0, J)
     for k in range(n - 1):
         A, Q = _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k)
+        steps.append((A, Q))
         J = info(positions_w_m[k + 1]) + np.linalg.inv(Q + A @ np.linalg.solve(J, A.T))
-        out[k + 1] = bound(J)
+        keep(k + 1, J)
+    return pos_bound, full, steps
+
+
+def pcrb_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
+                   sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray, pl: PathLossModel,
+                   P0: np.ndarray, full: bool = False) -> np.ndarray:
+    """``tr(J_p^-1)`` per frame (m^2); with ``full`` the 3x3 position bounds ``J_p^-1`` (n, 3, 3).
+    ``sigma_t_m``, ``sigma_r_rad``: per-step process 1-sigma (n - 1,)."""
+    out = _forward(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, sensors_w_m, normals_w, pl, P0)[0]
     return out if full else np.trace(out, axis1=1, axis2=2)
+
+
+def position_bounds(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
+                    sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray, pl: PathLossModel,
+                    P0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The filtering bound (:func:`pcrb_positions`, ``full``) and the smoothing bound
+    (:func:`smoothing_bound_positions`) from one forward pass: ``(n, 3, 3)`` each, m^2."""
+    pos_bound, Pf, steps = _forward(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, sensors_w_m, normals_w,
+                                    pl, P0)
+    # The model is linear-Gaussian in the bound's linearisation, so the inverse of the whole run's Fisher
+    # information is what a Rauch-Tung-Striebel pass over the filtering bounds gives: O(n) memory, where the
+    # block-tridiagonal matrix itself would be (6n)^2 (29 GB for a 10,000-frame run).
+    Ps = Pf[-1].copy()
+    smooth = np.zeros_like(pos_bound)
+    smooth[-1] = Ps[:3, :3]
+    for k in range(len(Pf) - 2, -1, -1):
+        A, Q = steps[k]
+        P_pred = Q + A @ Pf[k] @ A.T
+        C = Pf[k] @ A.T @ np.linalg.inv(P_pred)
+        Ps = Pf[k] + C @ (Ps - P_pred) @ C.T
+        smooth[k] = Ps[:3, :3]
+    return pos_bound, smooth
 
 
 def smoothing_bound_positions(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m: np.ndarray,
                               sigma_r_rad: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray,
                               pl: PathLossModel, P0: np.ndarray) -> np.ndarray:
     """The Cramer-Rao bound of *smoothing* (every reading of the run used for every frame) with the model of
-    :func:`pcrb_positions`: the inverse of the whole run's Fisher information, block tridiagonal over the
-    states ``[p_k, theta_k]`` (prior, RSS information per frame, and per step ``x_(k+1) = A_k x_k + w``); returns
-    its 3x3 position blocks (n, 3, 3), m^2. This is the reference for an offline smoother (RTS), which the causal
-    PCRB does not bound."""
-    n = len(positions_w_m)
-    J = np.zeros((6 * n, 6 * n))
-    J[:6, :6] += np.linalg.inv(P0)
-    for k in range(n):
-        _, sigma, Hp = pl.predict(positions_w_m[k], sensors_w_m, normals_w)
-        J[6 * k:6 * k + 3, 6 * k:6 * k + 3] += Hp.T @ (Hp / (sigma**2)[:, None])
-    for k in range(n - 1):
-        A, Q = _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k)
-        Qi = np.linalg.inv(Q)
-        a, b = slice(6 * k, 6 * k + 6), slice(6 * k + 6, 6 * k + 12)
-        J[a, a] += A.T @ Qi @ A
-        J[a, b] -= A.T @ Qi
-        J[b, a] -= Qi @ A
-        J[b, b] += Qi
-    C = np.linalg.inv(J)
-    return np.array([C[6 * k:6 * k + 3, 6 * k:6 * k + 3] for k in range(n)])
+    :func:`pcrb_positions`: the inverse of the whole run's Fisher information (block tridiagonal over the
+    states ``[p_k, theta_k]``: prior, RSS information per frame, and per step ``x_(k+1) = A_k x_k + w``),
+    computed by a backward pass (:func:`position_bounds`); returns its 3x3 position blocks (n, 3, 3), m^2. This
+    is the reference for an offline smoother (RTS), which the causal PCRB does not bound."""
+    return position_bounds(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, sensors_w_m, normals_w, pl,
+                           P0)[1]
 
 
 def efficient_mean_error(bounds_m2: np.ndarray, n_samples: int = 20000) -> np.ndarray:

@@ -26,7 +26,7 @@ from bodyslam.fusion import fuse, kf_thesis, rts_smooth, steps_from_motion_rows
 from bodyslam.io import read_json, read_motion_csv, read_tum, write_image, write_json
 from bodyslam.plots import Figure
 from bodyslam.rf import PathLossModel, locate_ml, locate_nls, read_rf, read_sensors
-from testbed.bound import efficient_mean_error, pcrb_positions, smoothing_bound_positions
+from testbed.bound import efficient_mean_error, position_bounds
 from testbed.score import score_motion
 from testbed.simulate import prepare_output_dir, simulate
 
@@ -65,9 +65,8 @@ def evaluate_sequence(d: Path) -> dict:
     # prior of the bound: no information beyond the abdomen (10 cm, 45 deg); every RF reading counted once. The
     # filters' start aligns the first window of fixes, so over that window they are not strictly causal.
     P0 = np.diag([0.10**2] * 3 + [np.radians(45.0) ** 2] * 3)
-    bounds = pcrb_positions(gt, grot, sig_t, sig_r, pos, nrm, pl, P0, full=True)
+    bounds, smooth = position_bounds(gt, grot, sig_t, sig_r, pos, nrm, pl, P0)  # smooth: the smoother's reference
     pcrb = np.trace(bounds, axis1=1, axis2=2)
-    smooth = smoothing_bound_positions(gt, grot, sig_t, sig_r, pos, nrm, pl, P0)  # the smoother's reference
     errors = {k: np.linalg.norm(v - gt, axis=1) for k, v in est.items()}
     return {"estimates": est, "errors": errors, "pcrb_m2": pcrb, "pcrb_mean_error_m": efficient_mean_error(bounds),
             "smoothing_bound_m2": np.trace(smooth, axis1=1, axis2=2),

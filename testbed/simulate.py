@@ -29,9 +29,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodyslam import __version__
-from bodyslam.errors import InputError
 from bodyslam.geometry import relative_motion
-from bodyslam.io import frame_name, write_csv, write_image, write_json, write_tum
+from bodyslam.io import frame_name, prepare_output_dir, write_csv, write_image, write_json, write_tum
 from bodyslam.parallel import available_cores
 from testbed.motion import PHASES, CapsuleTrajectory, generate_motion, label_frames
 from testbed.render import RANGE_SCALE_M, RaycastRenderer, encode_range, make_renderer
@@ -42,15 +41,6 @@ log = logging.getLogger(__name__)
 __all__ = ["simulate", "prepare_output_dir"]
 
 _W: dict = {}  # per-process state of render workers (set before fork / in the initializer)
-
-
-def prepare_output_dir(out_dir: Path, force: bool) -> None:
-    """Refuse to write into a non-empty directory unless ``force``."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: exists and is not a directory")
-    if out_dir.exists() and any(out_dir.iterdir()) and not force:
-        raise InputError(f"{out_dir}: directory is not empty (use --force to overwrite)")
-    out_dir.mkdir(parents=True, exist_ok=True)
 
 
 def _pin_to_one_core() -> None:
