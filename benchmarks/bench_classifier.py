@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyslam.camera import camera_from_dict
 from bodyslam.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
-from bodyslam.io import frame_name, read_meta
+from bodyslam.io import frame_name
+from bodyslam.meta import read_meta
 from testbed.scenario import load_scenario
 from testbed.simulate import simulate
 
@@ -51,9 +51,9 @@ def dataset(dirs: list[Path]):
     X, y = [], []
     for d in dirs:
         meta = read_meta(d)
-        cam = camera_from_dict(meta["camera"])
+        cam = meta.camera_model()
         labels = np.loadtxt(d / "labels.csv", delimiter=",", skiprows=1, usecols=2, dtype=str)
-        paths = [d / "frames" / frame_name(k) for k in range(int(meta["n_frames"]))]
+        paths = [d / "frames" / frame_name(k) for k in range(meta.n_frames)]
         for (st, _, f), lab in zip(features_of_frames(paths, cam.fov_mask()), labels):
             if st == "ok":
                 X.append(f)

@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyslam.io import read_tum, write_csv
+from bodyslam.io import read_tum, write_motion_csv
 from bodyslam.matching import Matcher
 from bodyslam.motion import estimate_thesis, estimate_tube
-from bodyslam.tracking import MOTION_COLUMNS, Sequence, motion_rows
+from bodyslam.odometry import Sequence
 from bodyslam.unroll import Unroller
 from testbed.centerline import Centerline
 from testbed.scenario import load_scenario
@@ -80,7 +80,7 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
             f = matcher.features(seq.frame(k))
             m = matcher.match_features(prev, f)
             tube = estimate_tube(m, seq.camera, seq.radius_m)
-            if not tube.ok and m.method == "lk":  # as bodyslam.tracking.estimate_pair
+            if not tube.ok and m.method == "lk":  # as bodyslam.odometry.VisualOdometry.estimate_pair
                 m = matcher.match_features(prev, f, "descriptors")
                 tube = estimate_tube(m, seq.camera, seq.radius_m)
             prev = f
@@ -91,7 +91,7 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
         line = [f"seed {seed}: render {t_sim:.0f} s, motion {t_mot:.0f} s, off-centre steps {off.sum()}"]
         for est, st in steps.items():
             csv_path = d / f"motion_{est}.csv"
-            write_csv(csv_path, MOTION_COLUMNS, motion_rows(st, seq.frame_rate_hz))
+            write_motion_csv(csv_path, range(1, len(st) + 1), [k / seq.frame_rate_hz for k in range(1, len(st) + 1)], st)
             rep = score_motion(d, csv_path)
             (d / f"motion_{est}.score.json").write_text(json.dumps(rep, indent=1))
             per_seed[est].append(rep)

@@ -68,20 +68,18 @@ import numpy as np
 
 from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
-from bodyslam.io import atomic_path, read_json, write_csv, write_image, write_json
+from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
+from bodyslam.io import MOTION_COLUMNS, atomic_path, motion_row, read_json, step_from_row, write_csv, write_image, write_json
+from bodyslam.odometry import MotionSettings, chunk_bounds
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchSettings", "Exam", "open_exams", "read_calibration", "list_frames", "run_batch", "BatchReport",
-           "parse_frame_list", "read_marks", "process_chunk", "IMAGE_EXTS", "VIDEO_EXTS"]
+__all__ = ["BatchSettings", "Exam", "open_exams", "read_calibration", "run_batch", "BatchReport",
+           "parse_frame_list", "read_marks", "process_chunk"]
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
-VIDEO_EXTS = (".mp4", ".avi", ".wmv", ".mov", ".mkv", ".mpg", ".mpeg", ".m4v", ".asf")
-SIDECARS = {"meta.json", "rf.csv", "sensors.csv", "labels.csv", "groundtruth.tum", "motion_truth.csv",
-            "centerline.csv", "truth.json", "calibration.json", "mask.png"}
 FRAME_COLUMNS = ["frame", "file", "t", "class", "status"]
 PROBLEM_COLUMNS = ["exam", "file", "frame", "severity", "reason"]
-PLAN_VERSION = 1
+PLAN_VERSION = 2
 DEFAULT_FOV_DEG = 156.0  # PillCam SB
 DEFAULT_RADIUS_M = 0.0125  # small intestine, 2.5 cm lumen diameter (the thesis's testbed: 1.5 cm radius)
 DEFAULT_FPS = 2.0
@@ -90,14 +88,16 @@ DEFAULT_FPS = 2.0
 # -- exams ------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class BatchSettings:
-    match_mode: str = "fast"
-    estimator: str = "tube"
-    classify: bool = True
-    model: str | None = None
-    min_matches: int = 20
+    """The visual engine's settings (:class:`bodyslam.odometry.MotionSettings`, fast matcher by default) and the
+    batch's own: frames per checkpointed chunk and the fusion mode with RF."""
+
+    motion: MotionSettings = MotionSettings(match_mode="fast")
     chunk_frames: int = 100
     fusion: str = "rss"
-    classify_px: int | None = None  # see bodyslam.tracking.classify_work_px
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "BatchSettings":
+        return cls(MotionSettings.from_dict(d["motion"]), int(d["chunk_frames"]), str(d["fusion"]))
 
 
 @dataclass
@@ -124,6 +124,9 @@ class Exam:
     def index_of(self, pos: int) -> int:
         return self.frames[pos][0] if self.kind == "folder" else pos
 
+    def frame_source(self) -> FrameSource:
+        return FrameSource(self.kind, self.source, self.frame_rate_hz or 1.0, self.frames, self.n_frames)
+
     def describe(self) -> dict:
         """What the plan fingerprints: everything that changes results."""
         h = hashlib.sha256()
@@ -144,46 +147,6 @@ class Exam:
     @property
     def n_positions(self) -> int:
         return len(self.frames) if self.kind == "folder" else self.n_frames
-
-
-_NUM = re.compile(r"(\d+)")
-
-
-def list_frames(folder: str | os.PathLike) -> tuple[list[tuple[int, str]], list[list]]:
-    """Image files of a folder in frame order, and the problems found (non-image files, numbering gaps).
-
-    Returns ``([(index, name)], [[file, frame, severity, reason]])``. The index is the last number in the file
-    name; when names carry no numbers, the sorted position.
-    """
-    folder = Path(folder)
-    problems: list[list] = []
-    imgs, numbered = [], True
-    for entry in sorted(os.scandir(folder), key=lambda e: e.name):
-        if entry.name.startswith(".") or not entry.is_file() or entry.name in SIDECARS:
-            continue
-        ext = os.path.splitext(entry.name)[1].lower()
-        if ext not in IMAGE_EXTS:
-            problems.append([str(folder / entry.name), "", "warning", "not an image file (by extension): skipped"])
-            continue
-        nums = _NUM.findall(os.path.splitext(entry.name)[0])
-        numbered &= bool(nums)
-        imgs.append((int(nums[-1]) if nums else -1, entry.name))
-    if not numbered:
-        imgs = [(i, name) for i, (_, name) in enumerate(sorted(imgs, key=lambda x: x[1]))]
-    imgs.sort()
-    frames: list[tuple[int, str]] = []
-    for idx, name in imgs:
-        if frames and idx == frames[-1][0]:
-            problems.append([str(folder / name), idx, "warning",
-                             f"frame number {idx} also used by {frames[-1][1]}: skipped"])
-            continue
-        if frames and idx > frames[-1][0] + 1:
-            a, b = frames[-1][0] + 1, idx - 1
-            problems.append([str(folder), a, "warning",
-                             f"numbering gap: frame{'s' if b > a else ''} {a}{f'-{b}' if b > a else ''} missing "
-                             f"(the step from {frames[-1][0]} to {idx} spans {idx - frames[-1][0]} frame intervals)"])
-        frames.append((idx, name))
-    return frames, problems
 
 
 def read_calibration(path: str | os.PathLike, width: int | None = None, height: int | None = None) -> dict:
@@ -248,19 +211,6 @@ def read_calibration(path: str | os.PathLike, width: int | None = None, height: 
     cam["fov_deg"] = float(fov)
     camera_from_dict(cam)
     return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in cam.items()}
-
-
-def _first_frame_size(exam: Exam) -> tuple[int, int] | None:
-    if exam.kind == "video":
-        cap = cv2.VideoCapture(exam.source)
-        ok, img = cap.read()
-        cap.release()
-        return (img.shape[1], img.shape[0]) if ok else None
-    for _, name in exam.frames[:50]:
-        img = cv2.imread(os.path.join(exam.source, name), cv2.IMREAD_UNCHANGED)
-        if img is not None:
-            return img.shape[1], img.shape[0]
-    return None
 
 
 def parse_frame_list(text: str) -> list[int]:
@@ -379,23 +329,23 @@ def _read_manifest(path: Path) -> list[dict]:
 
 def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask, rf, sensors, marks,
                landmarks) -> Exam:
+    from bodyslam.meta import read_meta
+
     assumed: list[str] = []
-    meta: dict[str, Any] = {}
+    meta = None  # a sequence directory's validated meta.json (bodyslam.meta)
     if src.is_dir():
         kind = "folder"
         frames_dir = src
         if (src / "meta.json").is_file():
-            meta = read_json(src / "meta.json")
-            if not isinstance(meta, dict):
-                raise InputError(f"{src}/meta.json: not a JSON object")
-            frames_dir = src / meta.get("frames", {}).get("dir", "frames")
+            meta = read_meta(src)
+            frames_dir = src / meta.frames_dir
             if not frames_dir.is_dir():
                 raise InputError(f"{frames_dir}: frames directory not found")
         frames, problems = list_frames(frames_dir)
         if not frames:
             raise InputError(f"{src}: no image files found (looked in {frames_dir})")
-        n_meta = meta.get("n_frames")
-        if isinstance(n_meta, int) and frames[-1][0] < n_meta - 1:
+        n_meta = meta.n_frames if meta else None
+        if n_meta is not None and frames[-1][0] < n_meta - 1:
             a = frames[-1][0] + 1
             problems.append([str(frames_dir), a, "warning", f"frames {a}-{n_meta - 1} missing at the end "
                                                              f"(meta.json says {n_meta})"])
@@ -427,38 +377,40 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
     # camera: calibration file > meta.json > default (assumed)
     if calib:
         exam.camera = read_calibration(calib)
-    elif isinstance(meta.get("camera"), dict):
-        exam.camera = meta["camera"]
+    elif meta is not None:
+        exam.camera = meta.camera
     else:
-        size = _first_frame_size(exam)
+        size = exam.frame_source().first_size()
         if size is None:
             raise InputError(f"{src}: no readable frame to take the image size from")
         exam.camera = {"model": "equidistant", "width": size[0], "height": size[1], "fov_deg": DEFAULT_FOV_DEG}
         assumed.append(f"camera: equidistant fisheye {DEFAULT_FOV_DEG:g} deg at {size[0]}x{size[1]} (no calibration)")
     camera_from_dict(exam.camera)
-    if fps is None:
-        fps = meta.get("frame_rate_hz")
+    if fps is None and meta is not None:
+        fps = meta.frame_rate_hz
     if fps is None:
         fps = DEFAULT_FPS
         assumed.append(f"frame rate {DEFAULT_FPS:g} frames/s")
-    if not float(fps) > 0:
-        raise InputError(f"{src}: frame rate must be positive, got {fps}")
+    if not (math.isfinite(float(fps)) and float(fps) > 0):
+        raise InputError(f"{src}: frame rate must be a positive number, got {fps}")
     exam.frame_rate_hz = float(fps)
-    r = radius_m if radius_m is not None else meta.get("tube_radius_m")
+    r = radius_m if radius_m is not None else (meta.tube_radius_m if meta else None)
     if r is None:
         r = DEFAULT_RADIUS_M
         assumed.append(f"lumen radius {DEFAULT_RADIUS_M * 100:g} cm (distances scale with it)")
+    if not (math.isfinite(float(r)) and float(r) > 0):
+        raise InputError(f"{src}: lumen radius must be a positive number of metres, got {r}")
     exam.radius_m = float(r)
     exam.mask = mask
-    rf_meta = meta.get("rf") if isinstance(meta.get("rf"), dict) else {}
+    rf_meta = meta.rf if meta is not None else None
     if rf is None and sensors is None and src.is_dir() and rf_meta:
-        cand_rf, cand_s = src / rf_meta.get("file", "rf.csv"), src / rf_meta.get("sensors", "sensors.csv")
+        cand_rf, cand_s = src / rf_meta.file, src / rf_meta.sensors
         if cand_rf.is_file() and cand_s.is_file():
             rf, sensors = str(cand_rf), str(cand_s)
     if (rf is None) != (sensors is None):
         raise InputError(f"{src}: RF fusion needs both an rf.csv and a sensors.csv")
     exam.rf, exam.sensors = rf, sensors
-    exam.pathloss = rf_meta.get("pathloss") if rf else None
+    exam.pathloss = rf_meta.pathloss if (rf and rf_meta) else None
     exam.marks = list(marks)
     exam.landmarks = list(landmarks)
     exam.assumed = assumed
@@ -466,141 +418,17 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
 
 
 # -- per chunk (workers) ----------------------------------------------------------------------------------------
-_CACHE: dict = {}
-
-
-def _tools(camera_d: dict, settings: BatchSettings, mask: np.ndarray | None):
-    """Matcher, classifier and field of view for a worker, built once per process and settings."""
-    key = (json.dumps(camera_d, sort_keys=True), settings, None if mask is None else hashlib.sha1(mask).hexdigest())
-    if key not in _CACHE:
-        from bodyslam.classify import TunnelClassifier
-        from bodyslam.matching import Matcher
-
-        _CACHE.clear()
-        cam = camera_from_dict(camera_d)
-        clf = None
-        if settings.classify:
-            clf = TunnelClassifier.load(settings.model) if settings.model else TunnelClassifier.default()
-        fov = cam.fov_mask() if mask is None else mask
-        _CACHE[key] = (cam, Matcher(cam, settings.match_mode, mask=mask), clf, fov)
-    return _CACHE[key]
-
-
-def _decode(data: bytes, name: str) -> tuple[np.ndarray | None, list[tuple[str, str]]]:
-    """A frame's bytes -> RGB uint8, with ``(severity, reason)`` notes. ``None`` when unusable."""
-    if len(data) == 0:
-        return None, [("error", "empty file (0 bytes)")]
-    ext = os.path.splitext(name)[1].lower()
-    if ext in (".jpg", ".jpeg") and data[:2] == b"\xff\xd8" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
-        # libjpeg decodes a cut file into a grey-filled frame with only a warning: refuse it here
-        return None, [("error", "truncated JPEG (no end-of-image marker)")]
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        return None, [("error", "not a decodable image (corrupt, truncated or not an image)")]
-    notes = []
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-        notes.append(("warning", "16-bit frame: scaled to 8 bits"))
-    elif img.dtype != np.uint8:
-        return None, [("error", f"unsupported pixel type {img.dtype}")]
-    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
-        img = cv2.cvtColor(img.reshape(img.shape[:2]), cv2.COLOR_GRAY2RGB)
-        notes.append(("warning", "grayscale frame: read as RGB"))
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    else:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    return img, notes
-
-
-def _chunk_frames(task: dict) -> Iterator[tuple[int, int, str, np.ndarray | None, list]]:
-    """``(position, index, file, rgb or None, notes)`` for the chunk's positions; a video that ends early
-    yields a last item with index -1."""
-    if task["kind"] == "folder":
-        for pos, (idx, name) in zip(range(task["first"], task["last"] + 1), task["frames"]):
-            path = os.path.join(task["source"], name)
-            try:
-                with open(path, "rb") as f:
-                    data = f.read()
-            except OSError as exc:
-                yield pos, idx, path, None, [("error", f"cannot read ({exc.strerror or exc})")]
-                continue
-            img, notes = _decode(data, name)
-            yield pos, idx, path, img, notes
-        return
-    cap = cv2.VideoCapture(task["source"])
-    try:
-        if task["first"] > 0:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, task["first"])
-        for pos in range(task["first"], task["last"] + 1):
-            ok, bgr = cap.read()
-            if not ok:
-                yield pos, -1, task["source"], None, [("error", f"video unreadable from frame {pos} on "
-                                                               f"(the container says {task['n_total']} frames)")]
-                return
-            yield pos, pos, task["source"], cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), []
-    finally:
-        cap.release()
-
-
 def process_chunk(task: dict) -> dict:
-    """Frames ``first..last`` of one exam: class and status per frame, motion of every step into them.
+    """Positions ``first..last`` of one exam through the visual engine (:mod:`bodyslam.odometry`): class and
+    status per frame, the motion of every step into them. Pure and deterministic (the result depends only on
+    the frames and settings), so chunks can run anywhere, in any order. Returns a JSON-serialisable dict, which
+    is the chunk's checkpoint file."""
+    from bodyslam.odometry import chunk_task
 
-    Pure and deterministic (the result depends only on the frames and settings), so chunks can run anywhere,
-    in any order. Returns a JSON-serialisable dict (see module docstring).
-    """
-    from bodyslam.classify import frame_features, frame_status
-    from bodyslam.motion import StepMotion
-    from bodyslam.tracking import classify_work_px, estimate_pair, estimate_step, motion_row
-    from bodyslam.unroll import Unroller
-
-    cv2.setNumThreads(1)
-    settings = BatchSettings(**task["settings"])
-    mask = None if task["mask"] is None else np.asarray(task["mask"], bool)
-    cam, matcher, clf, fov = _tools(task["camera"], settings, mask)
-    fps = task["frame_rate_hz"]
-    px = classify_work_px(settings)
-    unroller = Unroller(cam) if settings.estimator == "thesis" else None  # once per chunk, not per step
-    frames_out, steps_out, problems = [], [], []
-    prev = None  # (index, features or None, class)
-    eof = None
-    for pos, idx, path, img, notes in _chunk_frames(task):
-        if idx < 0:
-            problems.append([path, pos, "error", notes[0][1]])
-            eof = pos
-            break
-        own = pos > task["first"] or task["first"] == 0  # the seam frame belongs to the previous chunk
-        if img is not None and img.shape[:2] != (cam.height, cam.width):
-            notes = notes + [("error", f"size {img.shape[1]}x{img.shape[0]} is not the camera's "
-                                       f"{cam.width}x{cam.height}")]
-            img, status = None, "bad_size"
-        else:
-            status = "unreadable" if img is None else "ok"
-        if own:
-            problems.extend([path, idx, sev, reason] for sev, reason in notes)
-        feats, cls = None, ""
-        if img is not None:
-            feats = matcher.features(img)
-            if clf is None:
-                cls = "FT"
-            else:
-                status = frame_status(img, fov)
-                cls = "FL" if status != "ok" else str(clf.predict(frame_features(img, fov, work_px=px)[None])[0])
-        if own:
-            frames_out.append([idx, os.path.basename(path) if task["kind"] == "folder" else f"#{idx}",
-                               idx / fps, cls, status])
-        if pos > task["first"]:
-            if prev is None or prev[1] is None or feats is None:
-                s = StepMotion(status="bad_frame")
-            elif prev[2] != "FT" or cls != "FT":
-                s = StepMotion(status="no_lumen")
-            else:
-                s = estimate_pair(matcher, prev[1], feats,
-                                  lambda m: estimate_step(settings, m, cam, unroller, task["radius_m"]))
-            steps_out.append(motion_row(idx, idx / fps, s))
-        prev = (idx, feats, cls)
-    return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"], "frames": frames_out,
-            "steps": steps_out, "problems": problems, "eof": eof}
+    res = chunk_task(task)
+    return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"],
+            "frames": res.frames, "steps": [motion_row(idx, t, s) for _, idx, t, s in res.steps],
+            "problems": res.problems, "eof": res.eof}
 
 
 # -- the run ----------------------------------------------------------------------------------------------------
@@ -612,13 +440,6 @@ class BatchReport:
     n_errors: int
     chunks_computed: int
     chunks_reused: int
-
-
-def _chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
-    if n <= 1:
-        return [(0, max(n - 1, 0))]
-    b = list(range(0, n - 1, size)) + [n - 1]
-    return [(b[i], b[i + 1]) for i in range(len(b) - 1)]
 
 
 def code_fingerprint() -> str:
@@ -663,33 +484,14 @@ def _prepare_out(out: Path, plan: dict, force: bool) -> None:
 
 
 def _mask_for(exam: Exam) -> np.ndarray | None:
-    if exam.mask is None:
-        return None
-    if exam.mask == "auto":
-        from bodyslam.matching import detect_fov_mask
+    from bodyslam.odometry import resolve_mask
 
-        n = exam.n_positions
-        ks = np.unique(np.linspace(0, n - 1, min(30, n)).astype(int))
-        task = {"kind": exam.kind, "source": exam.source, "n_total": n}
-        frames = []
-        for k in ks:
-            t = dict(task, first=int(k), last=int(k), frames=exam.frames[k:k + 1])
-            for _, _, _, img, _ in _chunk_frames(t):
-                if img is not None:
-                    frames.append(img)
-        return detect_fov_mask(frames)
-    img = cv2.imread(exam.mask, cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise InputError(f"{exam.mask}: mask is not a readable image")
-    cam = exam.camera
-    if img.shape != (cam["height"], cam["width"]):
-        raise InputError(f"{exam.mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are "
-                         f"{cam['width']}x{cam['height']}")
-    return img > 0
+    return resolve_mask(exam.frame_source(), camera_from_dict(exam.camera), exam.mask)
 
 
-def _run_tasks(tasks: list[dict], jobs: int | None, scheduler: str | None) -> Iterator[dict]:
-    """Results of ``process_chunk`` as they finish (any order)."""
+def _run_tasks(func, tasks: list[dict], jobs: int | None, scheduler: str | None, ordered: bool = False) -> Iterator:
+    """``func(task)`` for every task: on a Dask cluster (``scheduler``) or local worker processes; as they
+    finish (any order) unless ``ordered``."""
     if not tasks:
         return
     if scheduler:
@@ -702,15 +504,19 @@ def _run_tasks(tasks: list[dict], jobs: int | None, scheduler: str | None) -> It
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
         try:
-            futures = client.map(process_chunk, tasks, pure=False)
-            for fut in as_completed(futures):
-                yield fut.result()
+            futures = client.map(func, tasks, pure=False)
+            if ordered:
+                for fut in futures:
+                    yield fut.result()
+            else:
+                for fut in as_completed(futures):
+                    yield fut.result()
         finally:
             client.close()
         return
     from bodyslam.parallel import imap_tasks
 
-    yield from imap_tasks(process_chunk, tasks, jobs, ordered=False)
+    yield from imap_tasks(func, tasks, jobs, ordered=ordered)
 
 
 def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings = BatchSettings(),
@@ -726,25 +532,25 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     t0 = time.monotonic()
     tasks, reused, total = [], 0, sum(e.n_positions for e in exams)
     done_frames = 0
+    masks = {}
     for e in exams:
         (out / e.name / "chunks").mkdir(parents=True, exist_ok=True)
-        mask = _mask_for(e)
-        for i, (a, b) in enumerate(_chunk_bounds(e.n_positions, settings.chunk_frames)):
+        masks[e.name] = mask = _mask_for(e)
+        src = e.frame_source()
+        for i, (a, b) in enumerate(chunk_bounds(e.n_positions, settings.chunk_frames)):
             f = out / e.name / "chunks" / f"chunk_{i:06d}.json"
             if _valid_chunk(f, i):
                 reused += 1
                 done_frames += b - a + (a == 0)
                 continue
-            tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "kind": e.kind, "source": e.source,
-                          "frames": e.frames[a:b + 1] if e.kind == "folder" else [], "n_total": e.n_positions,
-                          "camera": e.camera, "frame_rate_hz": e.frame_rate_hz, "radius_m": e.radius_m,
-                          "settings": asdict(settings), "mask": mask})
+            tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "source": src.subset(a, b),
+                          "camera": e.camera, "radius_m": e.radius_m, "settings": settings.motion, "mask": mask})
     if reused:
         log.info("%d chunk(s) reused from an earlier run", reused)
     if progress:
         progress(done_frames, total)
     by_key = {(t["exam"], t["chunk"]): t for t in tasks}
-    for res in _run_tasks(tasks, jobs, scheduler):
+    for res in _run_tasks(process_chunk, tasks, jobs, scheduler):
         task = by_key[(res["exam"], res["chunk"])]
         # the JSON text of a result is the checkpoint; it is read back the same way on resume
         path = out / task["exam"] / "chunks" / f"chunk_{task['chunk']:06d}.json"
@@ -753,6 +559,8 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
         done_frames += task["last"] - task["first"] + (task["first"] == 0)
         if progress:
             progress(done_frames, total)
+    for e in exams:
+        _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
     summaries, all_problems = [], []
     for e in exams:
         s, probs = _finalize(e, out / e.name, settings)
@@ -782,24 +590,54 @@ def _iter_chunks(exam_dir: Path) -> Iterator[dict]:
         yield json.loads(f.read_text(encoding="utf-8"))
 
 
+def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
+    """Bridge the exam's gaps (:func:`bodyslam.odometry.bridge_gaps`, the rule ``bodyslam motion`` follows)
+    once all its chunks are done; the result is a checkpoint too (``bridges.json``: ``{step item: row}``)."""
+    from bodyslam.odometry import bridge_gaps
+    from bodyslam.steps import StepStatus
+
+    f = d / "bridges.json"
+    if f.is_file():
+        try:
+            json.loads(f.read_text(encoding="utf-8"))["bridged"]
+            return
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    statuses = []
+    for ch in _iter_chunks(d):
+        statuses.extend(StepStatus(row[8]) for row in ch["steps"])
+        if ch["eof"] is not None:
+            break
+    base = {"source": exam.frame_source(), "camera": exam.camera, "settings": settings.motion,
+            "radius_m": exam.radius_m, "mask": mask}
+    shares = bridge_gaps(statuses, settings.motion, base, jobs,
+                         run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
+    with atomic_path(f) as tmp:
+        tmp.write_text(json.dumps({"bridged": {str(i): motion_row(0, 0.0, s) for i, s in sorted(shares.items())}}),
+                       encoding="utf-8")
+
+
 def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[list]]:
-    """Rebuild an exam's outputs from its chunk files (streamed)."""
+    """Rebuild an exam's outputs from its chunk files and bridges (streamed)."""
     from scipy.spatial.transform import Rotation
 
     from bodyslam.fusion import DeadReckoner
-    from bodyslam.io import read_motion_csv
-    from bodyslam.tracking import MOTION_COLUMNS
+    from bodyslam.io import write_tum
+    from bodyslam.localize import write_uncertainty
+    from bodyslam.tracking import path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
-    acc = _Track(n_expected)  # ~100 bytes per frame, preallocated
+    acc = _Track(n_expected)  # ~150 bytes per frame, preallocated
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
+    bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
     dr = DeadReckoner()
     eof = None
+    item = 0
     with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
             open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
-        fw, mw = csv.writer(ff), csv.writer(mf)
+        fw, mw = csv.writer(ff, lineterminator="\n"), csv.writer(mf, lineterminator="\n")
         fw.writerow(FRAME_COLUMNS)
         mw.writerow(MOTION_COLUMNS)
         for ch in _iter_chunks(d):
@@ -807,36 +645,44 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
             fr = iter(ch["frames"])
             if ch["first"] == 0 and ch["frames"]:
                 row = next(fr)
-                fw.writerow(row)
-                acc.record(row, dr, classes)
+                fw.writerow(_csv_cells(row))
+                acc.record(row, dr, classes, (math.nan, 0.0))
             for row, step in zip(fr, ch["steps"]):
-                fw.writerow(row)
-                mw.writerow(step)
+                if str(item) in bridged:
+                    step = step[:2] + bridged[str(item)][2:]
+                item += 1
+                s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
+                fw.writerow(_csv_cells(row))
+                mw.writerow(_csv_cells(step))
                 statuses[step[8]] = statuses.get(step[8], 0) + 1
-                dr.step(_step_of(step))
-                acc.record(row, dr, classes)
+                dr.step(s)
+                acc.record(row, dr, classes, step_length(s))
             if ch["eof"] is not None:
                 eof = ch["eof"]
                 break
     n = acc.n
-    t, P, Q, sd = acc.t[:n], acc.pos[:n], acc.quat[:n], acc.sd[:n]
-    path_m, path_var, frame_idx = acc.path[:n], acc.var[:n], acc.frame[:n].tolist()
+    t, P, Q = acc.t[:n], acc.pos[:n], acc.quat[:n]
+    frame_idx = acc.frame[:n].tolist()
+    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n])
+    cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
     fused = None
     if exam.rf and n >= 2:
-        fused = _fuse(exam, d, t, read_motion_csv(d / "motion.csv"), frame_idx, settings, problems)
+        fused = _fuse(exam, d, t, frame_idx, settings, problems)
         if fused is not None:
-            P, Q, sd = fused
-    from bodyslam.io import write_tum
-
+            P, Q, cov, sd_head = (fused.smoothed.positions_w_m, fused.smoothed.rotations_w_c.as_quat(),
+                                  fused.smoothed.cov[:, :3, :3],
+                                  np.sqrt(np.trace(fused.smoothed.cov[:, 3:, 3:], axis1=1, axis2=2)))
+    sd = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q))
-    write_csv(d / "uncertainty.csv", ["frame", "t", "sd_position_m", "path_m", "sd_path_m"],
-              [[frame_idx[k], t[k], sd[k], path_m[k], math.sqrt(path_var[k])] for k in range(n)])
+    write_uncertainty(d / "uncertainty.csv", frame_idx, t, cov, sd_head, path_m, path_var)
     marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems)
     _plots(exam, d, t, P, path_m, fused is not None)
+    classified = settings.motion.classify
     summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
                "frames_expected": n_expected, "video_ended_at": eof,
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
-               "classes": {"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]},
+               "classes": ({"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]} if classified
+                           else "not classified"),
                "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": "fused (RF + vision, RTS-smoothed)" if fused is not None else "dead reckoning",
@@ -846,20 +692,26 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     return summary, problems
 
 
+def _csv_cells(row: list) -> list:
+    """A chunk row as CSV cells, formatted as :func:`bodyslam.io.write_csv` does (so files are identical)."""
+    return [f"{x:.9g}" if isinstance(x, float) else x for x in row]
+
+
 class _Track:
-    """Per-frame numbers the outputs need after streaming (positions, path length), in preallocated arrays."""
+    """Per-frame numbers the outputs need after streaming (pose, covariance, step length), preallocated."""
 
     def __init__(self, n: int):
         self.n = 0
         self.frame = np.zeros(n, np.int64)
-        self.t, self.sd, self.path, self.var = (np.zeros(n) for _ in range(4))
+        self.t, self.sd_heading, self.length, self.length_var = (np.zeros(n) for _ in range(4))
         self.pos = np.zeros((n, 3))
         self.quat = np.zeros((n, 4))
+        self.cov = np.zeros((n, 3, 3))
 
-    def record(self, row: list, dr, classes: dict) -> None:
+    def record(self, row: list, dr, classes: dict, length_var: tuple[float, float]) -> None:
         k = self.n
         if k >= len(self.t):  # more frames than planned (cannot happen for folders; a video may say less)
-            for name in ("frame", "t", "sd", "path", "var", "pos", "quat"):
+            for name in ("frame", "t", "sd_heading", "length", "length_var", "pos", "quat", "cov"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.zeros_like(a[: max(len(a), 16)])]))
         self.frame[k] = int(row[0])
@@ -867,59 +719,28 @@ class _Track:
         classes[row[3]] = classes.get(row[3], 0) + 1
         self.pos[k] = dr.p_w_m
         self.quat[k] = dr.R_w_c.as_quat()
-        self.sd[k] = math.sqrt(max(float(np.trace(dr.P[:3, :3])), 0.0))
-        self.path[k] = dr.path_m
-        self.var[k] = dr.path_var_m2
+        self.cov[k] = dr.P[:3, :3]
+        self.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
+        self.length[k], self.length_var[k] = length_var
         self.n = k + 1
 
 
-def _step_of(row: list):
-    from scipy.spatial.transform import Rotation
-
-    from bodyslam.fusion import Step
-
-    if row[8] not in ("ok", "bridged"):
-        return Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False)
-    v = np.array(row[9:17], float)
-    if not np.isfinite(v[:6]).all():
-        return Step(Rotation.identity(), np.zeros(3), 0.0, 0.0, False)
-    return Step(Rotation.from_rotvec(v[3:6]), v[:3], v[6] if np.isfinite(v[6]) else 1e-3,
-                v[7] if np.isfinite(v[7]) else math.radians(1.0), True)
-
-
-def _fuse(exam: Exam, d: Path, t: np.ndarray, rows: dict, frame_idx: list[int], settings: BatchSettings,
+def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: BatchSettings,
           problems: list[list]):
-    from bodyslam.fusion import fuse, rts_smooth
-    from bodyslam.io import write_tum
-    from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
+    """The exam's localization (:func:`bodyslam.localize.localize`), or None with the reason listed."""
+    from bodyslam.io import read_motion_steps, write_tum
+    from bodyslam.localize import RfInput, localize
 
     try:
-        names, spos, snrm = read_sensors(exam.sensors)
-        stamps, rss_t, rf_probs = read_rf(exam.rf, names)
+        rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
+        steps = read_motion_steps(d / "motion.csv", frame_idx[1:])
+        loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion)
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
         return None
-    problems.extend([exam.rf, "", "warning", msg] for msg in rf_probs)
-    pl = PathLossModel.from_dict(exam.pathloss) if exam.pathloss else PathLossModel()
-    rss = rss_per_frame(stamps, rss_t, t, exam.frame_rate_hz)
-    steps = [_step_of(_row_list(rows.get(k))) for k in frame_idx[1:]]
-    fixes = [locate_ml(spos, snrm, r, pl) for r in rss]
-    if sum(f.status == "ok" for f in fixes) < 3:
-        problems.append([exam.rf, "", "error", "RF not used: fewer than 3 frames with an RF fix"])
-        return None
-    ekf = fuse(steps, fixes, rss, spos, snrm, pl, mode=settings.fusion)
-    res = rts_smooth(ekf)
-    write_tum(d / "trajectory_filter.tum", t, ekf.positions_w_m, ekf.rotations_w_c)
-    sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
-    return res.positions_w_m, res.rotations_w_c.as_quat(), sd
-
-
-def _row_list(r: dict | None) -> list:
-    from bodyslam.tracking import MOTION_COLUMNS
-
-    if r is None:
-        return [0] * 8 + ["missing"] + [float("nan")] * 8
-    return [r.get(c, float("nan")) for c in MOTION_COLUMNS]
+    problems.extend([exam.rf, "", "warning", msg] for msg in rf.problems)
+    write_tum(d / "trajectory_filter.tum", t, loc.filtered.positions_w_m, loc.filtered.rotations_w_c)
+    return loc
 
 
 def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var, problems) -> list[list]:

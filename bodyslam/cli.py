@@ -1,22 +1,12 @@
-"""The ``bodyslam`` command: the pipeline's stages for users (one subcommand per stage as they land).
+"""The ``bodyslam`` command: the pipeline's stages for users, one subcommand per stage.
 
-Subcommands
------------
-check SEQDIR                         read meta.json and every frame (streamed), report bad frames by name
-match A.png B.png --out vis.png     verified feature matches as motion vectors, in the image and unrolled
-unroll FRAME --out unrolled.png     inverse cylindrical projection (L x H), exact or the thesis's Eq. 3.11
-motion SEQDIR --out motion.csv      per-step distance, roll, pitch, yaw, tilt (SPEC.md columns)
-track SEQDIR --out trajectory.tum   dead reckoning of the per-step motion (TUM)
-speed-stats motion.csv --out DIR    speed PDF/CDF plots and a fitted speed model for `testbed simulate`
-segment FRAME --out seg.png         SRM segmentation, regions in their mean colours (Fig. 3.3)
-train-classifier SEQDIR... --out M  train the FT/FL kernel SVM on testbed sequences (labels.csv)
-classify INPUT --out classes.csv    FT/FL per frame (sequence directory or folder of frames)
-rf-localize --rf rf.csv --sensors sensors.csv --out fixes.csv   RF-only position fixes (LLS, NLS, ML)
-localize SEQDIR [--rf rf.csv --sensors sensors.csv] --out DIR    Body-SLAM: vision + RF fusion, smoothed
-batch INPUT... --out DIR [--mark FRAMES]   whole exams (folders, videos, manifests): resumable, parallel
+Every subcommand is thin: it parses, calls one library function and prints. ``bodyslam <cmd> --help`` shows a
+one-line description and an example. The option lists come from :mod:`bodyslam.choices` (no OpenCV or SciPy at
+start-up, so ``--help`` is quick).
 
-The camera comes from the sequence's meta.json, or for single images from ``--meta`` (a meta.json or
-sequence directory) -- default: an equidistant 156-degree fisheye of the image's size.
+Exit status, the same for every subcommand: 0 done; 3 done, with problems listed (bad frames, skipped RF
+lines, a bad exam of a study); 1 unusable input (one line on stderr naming the file, line and field); 130
+interrupted (Ctrl-C: finished outputs and checkpoints are kept, nothing half-written is left).
 """
 
 from __future__ import annotations
@@ -24,49 +14,72 @@ from __future__ import annotations
 import argparse
 import sys
 
+from bodyslam.choices import CAMERAS, ESTIMATORS, FUSION_MODES, MATCH_MODES, SCHEMES, TRACKERS, UNROLL_MODES
 from bodyslam.cliutil import Progress, run_cli
-from bodyslam.io import prepare_output_dir
-from bodyslam.matching import MATCH_MODES
-from bodyslam.motion import ESTIMATORS
-from bodyslam.pf import TRACKERS
-from bodyslam.toa_doa import SCHEMES
+
+DONE, UNUSABLE, PROBLEMS = 0, 1, 3
+
+# name: (one-line description, example)
+COMMANDS = {
+    "check": ("validate a sequence directory: meta.json and every frame",
+              "bodyslam check runs/thesis_7"),
+    "match": ("match two frames; draw the motion vectors in the image and unrolled",
+              "bodyslam match A.png B.png --meta runs/thesis_7 --out vis.png"),
+    "unroll": ("unroll a frame (inverse cylindrical projection, Eq. 3.11 or exact)",
+               "bodyslam unroll A.png --meta runs/thesis_7 --out unrolled.png"),
+    "motion": ("per-step motion of a sequence (distance, roll, pitch, yaw, tilt) -> motion.csv",
+               "bodyslam motion runs/thesis_7 --out runs/thesis_7/motion.csv"),
+    "track": ("dead-reckoned trajectory of a sequence -> TUM (world = the first frame's camera)",
+              "bodyslam track runs/thesis_7 --out trajectory.tum"),
+    "speed-stats": ("speed PDF/CDF and a speed model for 'testbed simulate' from a motion.csv",
+                    "bodyslam speed-stats runs/thesis_7/motion.csv --out runs/speed"),
+    "segment": ("SRM segmentation of a frame, regions in their mean colours (Fig. 3.3)",
+                "bodyslam segment A.png --out seg.png"),
+    "train-classifier": ("train the FT/FL kernel SVM on testbed sequences (labels.csv)",
+                         "bodyslam train-classifier runs/cls_1 runs/cls_2 --out model.npz"),
+    "classify": ("FT/FL per frame with the kernel SVM -> classes.csv",
+                 "bodyslam classify runs/thesis_7 --out classes.csv"),
+    "rf-localize": ("RF-only position per reading time (LLS Eq. 2.12, NLS Eq. 3.36, ML) -> fixes.csv",
+                    "bodyslam rf-localize --rf rf.csv --sensors sensors.csv --out fixes.csv"),
+    "localize": ("Body-SLAM: motion from the frames fused with RF (EKF + RTS smoother) -> DIR",
+                 "bodyslam localize runs/thesis_7 --out runs/thesis_7/localize"),
+    "batch": ("whole exams (frame folders, videos, manifests): resumable, parallel, with marked frames",
+              "bodyslam batch exam.mp4 --calib calib.yaml --out runs/exam --mark 1200,4410"),
+    "hybrid-localize": ("TOA/DOA at two URAs + IMU (paper 000): EKF of Algorithm 1 or a reference scheme",
+                        "bodyslam hybrid-localize runs/jeong_1 --out runs/jeong_1/est"),
+    "rf-track": ("particle-filter RF tracking (papers 002/003): UWB TOA + permittivity, or MICS RSSI",
+                 "bodyslam rf-track runs/ito_1 --method toa_rssi_pf --out runs/ito_1/est"),
+    "magnetic-localize": ("magnetic capsule (paper 001): 6-DOF EKF on recorded Hall readings",
+                          "bodyslam magnetic-localize runs/popek_1 --out runs/popek_1/est"),
+}
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bodyslam", description="Body-SLAM capsule localization toolkit")
+    p = argparse.ArgumentParser(prog="bodyslam", description="Body-SLAM capsule localization toolkit. Exit "
+                                "status: 0 done, 3 done with problems listed, 1 unusable input, 130 interrupted.")
     p.add_argument("-v", "--verbose", action="store_true", help="log progress details")
-    sub = p.add_subparsers(dest="cmd", required=True)
-    c = sub.add_parser("check", help="validate a sequence directory (meta.json, every frame)")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    def cmd(name):
+        desc, example = COMMANDS[name]
+        return sub.add_parser(name, help=desc, description=f"{desc}.", epilog=f"example: {example}",
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+
+    c = cmd("check")
     c.add_argument("seqdir")
 
-    def motion_opts(q, estimator=True):
-        q.add_argument("--mode", default="sift", choices=MATCH_MODES,
-                       help="feature matcher: asift (thesis), sift (default), fast")
+    def motion_opts(q, estimator=True, default_mode="sift"):
+        q.add_argument("--mode", default=default_mode, choices=MATCH_MODES,
+                       help=f"feature matcher: asift (thesis), sift, fast (default: {default_mode})")
         if estimator:
             q.add_argument("--estimator", default="tube", choices=ESTIMATORS,
                            help="tube: 6-DOF tube-constrained solve (default); thesis: Eq. 3.14-3.22")
-            q.add_argument("--unroll-mode", default="exact", choices=("exact", "thesis"),
+            q.add_argument("--unroll-mode", default="exact", choices=UNROLL_MODES,
                            help="angular depth for the thesis estimator: camera model or linear Eq. 3.11")
             q.add_argument("--radius-m", type=float, default=None,
                            help="lumen radius in metres (default: meta.json tube_radius_m)")
 
-    m = sub.add_parser("match", help="match two frames; draw motion vectors in the image and unrolled domain")
-    m.add_argument("a")
-    m.add_argument("b")
-    m.add_argument("--out", required=True)
-    m.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
-    motion_opts(m, estimator=False)
-    u = sub.add_parser("unroll", help="unroll a frame (inverse cylindrical projection)")
-    u.add_argument("frame")
-    u.add_argument("--out", required=True)
-    u.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
-    u.add_argument("--size", type=int, nargs=2, default=(500, 300), metavar=("L", "H"))
-    u.add_argument("--unroll-mode", default="exact", choices=("exact", "thesis"))
-    for name, hlp, out in (("motion", "per-step motion of a sequence", "motion.csv"),
-                           ("track", "dead-reckoned trajectory of a sequence", "trajectory.tum")):
-        q = sub.add_parser(name, help=hlp)
-        q.add_argument("seqdir")
-        q.add_argument("--out", required=True, help=f"output {out}")
+    def frame_opts(q):
         q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
         q.add_argument("--mask", default=None,
                        help="valid field of view: 'auto' (detect black border and burned-in text from the frames)"
@@ -74,45 +87,61 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--no-classify", action="store_true",
                        help="estimate every step; by default steps touching a facing-the-wall frame get no_lumen")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
-        q.add_argument("--camera", default="front", choices=("front", "rear"),
-                       help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
         q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
                        help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
+
+    m = cmd("match")
+    m.add_argument("a")
+    m.add_argument("b")
+    m.add_argument("--out", required=True)
+    m.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
+    motion_opts(m, estimator=False)
+    u = cmd("unroll")
+    u.add_argument("frame")
+    u.add_argument("--out", required=True)
+    u.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
+    u.add_argument("--size", type=int, nargs=2, default=(500, 300), metavar=("L", "H"))
+    u.add_argument("--unroll-mode", default="exact", choices=UNROLL_MODES)
+    for name, out in (("motion", "motion.csv"), ("track", "trajectory.tum")):
+        q = cmd(name)
+        q.add_argument("seqdir")
+        q.add_argument("--out", required=True, help=f"output {out}")
+        q.add_argument("--camera", default="front", choices=CAMERAS,
+                       help="which camera of a dual-camera capsule (rear: reported in the capsule body frame)")
+        frame_opts(q)
         motion_opts(q)
-    sg = sub.add_parser("segment", help="SRM segmentation of a frame, regions in their mean colours")
+    sg = cmd("segment")
     sg.add_argument("frame")
     sg.add_argument("--out", required=True)
     sg.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
     sg.add_argument("--q", type=float, default=16.0, help="SRM coarseness Q (dissertation: 16)")
     sg.add_argument("--full", action="store_true", help="segment at full resolution (slow) instead of 96 px")
-    tc = sub.add_parser("train-classifier", help="train the FT/FL classifier on testbed sequences")
+    tc = cmd("train-classifier")
     tc.add_argument("seqdirs", nargs="+")
     tc.add_argument("--out", required=True, help="model file (.npz)")
     tc.add_argument("--features", default="rich", choices=("nine", "rich"),
                     help="nine: the dissertation's features; rich: nine + five (default)")
     tc.add_argument("--jobs", type=int, default=None)
-    cl = sub.add_parser("classify", help="FT/FL per frame with the kernel SVM")
+    cl = cmd("classify")
     cl.add_argument("input", help="a sequence directory (meta.json) or a folder of frames")
     cl.add_argument("--out", required=True, help="classes.csv")
     cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
     cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
     cl.add_argument("--jobs", type=int, default=None)
-    rl = sub.add_parser("rf-localize", help="RF-only position per reading time (Eq. 2.12, 3.36, ML)")
+    rl = cmd("rf-localize")
     rl.add_argument("--rf", required=True, help="rf.csv (t,sensor,rss_dbm)")
     rl.add_argument("--sensors", required=True, help="sensors.csv (sensor,x,y,z[,nx,ny,nz])")
     rl.add_argument("--meta", default=None, help="meta.json with the path-loss model (default: Table 2.2, -16 dBm)")
     rl.add_argument("--method", default="ml", choices=("lls", "nls", "ml"))
     rl.add_argument("--out", required=True, help="fixes.csv: t,x_m,y_m,z_m,cov_xx..cov_zz,n_sensors,status")
-    hy = sub.add_parser("hybrid-localize",
-                        help="TOA/DOA at two URAs + IMU (paper 000): EKF of Algorithm 1 or a reference scheme")
+    hy = cmd("hybrid-localize")
     hy.add_argument("seqdir", help="recording: meta.json (arrays, radio, IMU, initial state), rf.csv, imu.csv")
     hy.add_argument("--scheme", default="toa_doa_imu", choices=SCHEMES)
     hy.add_argument("--q-model", default="eq15", choices=("eq15", "discrete"),
                     help="process noise: Eq. 15 (paper) or the IMU's exact sigma^2 B B^T")
     hy.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
     hy.add_argument("--force", action="store_true", help="write into a non-empty output directory")
-    rt = sub.add_parser("rf-track", help="particle-filter RF tracking (papers 002/003): UWB TOA with permittivity "
-                                         "estimation, TOA with a known permittivity, or MICS RSSI")
+    rt = cmd("rf-track")
     rt.add_argument("seqdir", help="recording: rf.csv (t,sensor,rss_dbm[,toa_s,uwb_field_db]), sensors.csv, "
                                    "meta.json (area_min_m, area_max_m; uwb and mics models)")
     rt.add_argument("--method", default="toa_rssi_pf", choices=TRACKERS)
@@ -122,70 +151,89 @@ def _parser() -> argparse.ArgumentParser:
     rt.add_argument("--seed", type=int, default=0, help="the particle filter's random seed")
     rt.add_argument("--out", required=True, help="output directory: trajectory.tum (+ permittivity.csv)")
     rt.add_argument("--force", action="store_true", help="write into a non-empty output directory")
-    mgl = sub.add_parser("magnetic-localize",
-                         help="magnetic capsule (paper 001): 6-DOF EKF on recorded Hall readings and actuator poses")
+    mgl = cmd("magnetic-localize")
     mgl.add_argument("seqdir", help="recording: meta.json (sensors, filter calibration), hall.csv, actuator.csv")
     mgl.add_argument("--out", required=True, help="output directory: trajectory.tum, uncertainty.csv")
     mgl.add_argument("--force", action="store_true", help="write into a non-empty output directory")
-    lo = sub.add_parser("localize", help="Body-SLAM: motion from the frames fused with RF (EKF + RTS smoother)")
+    lo = cmd("localize")
     lo.add_argument("seqdir")
     lo.add_argument("--rf", default=None, help="rf.csv (default: the sequence's rf.csv)")
     lo.add_argument("--sensors", default=None, help="sensors.csv (default: the sequence's sensors.csv)")
     lo.add_argument("--out", required=True, help="output directory")
     lo.add_argument("--motion", default=None, help="reuse a motion.csv instead of estimating motion again")
-    lo.add_argument("--fusion", default="rss", choices=("rss", "fix"),
+    lo.add_argument("--fusion", default="rss", choices=FUSION_MODES,
                     help="rss: EKF on the raw RSS readings (default); fix: EKF on ML position fixes")
-    lo.add_argument("--jobs", type=int, default=None)
     lo.add_argument("--force", action="store_true", help="write into a non-empty output directory")
+    frame_opts(lo)
     motion_opts(lo)
-    ba = sub.add_parser("batch", help="whole exams: frame folders, videos or manifests; resumable, parallel")
+    ba = cmd("batch")
     ba.add_argument("inputs", nargs="+", help="frame folders, sequence directories, videos, or manifests (.csv/.json)")
     ba.add_argument("--out", required=True, help="output directory (resumed when it holds the same run)")
-    ba.add_argument("--mode", default="fast", choices=MATCH_MODES, help="feature matcher (default: fast)")
-    ba.add_argument("--estimator", default="tube", choices=ESTIMATORS)
     ba.add_argument("--calib", default=None, help="camera calibration (JSON or OpenCV YAML with cv2.fisheye K, D)")
     ba.add_argument("--fps", type=float, default=None, help="frame rate (default: meta.json / the video's / 2)")
-    ba.add_argument("--radius-m", type=float, default=None, help="lumen radius (default: meta.json / 1.25 cm)")
-    ba.add_argument("--mask", default=None, help="field of view: 'auto' or a PNG (default: the image circle)")
     ba.add_argument("--rf", default=None, help="rf.csv to fuse (default: a sequence directory's own)")
     ba.add_argument("--sensors", default=None, help="sensors.csv for --rf")
     ba.add_argument("--mark", default=None, help="frames to locate, e.g. 120,455,1000-1002")
     ba.add_argument("--mark-file", default=None, help="CSV of marked frames: frame[,label][,exam]")
     ba.add_argument("--landmark", default=None, help="landmark frames (e.g. 310 = pylorus): path from each")
     ba.add_argument("--chunk-frames", type=int, default=100, help="frames per checkpointed chunk")
-    ba.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
     ba.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler (tcp://host:8786)")
-    ba.add_argument("--no-classify", action="store_true", help="skip the FT/FL classifier")
-    ba.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
+    ba.add_argument("--fusion", default="rss", choices=FUSION_MODES, help="with RF: EKF on RSS (default) or fixes")
     ba.add_argument("--force", action="store_true", help="overwrite an output directory holding another run")
-    ss = sub.add_parser("speed-stats", help="speed PDF/CDF and a speed model file from a motion.csv")
+    frame_opts(ba)
+    motion_opts(ba, default_mode="fast")
+    ss = cmd("speed-stats")
     ss.add_argument("motion_csv")
     ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
     ss.add_argument("--frame-rate", type=float, default=None, help="frames/s (default: from the t column)")
     return p
 
 
+def _motion_settings(args):
+    """The visual engine's settings from the common options (bodyslam.odometry.MotionSettings)."""
+    from bodyslam.odometry import MotionSettings
+
+    return MotionSettings(args.mode, args.estimator, args.unroll_mode,
+                          mask=getattr(args, "mask", None) if args.cmd != "batch" else None,
+                          classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps)
+
+
+def _print_problems(problems: list, limit: int = 20) -> int:
+    """Print problems (``[file, frame, severity, reason]`` lists, or ``file:line: reason`` strings), the first
+    ``limit``; returns the exit status: PROBLEMS when there were any, else DONE."""
+    for pr in problems[:limit]:
+        if isinstance(pr, str):
+            print(f"  {pr}")
+        elif len(pr) == 3:
+            print(f"  {pr[0]}:{pr[1]}: {pr[2]}")
+        else:
+            print(f"  {pr[2]}: {pr[0]}{f' (frame {pr[1]})' if pr[1] != '' else ''}: {pr[3]}")
+    if len(problems) > limit:
+        print(f"  ... and {len(problems) - limit} more")
+    return PROBLEMS if problems else DONE
+
+
 def _frames_of(inp):
-    """Frame paths and camera of a sequence directory or a folder of images."""
+    """Frame paths and camera of a sequence directory (its validated meta.json), or of a folder of images
+    (camera None)."""
     from pathlib import Path
 
     from bodyslam.errors import InputError
-    from bodyslam.io import frame_name, read_image, read_meta
+    from bodyslam.frames import list_frames
+    from bodyslam.io import frame_name
+    from bodyslam.meta import read_meta
 
     p = Path(inp)
     if (p / "meta.json").exists():
-        from bodyslam.camera import camera_from_dict
-
         meta = read_meta(p)
-        d = p / meta.get("frames", {}).get("dir", "frames")
-        return [d / frame_name(k) for k in range(int(meta["n_frames"]))], camera_from_dict(meta["camera"])
+        d = p / meta.frames_dir
+        return [d / frame_name(k) for k in range(meta.n_frames)], meta.camera_model()
     if not p.is_dir():
         raise InputError(f"{p}: not a sequence directory or a folder of frames")
-    exts = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
-    paths = sorted(q for q in p.iterdir() if q.suffix.lower() in exts)
-    if not paths:
+    frames, _ = list_frames(p)
+    if not frames:
         raise InputError(f"{p}: no image files")
-    return paths, None
+    return [p / name for _, name in frames], None
 
 
 def _segment(args) -> int:
@@ -251,7 +299,8 @@ def _classify(args) -> int:
     write_csv(args.out, ["frame", "label", "decision", "status"], rows)
     c = Counter(r[1] or r[3] for r in rows)
     print(f"{args.out}: {len(rows)} frames: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
-    return 0
+    # dark and saturated frames are answers (no lumen visible); unreadable or wrong-size files are problems
+    return PROBLEMS if any(r[3] in ("unreadable", "bad_size") for r in rows) else DONE
 
 
 def _rf_localize(args) -> int:
@@ -285,36 +334,28 @@ def _rf_localize(args) -> int:
         prog(k + 1, len(stamps))
     write_csv(args.out, ["t", "x_m", "y_m", "z_m", "cov_xx_m2", "cov_xy_m2", "cov_xz_m2", "cov_yy_m2", "cov_yz_m2",
                          "cov_zz_m2", "n_sensors", "status"], rows)
-    for msg in problems[:20]:
-        print(f"  skipped {msg}")
+    _print_problems(problems)
     ok = sum(r[-1] == "ok" for r in rows)
     sd = np.nanmedian([np.sqrt(r[4] + r[7] + r[9]) for r in rows]) if rows else float("nan")
     print(f"{args.out}: {len(rows)} fixes ({ok} ok, {args.method}); median predicted 1-sigma {sd * 100:.1f} cm; "
           f"{len(problems)} RF line(s) skipped")
-    return 1 if problems else 0
+    return PROBLEMS if problems else DONE
 
 
 def _write_position_track(out, t, pos, quat_wxyz, cov):
-    """``trajectory.tum`` and ``uncertainty.csv`` (1-sigma per axis and in all) of a localization run; returns
+    """``trajectory.tum`` and ``uncertainty.csv`` (bodyslam.localize's schema) of a localization run; returns
     the per-axis 1-sigma ``(n, 3)``."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from bodyslam.io import write_csv, write_tum
+    from bodyslam.io import write_tum
+    from bodyslam.localize import write_uncertainty
 
     rot = Rotation.identity(len(pos)) if quat_wxyz is None else Rotation.from_quat(quat_wxyz[:, [1, 2, 3, 0]])
     write_tum(out / "trajectory.tum", t, pos, rot)
-    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
-    write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m"],
-              [[float(a), *map(float, s), float(np.sqrt(np.sum(s**2)))] for a, s in zip(t, sd)])
-    return sd
-
-
-def _print_problems(problems: list) -> int:
-    """Print ``(file, line, reason)`` problems (the first 20); exit status 3 when there were any."""
-    for f, ln, why in problems[:20]:
-        print(f"  {f}:{ln}: {why}")
-    return 3 if problems else 0
+    cov = np.asarray(cov)[:, :3, :3]
+    write_uncertainty(out / "uncertainty.csv", np.arange(len(t)), t, cov)
+    return np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
 
 
 def _rf_track(args) -> int:
@@ -341,24 +382,26 @@ def _rf_track(args) -> int:
     stamps, readings, problems = read_rf_columns(d / "rf.csv", names, cols)
     if "rss_dbm" in readings:
         readings["rss_db"] = readings.pop("rss_dbm")
+    from bodyslam.io import prepare_output_dir
+
     out = prepare_output_dir(args.out, args.force)
     est, eps, _ = track(args.method, stamps, rx, readings, lo, hi, settings, np.random.default_rng(args.seed),
                         progress=Progress(f"rf-track {args.method}"))
     write_tum(out / "trajectory.tum", stamps, est, Rotation.identity(len(est)))  # position only
     if eps is not None:
         write_csv(out / "permittivity.csv", ["t", "eps_r"], [[float(a), float(b)] for a, b in zip(stamps, eps)])
-    for msg in problems[:20]:
-        print(f"  skipped {msg}")
     print(f"{out}/trajectory.tum: {len(est)} positions ({args.method}, {args.particles} particles)"
           + (f"; permittivity at the end {eps[-1]:.1f}" if eps is not None else "")
           + f"; {len(problems)} RF line(s) skipped")
-    return 3 if problems else 0
+    return _print_problems(problems)
 
 
 def _magnetic_localize(args) -> int:
     import numpy as np
 
     from bodyslam.magnetic import load_recording, replay
+
+    from bodyslam.io import prepare_output_dir
 
     out = prepare_output_dir(args.out, args.force)
     rec = load_recording(args.seqdir)
@@ -376,6 +419,8 @@ def _hybrid_localize(args) -> int:
 
     from bodyslam.toa_doa import load_recording, run_scheme
 
+    from bodyslam.io import prepare_output_dir
+
     out = prepare_output_dir(args.out, args.force)
     rec = load_recording(args.seqdir)
     est, cov = run_scheme(args.scheme, rec["x0"], rec["P0"], rec["y"], rec["snr"], rec["imu"], rec["arrays"],
@@ -392,60 +437,40 @@ def _localize(args) -> int:
 
     import numpy as np
 
-    from bodyslam.fusion import fuse, rts_smooth, steps_from_motion_rows
-    from bodyslam.io import read_json, read_motion_csv, write_csv, write_image, write_tum
-    from bodyslam.plots import Figure
-    from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
-    from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, motion_rows, sequence_motion
+    from bodyslam.io import prepare_output_dir, read_motion_steps, write_motion_csv
+    from bodyslam.localize import RfInput, localize, write_localization
+    from bodyslam.meta import read_meta
+    from bodyslam.odometry import Sequence, sequence_motion
 
     seq_dir = Path(args.seqdir)
-    out = prepare_output_dir(args.out, args.force)
     seq = Sequence.open(seq_dir, args.radius_m)
-    meta = read_json(seq_dir / "meta.json")
-    rf_meta = meta.get("rf") if isinstance(meta.get("rf"), dict) else {}
-    rf_path = Path(args.rf) if args.rf else seq_dir / rf_meta.get("file", "rf.csv")
-    sensors_path = Path(args.sensors) if args.sensors else seq_dir / rf_meta.get("sensors", "sensors.csv")
-    pl = PathLossModel.from_dict(rf_meta["pathloss"]) if "pathloss" in rf_meta else PathLossModel()
-    names, pos, nrm = read_sensors(sensors_path)
-    stamps, rss_t, problems = read_rf(rf_path, names)
-    # RF readings per frame: the reading nearest in time within half a frame, else none
+    rf_meta = read_meta(seq_dir).rf
+    rf_path = Path(args.rf) if args.rf else seq_dir / (rf_meta.file if rf_meta else "rf.csv")
+    sensors_path = Path(args.sensors) if args.sensors else seq_dir / (rf_meta.sensors if rf_meta else "sensors.csv")
+    rf = RfInput.read(rf_path, sensors_path, rf_meta.pathloss if rf_meta else None)
+    prepare_output_dir(args.out, args.force, create=False)  # refused now, not after the work
     n = seq.n_frames
-    frame_t = np.arange(n) / seq.frame_rate_hz
-    rss = rss_per_frame(stamps, rss_t, frame_t, seq.frame_rate_hz)
+    frames = np.arange(n)
+    stamps = frames / seq.frame_rate_hz
+    problems: list = []
     if args.motion:
-        rows = read_motion_csv(args.motion)
+        steps = read_motion_steps(args.motion, range(1, n))
     else:
-        settings = MotionSettings(args.mode, args.estimator, args.unroll_mode)
-        steps = sequence_motion(seq_dir, settings, jobs=args.jobs, radius_m=args.radius_m,
-                                progress=Progress("motion"))
-        write_csv(out / "motion.csv", MOTION_COLUMNS, motion_rows(steps, seq.frame_rate_hz))
-        rows = read_motion_csv(out / "motion.csv")
-    steps = steps_from_motion_rows(rows, n)
-    fixes = [locate_ml(pos, nrm, r, pl) for r in rss]
-    ekf = fuse(steps, fixes, rss, pos, nrm, pl, mode=args.fusion)
-    res = rts_smooth(ekf)
-    write_tum(out / "trajectory.tum", frame_t, res.positions_w_m, res.rotations_w_c)
-    write_tum(out / "trajectory_filter.tum", frame_t, ekf.positions_w_m, ekf.rotations_w_c)
-    c = res.cov
-    write_csv(out / "uncertainty.csv", ["t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m", "sd_heading_rad"],
-              [[t, *np.sqrt(np.diag(c[k])[:3]), float(np.sqrt(np.trace(c[k][:3, :3]))),
-                float(np.sqrt(np.trace(c[k][3:, 3:])))] for k, t in enumerate(frame_t)])
-    fx = np.array([f.position_w_m for f in fixes])
-    write_csv(out / "rf_fixes.csv", ["t", "x_m", "y_m", "z_m", "status"],
-              [[t, *fx[k], fixes[k].status] for k, t in enumerate(frame_t)])
-    for a, b, name in ((0, 2, "x-z (coronal)"), (0, 1, "x-y (axial)")):
-        fig = Figure(f"Body-SLAM trajectory, {name} view", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)", size=(640, 520))
-        fig.line(fx[:, a] * 100, fx[:, b] * 100, label="RF fixes (ML)", colour=(200, 200, 200))
-        fig.line(res.positions_w_m[:, a] * 100, res.positions_w_m[:, b] * 100, label="fused (smoothed)")
-        write_image(out / f"trajectory_{'xyz'[a]}{'xyz'[b]}.png", fig.image())
-    sd = np.sqrt(np.trace(c[:, :3, :3], axis1=1, axis2=2))
-    travelled = float(np.sum(np.linalg.norm(np.diff(res.positions_w_m, axis=0), axis=1)))
-    print(f"{out}: {n} poses; path {travelled * 100:.1f} cm; position 1-sigma median {np.median(sd) * 100:.2f} cm "
-          f"(max {sd.max() * 100:.2f}); {ekf.n_updates} RF updates, {ekf.n_rejected} rejected by the gate; "
-          f"{sum(not s.ok for s in steps)} steps without a visual estimate; {len(problems)} RF line(s) skipped")
-    for msg in problems[:20]:
-        print(f"  skipped {msg}")
-    return 1 if problems else 0
+        steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
+                                progress=Progress("motion"), problems=problems)
+    loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion)
+    out = prepare_output_dir(args.out, args.force)
+    if not args.motion:
+        write_motion_csv(out / "motion.csv", frames[1:], stamps[1:], steps)
+    write_localization(out, loc)
+    res = loc.smoothed
+    sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
+    print(f"{out}: {n} poses; path travelled {loc.path_m[-1] * 100:.1f} +- {np.sqrt(loc.path_var_m2[-1]) * 100:.1f} cm; "
+          f"position 1-sigma median {np.median(sd) * 100:.2f} cm (max {sd.max() * 100:.2f}); "
+          f"{loc.filtered.n_updates} RF updates, {loc.filtered.n_rejected} readings rejected by the gate; "
+          f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate; "
+          f"{len(loc.rf_problems)} RF line(s) skipped")
+    return _print_problems(problems + loc.rf_problems)
 
 
 def _batch(args) -> int:
@@ -457,23 +482,23 @@ def _batch(args) -> int:
                        rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks)
     if args.mark_file:
         read_marks(args.mark_file, exams)
-    settings = BatchSettings(args.mode, args.estimator, not args.no_classify, args.model,
-                             chunk_frames=args.chunk_frames)
+    settings = BatchSettings(_motion_settings(args), chunk_frames=args.chunk_frames, fusion=args.fusion)
     total_frames = sum(e.n_positions for e in exams)
     print(f"{len(exams)} exam(s), {total_frames} frames -> {args.out}", flush=True)
     rep = run_batch(exams, args.out, settings, jobs=args.jobs, scheduler=args.scheduler, force=args.force,
                     progress=Progress("batch"))
     for s in rep.exams:
         steps = s["steps"]
-        ok = steps.get("ok", 0)
-        print(f"{s['exam']}: {s['frames']} frames ({s['classes']['FT']} FT, {s['classes']['FL']} FL), "
-              f"{ok}/{sum(steps.values())} steps estimated, path {s['path_travelled_m'] * 100:.1f} "
+        c = s["classes"]
+        classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
+        print(f"{s['exam']}: {s['frames']} frames ({classes}), {steps.get('ok', 0)}/{sum(steps.values())} steps "
+              f"estimated ({steps.get('bridged', 0)} bridged), path {s['path_travelled_m'] * 100:.1f} "
               f"+- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; {s['problems']} problem(s)")
         for a in s["assumed"]:
             print(f"  assumed {a}")
     print(f"{rep.chunks_computed} chunk(s) computed, {rep.chunks_reused} reused; {rep.n_problems} problem(s) "
           f"({rep.n_errors} error(s)) in {rep.out / 'problems.csv'}")
-    return 3 if rep.n_problems else 0
+    return PROBLEMS if rep.n_problems else DONE
 
 
 def _speed_stats(args) -> int:
@@ -500,15 +525,13 @@ def _speed_stats(args) -> int:
 
 
 def _camera_for(image, meta_arg):
-    from pathlib import Path
-
-    from bodyslam.camera import FisheyeCamera, camera_from_dict
-    from bodyslam.io import read_json
+    """The camera of ``--meta`` (a meta.json or its sequence directory, validated), else an equidistant
+    156-degree fisheye of the image's size."""
+    from bodyslam.camera import FisheyeCamera
+    from bodyslam.meta import read_meta
 
     if meta_arg:
-        p = Path(meta_arg)
-        meta = read_json(p / "meta.json" if p.is_dir() else p)
-        return camera_from_dict(meta["camera"])
+        return read_meta(meta_arg).camera_model()
     h, w = image.shape[:2]
     return FisheyeCamera.equidistant(w, h, 156.0)
 
@@ -560,55 +583,59 @@ def _motion_or_track(args) -> int:
 
     import numpy as np
 
-    from bodyslam.io import write_csv, write_tum
-    from bodyslam.tracking import MOTION_COLUMNS, MotionSettings, Sequence, dead_reckon, motion_rows, sequence_motion
+    from bodyslam.io import check_writable, write_motion_csv, write_tum
+    from bodyslam.odometry import Sequence, sequence_motion
+    from bodyslam.tracking import dead_reckon, path_travelled
 
-    settings = MotionSettings(args.mode, args.estimator, args.unroll_mode, mask=args.mask,
-                              classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps)
+    settings = _motion_settings(args)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
+    check_writable(args.out)
+    problems: list = []
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
-                            progress=Progress(args.cmd), camera=args.camera)
-    counts = Counter(s.status for s in steps)
+                            progress=Progress(args.cmd), camera=args.camera, problems=problems)
+    counts = Counter(str(s.status) for s in steps)
+    stamps = np.arange(len(steps) + 1) / seq.frame_rate_hz
     if args.cmd == "motion":
-        write_csv(args.out, MOTION_COLUMNS, motion_rows(steps, seq.frame_rate_hz))
+        write_motion_csv(args.out, range(1, len(steps) + 1), stamps[1:], steps)
     else:
         pos, rot = dead_reckon(steps)
-        write_tum(args.out, np.arange(len(pos)) / seq.frame_rate_hz, pos, rot)
-    ok = [s for s in steps if s.ok]
-    travelled = sum(abs(s.distance_m) for s in ok)
+        write_tum(args.out, stamps, pos, rot)
+    path, var = path_travelled(steps)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
-          f"path travelled {travelled * 100:.1f} cm ({args.mode}, {args.estimator})")
-    return 0
+          f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
+    return _print_problems(problems)
 
 
 def _check(args) -> int:
+    """Validate meta.json (bodyslam.meta: what it accepts the pipeline runs) and stream every frame."""
     from pathlib import Path
 
-    from bodyslam.camera import camera_from_dict
-    from bodyslam.errors import InputError
-    from bodyslam.io import frame_name, read_image, read_meta
+    from bodyslam.frames import FrameSource
+    from bodyslam.meta import read_meta
 
     seq = Path(args.seqdir)
     meta = read_meta(seq)
-    cam = camera_from_dict(meta["camera"])
-    n = int(meta["n_frames"])
-    frames_dir = seq / meta.get("frames", {}).get("dir", "frames")
+    cam = meta.camera_model()
+    frames_dir = seq / meta.frames_dir
+    if not frames_dir.is_dir():
+        from bodyslam.errors import InputError
+
+        raise InputError(f"{frames_dir}: frames directory not found")
     bad = []
     prog = Progress("check")
-    for k in range(n):
-        path = frames_dir / frame_name(k)
-        try:
-            img = read_image(path)
-            if img.shape[:2] != (cam.height, cam.width):
-                raise InputError(f"{path}: size {img.shape[1]}x{img.shape[0]} != camera {cam.width}x{cam.height}")
-        except InputError as exc:
-            bad.append(str(exc))
-        prog(k + 1, n)
-    print(f"{seq}: {n} frames, {cam.width}x{cam.height}, camera {meta['camera'].get('model')} "
-          f"fov {cam.fov_deg:.1f} deg, {meta['frame_rate_hz']} frames/s; {len(bad)} bad frame(s)")
-    for b in bad:
-        print(f"  bad: {b}")
-    return 1 if bad else 0
+    src = FrameSource.sequence(frames_dir, meta.n_frames, meta.frame_rate_hz)
+    for fr in src.read():
+        if fr.image is None:
+            bad.append([fr.path, fr.index, "error", fr.notes[-1][1] if fr.notes else "unreadable"])
+        elif fr.image.shape[:2] != (cam.height, cam.width):
+            bad.append([fr.path, fr.index, "error", f"size {fr.image.shape[1]}x{fr.image.shape[0]} is not the "
+                                                    f"camera's {cam.width}x{cam.height}"])
+        prog(fr.pos + 1, meta.n_frames)
+    radius = (f"lumen radius {meta.tube_radius_m * 100:.2f} cm" if meta.tube_radius_m else
+              "no tube_radius_m (motion and localize need --radius-m)")
+    print(f"{seq}: {meta.n_frames} frames, {cam.width}x{cam.height}, camera {meta.camera.get('model')} "
+          f"fov {cam.fov_deg:.1f} deg, {meta.frame_rate_hz:g} frames/s, {radius}; {len(bad)} bad frame(s)")
+    return _print_problems(bad)
 
 
 def _main(argv: list[str] | None) -> int:

@@ -25,10 +25,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import InputError
+from bodyslam.steps import StepMotion, StepStatus
 
 __all__ = [
     "atomic_path",
     "prepare_output_dir",
+    "check_writable",
     "write_bytes_atomic",
     "write_text_atomic",
     "write_json",
@@ -41,6 +43,10 @@ __all__ = [
     "read_meta",
     "frame_name",
     "read_motion_csv",
+    "MOTION_COLUMNS",
+    "motion_row",
+    "write_motion_csv",
+    "read_motion_steps",
     "csv_rows",
 ]
 
@@ -83,15 +89,48 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     write_bytes_atomic(path, text.encode("utf-8"))
 
 
-def prepare_output_dir(out_dir: str | os.PathLike, force: bool) -> Path:
-    """Create ``out_dir``; refuse to write into a non-empty directory unless ``force``. Returns it as a Path."""
+def prepare_output_dir(out_dir: str | os.PathLike, force: bool, create: bool = True) -> Path:
+    """Create ``out_dir``; refuse to write into a non-empty directory unless ``force``. Returns it as a Path.
+    ``create=False`` only checks (before a long computation), so a failed run leaves no empty directory.
+
+    Raises
+    ------
+    InputError
+        Not a directory, not empty (without ``force``), or its parent cannot be written.
+    """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"{out_dir}: exists and is not a directory")
     if out_dir.exists() and any(out_dir.iterdir()) and not force:
         raise InputError(f"{out_dir}: directory is not empty (use --force to overwrite)")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    probe = out_dir if out_dir.exists() else next((p for p in out_dir.parents if p.exists()), Path("."))
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise InputError(f"{probe}: not writable (output directory {out_dir})")
+    if create:
+        out_dir.mkdir(parents=True, exist_ok=True)
     return out_dir
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Refuse, before any work starts, an output file that cannot be written: its directory is missing and
+    cannot be made, is not writable, or the path is a directory. Returns it as a Path.
+
+    Raises
+    ------
+    InputError
+        Which location, and why.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory; give a file name")
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{parent}: cannot create the output directory ({exc.strerror or exc})") from None
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{parent}: output directory is not writable")
+    return path
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
@@ -218,6 +257,52 @@ def read_image(path: str | os.PathLike, unchanged: bool = False) -> np.ndarray:
 
 
 _MOTION_REQUIRED = ("frame", "distance_m", "roll_rad", "pitch_rad", "yaw_rad")
+MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status",
+                  # beyond SPEC's minimum: the full step (translation in the first frame's camera axes, rotation
+                  # vector of R_c1_c2) and its 1-sigma uncertainties, so fusion can run from the file alone
+                  "tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"]
+_FULL_STEP = ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad")
+
+
+def motion_row(frame: int, t_s: float, s: StepMotion) -> list:
+    """One ``motion.csv`` row (:data:`MOTION_COLUMNS`) for the step into ``frame`` (plain Python numbers)."""
+    t = s.t_c1_c2_m if s.t_c1_c2_m is not None else np.full(3, np.nan)
+    rv = Rotation.from_matrix(s.R_c1_c2).as_rotvec() if s.R_c1_c2 is not None else np.full(3, np.nan)
+    return [int(frame), float(t_s), float(s.distance_m), float(s.roll_rad), float(s.pitch_rad), float(s.yaw_rad),
+            float(s.tilt_rad), int(s.n_matches), str(s.status), *map(float, t), *map(float, rv),
+            float(s.sigma_distance_m), float(s.sigma_rotation_rad)]
+
+
+def write_motion_csv(path: str | os.PathLike, frames: Sequence[int], stamps_s: Sequence[float],
+                     steps: Sequence[StepMotion]) -> None:
+    """``motion.csv`` (SPEC.md): the step into ``frames[i]`` at ``stamps_s[i]`` is ``steps[i]``."""
+    if not (len(frames) == len(stamps_s) == len(steps)):
+        raise ValueError("frames, stamps and steps must have the same length")
+    write_csv(path, MOTION_COLUMNS, [motion_row(f, t, s) for f, t, s in zip(frames, stamps_s, steps)])
+
+
+def step_from_row(row: dict) -> StepMotion:
+    """A :class:`StepMotion` from a :func:`read_motion_csv` row (the full step where its columns are finite)."""
+    vals = [row.get(c, math.nan) for c in _FULL_STEP]
+    R = t = None
+    if np.isfinite(vals[:6]).all():
+        t = np.array(vals[:3], float)
+        R = Rotation.from_rotvec(vals[3:6]).as_matrix()
+    return StepMotion(row["distance_m"], row["roll_rad"], row["pitch_rad"], row["yaw_rad"], row["tilt_rad"],
+                      int(row.get("n_matches", 0)), row["status"], R, t, vals[6], vals[7])
+
+
+def read_motion_steps(path: str | os.PathLike, frames: Sequence[int]) -> list[StepMotion]:
+    """The steps into ``frames`` (frame numbers of the step's later frame) from a ``motion.csv``; a frame
+    without a row gives a step with status ``missing``.
+
+    Raises
+    ------
+    InputError
+        Missing file or columns, a malformed line or an unknown status (file and line are named).
+    """
+    rows = read_motion_csv(path)
+    return [step_from_row(rows[k]) if k in rows else StepMotion.failed(StepStatus.MISSING) for k in frames]
 
 
 @contextlib.contextmanager
@@ -262,7 +347,15 @@ def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]
                         vals[c] = float(row[c])
                     except ValueError:
                         raise InputError(f"{path}:{lineno}: not a number in column {c}") from None
-            vals["status"] = row.get("status") or "ok"  # truth files have no status: every step is known
+            try:  # truth files have no status: every step is known
+                vals["status"] = StepStatus(row.get("status") or "ok")
+            except ValueError:
+                raise InputError(f"{path}:{lineno}: unknown status {row.get('status')!r} (one of "
+                                 f"{', '.join(map(str, StepStatus))})") from None
+            try:
+                vals["n_matches"] = int(float(row["n_matches"])) if row.get("n_matches") not in (None, "") else 0
+            except ValueError:
+                raise InputError(f"{path}:{lineno}: n_matches {row['n_matches']!r} is not a number") from None
             vals["label"] = row.get("label") or ""
             rows[k] = vals
     return rows

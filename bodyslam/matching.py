@@ -52,7 +52,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask"]
 
-MATCH_MODES = ("asift", "sift", "fast")
+from bodyslam.choices import MATCH_MODES  # noqa: E402
 ASIFT_VIEWS = ("compact", "standard")
 # per mode: (detect_scale, max_features, max_matches); see the module docstring
 MODE_DEFAULTS = {"asift": (0.85, 3000, 400), "sift": (1.0, 3000, 400), "fast": (0.7, 800, 200)}

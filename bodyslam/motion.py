@@ -36,7 +36,7 @@ matches); ``no_lumen`` (the frame faces the wall: no tube geometry to use; set b
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -44,47 +44,14 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.camera import CameraModel
 from bodyslam.errors import ConfigError
-from bodyslam.geometry import swing_twist_z
 from bodyslam.matching import Matches
+from bodyslam.steps import StepMotion, StepStatus, motion_from_transform  # noqa: F401  (re-exported)
 from bodyslam.unroll import Unroller
 
 __all__ = ["ESTIMATORS", "StepMotion", "estimate_thesis", "estimate_tube", "motion_from_transform"]
 
-ESTIMATORS = ("tube", "thesis")
+from bodyslam.choices import ESTIMATORS  # noqa: E402
 NAN = float("nan")
-
-
-@dataclass(frozen=True)
-class StepMotion:
-    distance_m: float = NAN
-    roll_rad: float = NAN
-    pitch_rad: float = NAN
-    yaw_rad: float = NAN
-    tilt_rad: float = NAN
-    n_matches: int = 0
-    status: str = "ok"
-    R_c1_c2: np.ndarray | None = field(default=None, repr=False)  # 3x3, when the estimator gives a full pose
-    t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
-    sigma_distance_m: float = NAN  # 1-sigma uncertainty of distance_m (tube estimator: from the fit)
-    sigma_rotation_rad: float = NAN  # 1-sigma uncertainty of the rotation (largest axis)
-
-    @property
-    def ok(self) -> bool:
-        return self.status == "ok"
-
-    @property
-    def has_estimate(self) -> bool:
-        """``ok``, or ``bridged``: a share of the motion measured across a gap (:func:`bodyslam.tracking.split_motion`)."""
-        return self.status in ("ok", "bridged") and self.R_c1_c2 is not None
-
-
-def motion_from_transform(R_c1_c2: Rotation, t_c1_c2_m: np.ndarray, n_matches: int) -> StepMotion:
-    """Report a relative pose with the conventions of :mod:`bodyslam.geometry`."""
-    t = np.asarray(t_c1_c2_m, float)
-    roll, swing = swing_twist_z(R_c1_c2)
-    dist = float(np.linalg.norm(t)) * (1.0 if t[2] >= 0 else -1.0)
-    return StepMotion(dist, float(roll[0]), float(swing[0, 0]), float(swing[0, 1]), float(np.linalg.norm(swing[0])),
-                      n_matches, "ok", R_c1_c2.as_matrix(), t)
 
 
 def _wrap(a):

@@ -321,7 +321,7 @@ def waypoint_distance(est_m: np.ndarray, S: int = 20, r_thr_m: float = 0.003,
 
 # ------------------------------------------------------------------------------------ running on recorded data
 
-TRACKERS = ("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf")
+from bodyslam.choices import TRACKERS  # noqa: E402
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -74,10 +74,23 @@ class PathLossModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "PathLossModel":
-        try:
-            return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
-        except TypeError as exc:
-            raise InputError(f"bad path-loss model: {exc}") from None
+        if not isinstance(d, dict):
+            raise InputError(f"path-loss model must be an object, got {d!r}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"path-loss model: unknown field(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+        out = {}
+        for k, v in d.items():
+            n = 3 if k in ("deep", "near") else 1
+            vals = v if isinstance(v, (list, tuple)) else [v]
+            if len(vals) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                         and math.isfinite(x) for x in vals):
+                raise InputError(f"path-loss model: {k} must be {'3 numbers' if n == 3 else 'a number'}, got {v!r}")
+            out[k] = tuple(float(x) for x in vals) if n == 3 else float(vals[0])
+        if out.get("d0_m", cls.d0_m) <= 0:
+            raise InputError(f"path-loss model: d0_m must be positive, got {out['d0_m']!r}")
+        return cls(**out)
 
 
 @dataclass(frozen=True)

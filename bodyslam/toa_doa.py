@@ -355,7 +355,7 @@ def pcrb(truth_m: np.ndarray, arrays: list[Ura], radio: Radio, sigma_acc: float,
 
 # ------------------------------------------------------------------------------------ running on recorded data
 
-SCHEMES = ("toa_doa_imu", "doa_imu", "toa_imu", "rf_only_cv", "rf_only", "imu_only")
+from bodyslam.choices import SCHEMES  # noqa: E402  (the CLI reads the names from the light module)
 SCHEME_USE = {"toa_doa_imu": "toa_doa", "doa_imu": "doa", "toa_imu": "toa", "imu_only": "none",
                "rf_only": "toa_doa", "rf_only_cv": "toa_doa"}
 

@@ -18,13 +18,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bodyslam.ekf import process_model
 from bodyslam.rf import PathLossModel
 
 __all__ = ["pcrb_positions", "smoothing_bound_positions", "position_bounds", "efficient_mean_error"]
-
-
-def _skew(v):
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
 def _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k):
@@ -32,14 +29,8 @@ def _transition(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, k):
     R = rotations_w_c[k]
     Rs = rotations_w_c[k].inv() * rotations_w_c[k + 1]
     t = R.inv().apply(positions_w_m[k + 1] - positions_w_m[k])
-    A = np.eye(6)
-    A[:3, 3:] = -R.as_matrix() @ _skew(t)
-    A[3:, 3:] = Rs.as_matrix().T
-    Rm = R.as_matrix()
-    Q = np.zeros((6, 6))
-    Q[:3, :3] = Rm @ (np.eye(3) * sigma_t_m[k] ** 2) @ Rm.T
-    Q[3:, 3:] = np.eye(3) * sigma_r_rad[k] ** 2
-    return A, Q
+    A, Q = process_model(R.as_matrix()[None], t, Rs.as_matrix(), sigma_t_m[k], sigma_r_rad[k])  # the filter's own
+    return A[0], Q[0]
 
 
 def _forward(positions_w_m, rotations_w_c, sigma_t_m, sigma_r_rad, sensors_w_m, normals_w, pl, P0):

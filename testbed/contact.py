@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from bodyslam.errors import InputError
-from bodyslam.io import frame_name, read_image, read_meta, write_image
+from bodyslam.io import frame_name, read_image, write_image
+from bodyslam.meta import read_meta
 
 
 def contact_sheet(seq_dir: str | Path, out_png: str | Path, count: int = 24, cols: int = 6,
@@ -17,7 +18,7 @@ def contact_sheet(seq_dir: str | Path, out_png: str | Path, count: int = 24, col
     """Write a PNG grid of ``count`` evenly spaced frames; returns the number of frames shown."""
     seq = Path(seq_dir)
     meta = read_meta(seq)
-    n = int(meta["n_frames"])
+    n = meta.n_frames
     if count < 1 or cols < 1:
         raise InputError("--count and --cols must be >= 1")
     idx = np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int))
@@ -29,7 +30,7 @@ def contact_sheet(seq_dir: str | Path, out_png: str | Path, count: int = 24, col
                 labels[int(row["frame"])] = row["label"]
     rows = -(-len(idx) // cols)
     sheet = np.zeros((rows * tile_px, cols * tile_px, 3), np.uint8)
-    frames_dir = seq / meta.get("frames", {}).get("dir", "frames")
+    frames_dir = seq / meta.frames_dir
     for i, k in enumerate(idx):
         img = cv2.resize(read_image(frames_dir / frame_name(int(k))), (tile_px, tile_px),
                          interpolation=cv2.INTER_AREA)

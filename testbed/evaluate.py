@@ -22,10 +22,12 @@ from typing import Callable
 
 import numpy as np
 
-from bodyslam.fusion import fuse, kf_thesis, rts_smooth, steps_from_motion_rows
-from bodyslam.io import read_json, read_motion_csv, read_tum, write_image, write_json
+from bodyslam.fusion import fuse, kf_thesis, step_pose
+from bodyslam.io import read_motion_steps, read_tum, write_image, write_json
+from bodyslam.localize import RfInput, localize
+from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
-from bodyslam.rf import PathLossModel, locate_ml, locate_nls, read_rf, read_sensors
+from bodyslam.rf import locate_nls, rss_per_frame
 from testbed.bound import efficient_mean_error, position_bounds
 from testbed.score import score_motion
 from testbed.simulate import prepare_output_dir, simulate
@@ -39,28 +41,31 @@ ALGORITHMS = ("rf_ml", "rf_nls", "dead_reckoning", "thesis_kf", "thesis_kf_ml", 
 
 def evaluate_sequence(d: Path) -> dict:
     """Run every algorithm on one rendered sequence directory (which has motion.csv next to its frames)."""
-    names, pos, nrm = read_sensors(d / "sensors.csv")
-    _, rss, problems = read_rf(d / "rf.csv", names)
-    pl = PathLossModel.from_dict(read_json(d / "meta.json")["rf"]["pathloss"])
+    meta = read_meta(d)
+    rf = RfInput.read(d / meta.rf.file, d / meta.rf.sensors, meta.rf.pathloss)
     _, gt, grot = read_tum(d / "groundtruth.tum")
-    steps = steps_from_motion_rows(read_motion_csv(d / "motion.csv"), len(gt))
-    fixes = [locate_ml(pos, nrm, x, pl) for x in rss]
+    steps = read_motion_steps(d / "motion.csv", range(1, len(gt)))
+    # the pipeline's one localization chain (bodyslam.localize), on the frames' time stamps
+    loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss")
+    ekf, fixes = loc.filtered, loc.fixes
+    pos, nrm, pl = rf.sensors_w_m, rf.normals_w, rf.pathloss
+    rss = rss_per_frame(rf.stamps_s, rf.rss_dbm, np.arange(len(gt)) / meta.frame_rate_hz, meta.frame_rate_hz)
     nls = [locate_nls(pos, x, pl) for x in rss]
-    ekf = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss")
-    R0, p0 = ekf.passes["init"]
-    R_fit, p_fit = ekf.passes["alignment"]  # dead reckoning's best rigid fit to the fixes of the first window
-    dr = ekf.passes["dead_reckoning"]  # in the first camera frame, steps without an estimate as no motion
+    R0, p0 = ekf.init
+    R_fit, p_fit = ekf.alignment  # dead reckoning's best rigid fit to the fixes of the first window
+    dr = ekf.dead_reckoning  # in the first camera frame, steps without an estimate as no motion
     est = {
         "rf_ml": np.array([f.position_w_m for f in fixes]),
         "rf_nls": np.array([f.position_w_m for f in nls]),
         "dead_reckoning": p_fit + R_fit.apply(dr),
-        "thesis_kf": kf_thesis(steps, nls, (R0, p0), resets=ekf.passes["resets"]),
+        "thesis_kf": kf_thesis(steps, nls, (R0, p0), resets=ekf.resets),
         # the same filter fed by the dissertation's other RF localizer (ML, Sec. 2.3.3.2) instead of Eq. 3.36's NLS
-        "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0), resets=ekf.passes["resets"]),
+        "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0), resets=ekf.resets),
         "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix").positions_w_m,
         "ekf_rss": ekf.positions_w_m,
-        "ekf_rss_rts": rts_smooth(ekf).positions_w_m,
+        "ekf_rss_rts": loc.smoothed.positions_w_m,
     }
+    problems = rf.problems
     sig_t, sig_r = _measured_step_noise(steps, gt, grot)
     # prior of the bound: no information beyond the abdomen (10 cm, 45 deg); every RF reading counted once. The
     # filters' start aligns the first window of fixes, so over that window they are not strictly causal.
@@ -82,9 +87,10 @@ def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
     for robustness; a bound built on them would not bound the real errors."""
     t_true = np.array([grot[k].inv().apply(gt[k + 1] - gt[k]) for k in range(len(gt) - 1)])
     R_true = [grot[k].inv() * grot[k + 1] for k in range(len(gt) - 1)]
-    ok = np.array([s.ok for s in steps])
-    et = np.array([np.linalg.norm(s.t - t_true[k]) for k, s in enumerate(steps)])
-    er = np.array([(s.R.inv() * R_true[k]).magnitude() for k, s in enumerate(steps)])
+    ok = np.array([s.has_estimate for s in steps])
+    poses = [step_pose(s) for s in steps]
+    et = np.array([np.linalg.norm(t - t_true[k]) for k, (_, t) in enumerate(poses)])
+    er = np.array([(R.inv() * R_true[k]).magnitude() for k, (R, _) in enumerate(poses)])
     sig_t = np.full(len(steps), 1e-3)
     sig_r = np.full(len(steps), 1e-2)
     for group in (ok & ~np.array([s.bridged for s in steps]), np.array([s.bridged for s in steps])):

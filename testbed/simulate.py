@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam import __version__
 from bodyslam.geometry import relative_motion
 from bodyslam.io import frame_name, prepare_output_dir, write_csv, write_image, write_json, write_tum
+from bodyslam.meta import write_meta
 from bodyslam.parallel import available_cores
 from testbed.motion import PHASES, CapsuleTrajectory, generate_motion, label_frames
 from testbed.render import RANGE_SCALE_M, RaycastRenderer, encode_range, make_renderer
@@ -208,6 +209,6 @@ def simulate(
         R_c_r, t_c_r = rear_extrinsics(world.rear_baseline_m)
         meta["rear_camera"] = {"camera": cam.to_dict(), "frames": {"dir": "frames_rear"},
                                "T_front_rear": {"q_xyzw": R_c_r.as_quat().tolist(), "t_m": t_c_r.tolist()}}
-    write_json(out / "meta.json", meta)
+    write_meta(out, meta)  # validated by the reader every command uses (bodyslam.meta)
     log.info("wrote %d frames to %s", n, out)
     return truth

@@ -15,7 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
-from bodyslam.batch import BatchSettings, list_frames, open_exams, read_calibration, run_batch
+from bodyslam.batch import BatchSettings, open_exams, read_calibration, run_batch
+from bodyslam.frames import list_frames
+from bodyslam.odometry import MotionSettings
 from bodyslam.cli import main as cli_main
 from bodyslam.errors import InputError
 
@@ -108,8 +110,8 @@ def test_existing_output_is_not_overwritten_without_force(tmp_path):
     out2 = tmp_path / "out2"
     run_batch(open_exams([str(src)]), out2, FAST, jobs=1)
     with pytest.raises(InputError, match="other inputs or settings"):
-        run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1)
-    rep = run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1,
+        run_batch(open_exams([str(src)]), out2, BatchSettings(MotionSettings("sift"), chunk_frames=8), jobs=1)
+    rep = run_batch(open_exams([str(src)]), out2, BatchSettings(MotionSettings("sift"), chunk_frames=8), jobs=1,
                     force=True)
     assert rep.chunks_computed == 1 and rep.chunks_reused == 0
     # a run made by another version of the toolkit is not resumed: its chunks could differ from this code's
@@ -118,7 +120,7 @@ def test_existing_output_is_not_overwritten_without_force(tmp_path):
     doc["plan"]["code"] = "0" * 16
     plan_file.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="another version of the toolkit"):
-        run_batch(open_exams([str(src)]), out2, BatchSettings(match_mode="sift", chunk_frames=8), jobs=1)
+        run_batch(open_exams([str(src)]), out2, BatchSettings(MotionSettings("sift"), chunk_frames=8), jobs=1)
 
 
 def _write_bad_folder(d: Path) -> dict[str, str]:

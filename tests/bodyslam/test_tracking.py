@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.camera import camera_from_dict
 from bodyslam.geometry import relative_motion
-from bodyslam.io import read_image, read_meta, read_tum
+from bodyslam.io import read_image, read_tum
+from bodyslam.meta import read_meta
 from bodyslam.matching import Matcher
 from bodyslam.motion import motion_from_transform
 from bodyslam.tracking import dead_reckon
@@ -37,7 +38,7 @@ def test_dead_reckoning_of_true_steps_reproduces_the_trajectory():
 
 @pytest.mark.parametrize("mode", ["sift", "asift"])
 def test_features_stay_inside_the_field_of_view(mode):
-    cam = camera_from_dict(read_meta(DEMO)["camera"])
+    cam = read_meta(DEMO).camera_model()
     matcher = Matcher(cam, mode)
     pts, _ = matcher.keypoints(matcher.features(read_image(DEMO / "frames" / "000003.png")))
     assert len(pts) > 100
@@ -94,8 +95,9 @@ def test_bad_inputs_get_one_line(tmp_path):
 
 def test_rear_camera_steps_are_reported_in_the_body_frame(tmp_path):
     """A rear camera's exact relative motion, converted with its extrinsics, is the front camera's motion."""
-    from bodyslam.motion import StepMotion
-    from bodyslam.tracking import Sequence
+    from bodyslam.camera import FisheyeCamera
+    from bodyslam.odometry import MotionSettings, VisualOdometry
+    from bodyslam.steps import StepMotion
 
     R_cr, t_cr = Rotation.from_rotvec([0.0, np.pi, 0.0]), np.array([0.0, 0.0, -0.026])
     R_front = Rotation.from_rotvec([0.03, -0.05, 0.12])
@@ -103,8 +105,9 @@ def test_rear_camera_steps_are_reported_in_the_body_frame(tmp_path):
     # T_r1_r2 = T_rc T_c1_c2 T_cr
     R_r = R_cr.inv() * R_front * R_cr
     t_r = R_cr.inv().apply(R_front.apply(t_cr) + t_front - t_cr)
-    seq = Sequence(tmp_path, None, 2, 2.0, 0.015, tmp_path, "rear", (R_cr, t_cr))
-    got = seq.to_body(StepMotion(status="ok", R_c1_c2=R_r.as_matrix(), t_c1_c2_m=t_r))
+    vo = VisualOdometry(FisheyeCamera.equidistant(64, 64, 156.0), MotionSettings(classify=False), 0.015,
+                        T_body_cam=(R_cr.as_quat(), t_cr))
+    got = vo.to_body(StepMotion(status="ok", R_c1_c2=R_r.as_matrix(), t_c1_c2_m=t_r))
     want = motion_from_transform(R_front, t_front, 0)
     assert got.distance_m == pytest.approx(want.distance_m, abs=1e-12)
     assert got.roll_rad == pytest.approx(want.roll_rad, abs=1e-12)
@@ -141,8 +144,9 @@ def test_speed_statistics_drive_the_testbed(tmp_path):
 def test_gaps_are_found_between_estimated_steps_and_split_exactly():
     from scipy.spatial.transform import Rotation
 
-    from bodyslam.motion import StepMotion, motion_from_transform
-    from bodyslam.tracking import dead_reckon, find_gaps, split_motion
+    from bodyslam.odometry import find_gaps, split_motion
+    from bodyslam.steps import StepMotion, motion_from_transform
+    from bodyslam.tracking import dead_reckon
 
     ok = motion_from_transform(Rotation.from_rotvec([0.01, 0.0, 0.1]), np.array([0.0, 0.001, 0.004]), 50)
     no = StepMotion(status="no_lumen")

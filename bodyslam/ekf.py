@@ -1,0 +1,275 @@
+"""The error-state EKF of Body-SLAM fusion, as one object over a candidate axis (dissertation Sec. 3.3).
+
+State per candidate ``c``: the pose ``T_w_c`` -- position ``p[c]`` (world/body frame, m) and orientation
+``R[c]`` (3x3, ``R_w_c``) -- and the covariance ``P[c]`` over the error ``[dp, dtheta]`` with
+``R = R_hat exp([dtheta]x)``. ``C`` candidates run side by side with the same inputs (the orientation search
+runs 60-90 starts at once, :mod:`bodyslam.orientation_search`); the plain filter is one candidate. Keeping
+``keep=True`` stores every frame's prior and posterior (``x_prior`` / ``x_post``, FilterPy's habit), which the
+RTS smoother (:func:`bodyslam.fusion.rts_smooth`) needs.
+
+- :func:`process_model` (``F``, ``Q`` of one step; also what :mod:`testbed.bound` uses for the PCRB, so the
+  bound models exactly the filter's process): the visual step ``T_c1_c2 = (R_s, t_s)`` is the input,
+  ``p <- p + R t_s``, ``R <- R R_s``; Jacobian ``dp' = dp - R [t_s]x dtheta``, ``dtheta' = R_s^T dtheta``; noise
+  ``R diag(sig_t^2) R^T`` on the position and ``sig_r^2 I`` on the orientation.
+- :meth:`ErrorStateEkf.update`: an RF position fix with its covariance (``mode="fix"``) or the raw RSS
+  readings linearised at the predicted position (``mode="rss"``). Fixes beyond the 99.9% chi-square gate, and
+  RSS readings beyond a per-reading 99.9% gate, are not used and counted. Divergence guard: after
+  ``max_rejections`` gated measurements in a row the covariance is inflated and the next one accepted (a filter
+  that rejects everything can never recover). The negative log-likelihood of the readings (each term capped at
+  the gate, so one outlier cannot decide) is summed per candidate: it ranks starts.
+- The covariance update is in Joseph form: it stays symmetric positive semi-definite under rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodyslam.choices import FUSION_MODES
+from bodyslam.errors import InputError
+from bodyslam.rf import Fix, PathLossModel
+from bodyslam.steps import StepMotion
+
+__all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "FilterPasses", "with_orientation_sigma",
+           "CHI2_3_999", "Z_GATE_999"]
+
+CHI2_3_999 = 16.27
+Z_GATE_999 = 3.29  # per-reading two-sided 99.9% gate on a normalised RSS innovation
+# divergence guard's covariance inflation: position (fixes: 4x their covariance; RSS: 5 cm), orientation 10 deg
+GUARD_FIX_COV_SCALE, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD = 4.0, 0.05, np.radians(10.0)
+# process-noise floors of an estimated step (the fit's own 1-sigma can be optimistic) and the rule for a step
+# without an estimate: the last estimated translation again (constant velocity), 1-sigma its own size (>= 3 mm)
+SIGMA_T_FLOOR_M, SIGMA_R_FLOOR_RAD = 3e-4, np.radians(0.2)
+MISSING_SIGMA_T_MIN_M, MISSING_SIGMA_R_RAD = 3e-3, np.radians(5.0)
+
+
+def _skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def process_model(R_w_c: np.ndarray, t_s_m: np.ndarray, R_s: np.ndarray, sigma_t_m: float,
+                  sigma_r_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(F, Q)`` of one step (module docstring) for orientations ``R_w_c (C, 3, 3)``: ``(C, 6, 6)`` each."""
+    R_w_c = np.asarray(R_w_c, float).reshape(-1, 3, 3)
+    C = len(R_w_c)
+    F = np.repeat(np.eye(6)[None], C, axis=0)
+    F[:, :3, 3:] = -R_w_c @ _skew(np.asarray(t_s_m, float))
+    F[:, 3:, 3:] = np.asarray(R_s, float).T
+    Q = np.zeros((C, 6, 6))
+    Q[:, :3, :3] = R_w_c @ (np.eye(3) * sigma_t_m**2) @ R_w_c.transpose(0, 2, 1)
+    Q[:, 3:, 3:] = np.eye(3) * sigma_r_rad**2
+    return F, Q
+
+
+def step_pose(s: StepMotion) -> tuple[Rotation, np.ndarray]:
+    """``(R_c1_c2, t_c1_c2_m)`` of a step with an estimate (ok or bridged); identity and zero otherwise."""
+    if s.has_estimate:
+        return Rotation.from_matrix(s.R_c1_c2), np.asarray(s.t_c1_c2_m, float)
+    return Rotation.identity(), np.zeros(3)
+
+
+def step_noise(s: StepMotion, last_t: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
+    a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity)."""
+    if s.has_estimate:
+        return (np.asarray(s.t_c1_c2_m, float), max(s.sigma_t_m, SIGMA_T_FLOOR_M),
+                max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD))
+    return last_t, max(float(np.linalg.norm(last_t)), MISSING_SIGMA_T_MIN_M), MISSING_SIGMA_R_RAD
+
+
+def process_noise(steps: list[StepMotion]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step: the translation the filter applies (:func:`step_noise`) and its 1-sigmas (m, rad)."""
+    t_out = np.zeros((len(steps), 3))
+    sig_t = np.zeros(len(steps))
+    sig_r = np.zeros(len(steps))
+    last_t = np.zeros(3)
+    for k, s in enumerate(steps):
+        t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t)
+        if s.has_estimate:
+            last_t = t_out[k]
+    return t_out, sig_t, sig_r
+
+
+def with_orientation_sigma(P: np.ndarray, sig_rad: float) -> np.ndarray:
+    """A copy of ``P`` (``(..., 6, 6)``) whose orientation block is ``sig_rad^2 I``, uncorrelated with the
+    position (a re-start)."""
+    P = np.array(P, float, copy=True)
+    P[..., 3:, :3] = 0.0
+    P[..., :3, 3:] = 0.0
+    P[..., 3:, 3:] = np.eye(3) * sig_rad**2
+    return P
+
+
+@dataclass
+class FilterPasses:
+    """Every frame's prior and posterior of a one-candidate run (what the RTS smoother needs):
+    ``p (n, 3)``, ``R (n, 3, 3)``, ``P (n, 6, 6)``; ``F[k]`` takes the posterior of frame ``k`` to the prior of
+    ``k + 1`` (``(n - 1, 6, 6)``)."""
+
+    prior_p: np.ndarray
+    prior_R: np.ndarray
+    prior_P: np.ndarray
+    F: np.ndarray
+    post_p: np.ndarray
+    post_R: np.ndarray
+    post_P: np.ndarray
+
+
+class ErrorStateEkf:
+    """The filter (module docstring) over frames ``0 .. n-1`` of one exam.
+
+    Inputs fixed at construction: ``steps`` (``n - 1``), ``fixes`` (``n``), ``rss (n, m)`` with the sensors and
+    the path-loss model (``mode="rss"``). State after :meth:`start`: ``p (C, 3)``, ``R (C, 3, 3)``, ``P (C, 6,
+    6)``, ``nll (C,)`` (summed), ``streak (C,)`` (gated measurements in a row), ``n_rejected``/``n_updates
+    (C,)``.
+    """
+
+    def __init__(self, steps: list[StepMotion], fixes: list[Fix] | None, rss: np.ndarray | None,
+                 sensors_w_m: np.ndarray | None, normals_w: np.ndarray | None, pl: PathLossModel | None,
+                 mode: str = "rss", max_rejections: int = 5):
+        if mode not in FUSION_MODES:
+            raise InputError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
+        if mode == "rss" and (rss is None or sensors_w_m is None or pl is None):
+            raise InputError("RSS fusion needs the readings, the sensor positions and the path-loss model")
+        self.steps, self.fixes, self.rss, self.pos, self.nrm, self.pl = steps, fixes, rss, sensors_w_m, normals_w, pl
+        self.mode, self.max_rejections = mode, max_rejections
+        self.t_applied, self.sig_t, self.sig_r = process_noise(steps)
+        self.R_steps = np.array([step_pose(s)[0].as_matrix() for s in steps]).reshape(-1, 3, 3)
+
+    # -- the state --------------------------------------------------------------------------------------------
+    def start(self, p: np.ndarray, R: np.ndarray, P: np.ndarray) -> None:
+        """Candidates' start at the first frame of a run (before its update): ``p (C, 3)``, ``R (C, 3, 3)`` (or
+        Rotations), ``P (C, 6, 6)``."""
+        if isinstance(R, Rotation):
+            R = R.as_matrix()
+        self.p = np.array(p, float).reshape(-1, 3)
+        self.R = np.array(R, float).reshape(-1, 3, 3)
+        self.P = np.array(P, float).reshape(-1, 6, 6)
+        C = len(self.p)
+        self.nll = np.zeros(C)
+        self.streak = np.zeros(C, int)
+        self.n_rejected = np.zeros(C, int)
+        self.n_updates = np.zeros(C, int)
+
+    def predict(self, k: int) -> np.ndarray:
+        """Into frame ``k`` with step ``k - 1``; returns ``F (C, 6, 6)``."""
+        ts, Rs = self.t_applied[k - 1], self.R_steps[k - 1]
+        F, Q = process_model(self.R, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
+        self.p = self.p + self.R @ ts
+        self.R = self.R @ Rs
+        self.P = F @ self.P @ F.transpose(0, 2, 1) + Q
+        return F
+
+    def update(self, k: int) -> None:
+        """The readings of frame ``k`` (none, or none that passes the gate: no change but the counters)."""
+        C = len(self.p)
+        p, R, P, nll, streak = self.p, self.R, self.P, self.nll, self.streak
+        if self.mode == "fix":
+            f = self.fixes[k]
+            if f.status != "ok":
+                return
+            y = f.position_w_m[None] - p  # (C, 3)
+            S = P[:, :3, :3] + f.cov_m2
+            d2 = np.einsum("ci,ci->c", y, np.linalg.solve(S, y[..., None])[..., 0])
+            nll = nll + 0.5 * (np.minimum(d2, CHI2_3_999) + np.linalg.slogdet(S)[1])
+            gated = d2 > CHI2_3_999
+            self.n_rejected = self.n_rejected + gated
+            streak = np.where(gated, streak + 1, streak)
+            guard = gated & (streak >= self.max_rejections)
+            do = ~gated | guard
+            P = P.copy()
+            P[guard, :3, :3] += GUARD_FIX_COV_SCALE * f.cov_m2
+            P[guard, 3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
+            streak = np.where(do, 0, streak)
+            H = np.repeat(np.hstack([np.eye(3), np.zeros((3, 3))])[None], C, axis=0)
+            Rm = np.repeat(f.cov_m2[None], C, axis=0)
+        else:
+            r = self.rss[k]
+            ok = np.isfinite(r)
+            if ok.sum() < 1:
+                return
+            sens, nrm = self.pos[ok], self.nrm[ok]
+            diff = sens[None] - p[:, None, :]  # (C, m, 3)
+            d = np.linalg.norm(diff, axis=2)
+            depth = np.maximum(np.einsum("cij,ij->ci", diff, nrm), 0.0)
+            _, alpha, sigma = self.pl.params(depth)
+            Hp = (10.0 * alpha / np.log(10.0))[..., None] * diff / (d**2)[..., None]
+            y = r[ok][None] - self.pl.mean_rss_dbm(d, depth)
+            H = np.concatenate([Hp, np.zeros_like(Hp)], axis=2)  # (C, m, 6)
+            S = H @ P @ H.transpose(0, 2, 1) + sigma[:, :, None] ** 2 * np.eye(len(y[0]))[None]
+            dS = np.diagonal(S, axis1=1, axis2=2)
+            z2 = y * y / dS
+            nll = nll + 0.5 * np.sum(np.minimum(z2, Z_GATE_999**2) + np.log(dS), axis=1)
+            keep = z2 < Z_GATE_999**2  # per-reading 99.9% gate
+            self.n_rejected = self.n_rejected + (~keep).sum(axis=1)
+            bad = keep.mean(axis=1) < 0.5  # most readings disagree with the prediction
+            streak = np.where(bad, streak + 1, 0)
+            guard = bad & (streak >= self.max_rejections)
+            P = P.copy()
+            P[guard, :3, :3] += np.eye(3) * GUARD_RSS_SIGMA_M**2
+            P[guard, 3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
+            keep[guard] = True
+            streak = np.where(guard, 0, streak)
+            do = keep.sum(axis=1) >= 1
+            # readings outside the gate: rows of H and y zeroed and unit variance -- exactly the update without them
+            H = H * keep[..., None]
+            y = y * keep
+            Rm = np.where(keep, sigma**2, 1.0)[:, :, None] * np.eye(len(y[0]))[None]
+        S = H @ P @ H.transpose(0, 2, 1) + Rm
+        K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
+        dx = (K @ y[..., None])[..., 0]
+        IKH = np.eye(6)[None] - K @ H
+        P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
+        R_new = R @ Rotation.from_rotvec(dx[:, 3:]).as_matrix()
+        self.p = np.where(do[:, None], p + dx[:, :3], p)
+        self.R = np.where(do[:, None, None], R_new, R)
+        self.P = np.where(do[:, None, None], P_new, P)
+        self.nll, self.streak = nll, streak
+        self.n_updates = self.n_updates + do
+
+    # -- a run ------------------------------------------------------------------------------------------------
+    def run(self, p, R, P, k0: int, k1: int, keep: bool = False, resets: dict | None = None, decide=None):
+        """Frames ``k0 .. k1-1`` from the candidates' state at ``k0`` (before its update).
+
+        ``resets`` ``{frame: (R (3, 3) or Rotation, sigma_rad)}``: after the prediction into that frame every
+        candidate's orientation is replaced and its orientation covariance set to ``sigma_rad^2 I``
+        (uncorrelated with the position). ``decide(k, p (3,), R Rotation, P (6, 6))`` (one candidate): called
+        after each prediction into a frame without a given reset; a ``(R, sigma_rad)`` it returns is applied the
+        same way and recorded in ``resets``. ``keep``: store the priors and posteriors (one candidate).
+
+        Returns ``(positions (C, f, 3), rotations (C, f, 3, 3), covariances (C, f, 6, 6), cumulative nll (C,
+        f), passes or None)`` with ``f = k1 - k0``. One pass: the cost is linear in the frames.
+        """
+        self.start(p, R, P)
+        C, f = len(self.p), k1 - k0
+        if (keep or decide is not None) and C != 1:
+            raise ValueError("keep and decide are for one candidate")
+        resets = {} if resets is None else resets
+        pos, rot, covs, nll_k = np.zeros((C, f, 3)), np.zeros((C, f, 3, 3)), np.zeros((C, f, 6, 6)), np.zeros((C, f))
+        if keep:
+            prior_p, prior_R, prior_P = np.zeros((f, 3)), np.zeros((f, 3, 3)), np.zeros((f, 6, 6))
+            Fs = np.zeros((max(f - 1, 0), 6, 6))
+        for k in range(k0, k1):
+            i = k - k0
+            if k > k0:
+                F = self.predict(k)
+                if k not in resets and decide is not None:
+                    d = decide(k, self.p[0].copy(), Rotation.from_matrix(self.R[0]), self.P[0].copy())
+                    if d is not None:
+                        resets[k] = d
+                if k in resets:
+                    Rr, sig = resets[k]
+                    self.R[:] = Rr.as_matrix() if isinstance(Rr, Rotation) else Rr
+                    self.P = with_orientation_sigma(self.P, sig)
+                if keep:
+                    Fs[i - 1] = F[0]
+            if keep:
+                prior_p[i], prior_R[i], prior_P[i] = self.p[0], self.R[0], self.P[0]
+            self.update(k)
+            pos[:, i], rot[:, i], covs[:, i], nll_k[:, i] = self.p, self.R, self.P, self.nll
+        passes = None
+        if keep:
+            passes = FilterPasses(prior_p, prior_R, prior_P, Fs, pos[0].copy(), rot[0].copy(), covs[0].copy())
+        return pos, rot, covs, nll_k, passes

@@ -1,0 +1,143 @@
+"""Body-SLAM localization as one function: visual steps + RF readings -> trajectory (dissertation Sec. 3.3).
+
+The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed evaluate``:
+
+1. :meth:`RfInput.read`: sensors (``sensors.csv``), readings (``rf.csv``, malformed lines skipped and listed) and
+   the path-loss calibration (``meta.json``'s ``rf.pathloss``; default Table 2.2);
+2. readings per frame (:func:`bodyslam.rf.rss_per_frame`: nearest within half a frame interval);
+3. ML position fixes per frame (:func:`bodyslam.rf.locate_ml`), which start the filter;
+4. the error-state EKF (:func:`bodyslam.fusion.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
+5. the path travelled (:func:`bodyslam.tracking.path_travelled`).
+
+:func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
+(online filter), ``uncertainty.csv`` (:data:`UNCERTAINTY_COLUMNS`, also written by dead reckoning and the other
+papers' localizers), ``rf_fixes.csv`` and two plots.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bodyslam.choices import FUSION_MODES
+from bodyslam.errors import ConfigError, InputError
+from bodyslam.fusion import FusionResult, fuse, rts_smooth
+from bodyslam.io import write_csv, write_image, write_tum
+from bodyslam.rf import Fix, PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
+from bodyslam.steps import StepMotion
+from bodyslam.tracking import path_travelled
+
+__all__ = ["RfInput", "Localization", "localize", "write_localization", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
+
+UNCERTAINTY_COLUMNS = ["frame", "t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m", "sd_heading_rad", "path_m",
+                       "sd_path_m"]
+
+
+@dataclass
+class RfInput:
+    """What the body sensors recorded, and their calibration."""
+
+    sensor_names: tuple[str, ...]
+    sensors_w_m: np.ndarray  # (m, 3)
+    normals_w: np.ndarray  # (m, 3)
+    stamps_s: np.ndarray  # (T,)
+    rss_dbm: np.ndarray  # (T, m), NaN where a sensor has no reading
+    pathloss: PathLossModel = field(default_factory=PathLossModel)
+    problems: list[str] = field(default_factory=list)  # skipped lines, "file:line: reason"
+
+    @classmethod
+    def read(cls, rf_path: str | os.PathLike, sensors_path: str | os.PathLike,
+             pathloss: dict | None = None) -> "RfInput":
+        names, pos, nrm = read_sensors(sensors_path)
+        stamps, rss, problems = read_rf(rf_path, names)
+        pl = PathLossModel.from_dict(pathloss) if pathloss else PathLossModel()
+        return cls(names, pos, nrm, stamps, rss, pl, problems)
+
+
+@dataclass
+class Localization:
+    frames: np.ndarray  # (n,) frame numbers
+    stamps_s: np.ndarray  # (n,)
+    filtered: FusionResult  # the online (causal after its start window) filter
+    smoothed: FusionResult  # RTS
+    fixes: list[Fix]  # ML fixes per frame
+    path_m: np.ndarray  # (n,) path travelled from the first frame
+    path_var_m2: np.ndarray  # (n,)
+    rf_problems: list[str]
+
+    @property
+    def n_fixes(self) -> int:
+        return sum(f.status == "ok" for f in self.fixes)
+
+
+def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
+             frames: np.ndarray | None = None, mode: str = "rss") -> Localization:
+    """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring).
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 frames with an RF fix (the visual path cannot be placed in the body frame).
+    """
+    if mode not in FUSION_MODES:
+        raise ConfigError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
+    stamps_s = np.asarray(stamps_s, float)
+    if len(stamps_s) != len(steps) + 1:
+        raise ValueError(f"{len(steps)} steps need {len(steps) + 1} frame stamps, got {len(stamps_s)}")
+    rss = rss_per_frame(rf.stamps_s, rf.rss_dbm, stamps_s, frame_rate_hz)
+    fixes = [locate_ml(rf.sensors_w_m, rf.normals_w, r, rf.pathloss) for r in rss]
+    if sum(f.status == "ok" for f in fixes) < 3:
+        raise InputError(f"RF not usable: {sum(f.status == 'ok' for f in fixes)} frame(s) with an RF fix, "
+                         f"need at least 3 (readings in time with the frames, from 3+ sensors)")
+    ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode)
+    path, var = path_travelled(steps)
+    frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
+    return Localization(frames, stamps_s, ekf, rts_smooth(ekf), fixes, path, var, list(rf.problems))
+
+
+def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2: np.ndarray,
+                      sd_heading_rad: np.ndarray | None = None, path_m: np.ndarray | None = None,
+                      path_var_m2: np.ndarray | None = None) -> None:
+    """``uncertainty.csv`` (:data:`UNCERTAINTY_COLUMNS`): 1-sigma per axis and in all (m), of the heading (rad,
+    the orientation's 1-sigma over its three axes), the path travelled and its 1-sigma; empty where a
+    localizer has no such figure."""
+    cov = np.asarray(cov_position_m2, float)
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    n = len(sd)
+    nan = np.full(n, np.nan)
+    head = nan if sd_heading_rad is None else np.asarray(sd_heading_rad, float)
+    pm = nan if path_m is None else np.asarray(path_m, float)
+    psd = nan if path_var_m2 is None else np.sqrt(np.maximum(np.asarray(path_var_m2, float), 0.0))
+
+    def cell(x):
+        return "" if not math.isfinite(x) else float(x)
+
+    write_csv(path, UNCERTAINTY_COLUMNS,
+              [[int(frames[k]), float(stamps_s[k]), *map(float, sd[k]), float(np.sqrt(np.sum(sd[k] ** 2))),
+                cell(head[k]), cell(pm[k]), cell(psd[k])] for k in range(n)])
+
+
+def write_localization(out: str | os.PathLike, loc: Localization, title: str = "Body-SLAM") -> None:
+    """The output set of a localization run (module docstring) into the directory ``out``."""
+    from bodyslam.plots import Figure
+
+    out = Path(out)
+    res, ekf = loc.smoothed, loc.filtered
+    write_tum(out / "trajectory.tum", loc.stamps_s, res.positions_w_m, res.rotations_w_c)
+    write_tum(out / "trajectory_filter.tum", loc.stamps_s, ekf.positions_w_m, ekf.rotations_w_c)
+    c = res.cov
+    write_uncertainty(out / "uncertainty.csv", loc.frames, loc.stamps_s, c[:, :3, :3],
+                      np.sqrt(np.trace(c[:, 3:, 3:], axis1=1, axis2=2)), loc.path_m, loc.path_var_m2)
+    fx = np.array([f.position_w_m for f in loc.fixes])
+    write_csv(out / "rf_fixes.csv", ["frame", "t", "x_m", "y_m", "z_m", "status"],
+              [[int(loc.frames[k]), t, *fx[k], loc.fixes[k].status] for k, t in enumerate(loc.stamps_s)])
+    step = max(1, len(fx) // 4000)  # plots need no more points than pixels
+    for a, b, name in ((0, 2, "x-z (coronal)"), (0, 1, "x-y (axial)")):
+        fig = Figure(f"{title} trajectory, {name} view", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)", size=(640, 520))
+        fig.line(fx[::step, a] * 100, fx[::step, b] * 100, label="RF fixes (ML)", colour=(200, 200, 200))
+        fig.line(res.positions_w_m[::step, a] * 100, res.positions_w_m[::step, b] * 100, label="fused (smoothed)")
+        write_image(out / f"trajectory_{'xyz'[a]}{'xyz'[b]}.png", fig.image())

@@ -1,0 +1,456 @@
+"""Visual odometry: the one engine that turns frames into steps (dissertation Sec. 3.2), for every command.
+
+:class:`VisualOdometry` holds what a worker needs for one camera and :class:`MotionSettings` -- the matcher
+(:mod:`bodyslam.matching`), the FT/FL classifier (:mod:`bodyslam.classify`), the field-of-view mask, the
+unroller and the estimator (:mod:`bodyslam.motion`) -- and :meth:`VisualOdometry.run` turns a range of frames
+from a :class:`bodyslam.frames.FrameSource` into per-frame records (class, status) and steps
+(:class:`bodyslam.steps.StepMotion`). The classifier gate, masks, unroll mode, estimator and the fast mode's
+fall-back live here and nowhere else. ``bodyslam motion`` / ``track`` (:func:`sequence_motion`), ``bodyslam
+batch`` (:mod:`bodyslam.batch`, resumable chunks) and ``testbed evaluate`` all call it, so the same frames and
+settings give the same ``motion.csv`` whichever command ran (tested).
+
+Chunks: positions ``a .. b`` give the steps into ``a+1 .. b`` (frame ``a`` belongs to the previous chunk unless
+``a == 0``); features are computed once per frame and only the previous frame's are kept, so memory does not
+grow with the exam. Results do not depend on the chunking or the number of workers (tested).
+
+Gap bridging (second pass, :func:`find_gaps`, :meth:`VisualOdometry.bridge`, :func:`split_motion`): a run of up
+to ``bridge_gaps`` steps without an estimate *between* two estimated steps is measured end to end by matching
+the frame before the run with the frame after it, and split into equal shares (status ``bridged``). Runs at the
+start or end of an exam have only one estimated neighbour: they are not bridged, and the path-travelled rule
+(:func:`bodyslam.tracking.path_travelled`) treats both ends alike.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bodyslam.camera import CameraModel, camera_from_dict
+from bodyslam.choices import CAMERAS, ESTIMATORS, MATCH_MODES, UNROLL_MODES
+from bodyslam.errors import ConfigError, InputError
+from bodyslam.frames import Frame, FrameSource
+from bodyslam.io import read_image
+from bodyslam.meta import read_meta
+from bodyslam.steps import StepMotion, StepStatus
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "find_gaps",
+           "split_motion", "resolve_mask", "classify_work_px", "bridge_gaps"]
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    match_mode: str = "sift"
+    estimator: str = "tube"
+    unroll_mode: str = "exact"  # for the thesis estimator: "exact" angles or the linear Eq. 3.11 ("thesis")
+    min_matches: int = 20  # a 10-parameter fit on fewer verified matches fails on big jumps (measured)
+    mask: str | None = None  # valid field of view: None = the camera's image circle, "auto" = detected from the
+    #                          frames (black border, burned-in text), or a PNG path (non-zero = valid)
+    classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
+    model: str | None = None  # classifier model file (default: the shipped one)
+    classify_px: int | None = None  # SRM working size for classification; None: 48 px in fast mode, else 96
+    bridge_gaps: int = 15  # runs of up to this many steps without an estimate are bridged by matching their
+    #                        end frames directly (0: off); see README "gap bridging"
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("match_mode", MATCH_MODES), ("estimator", ESTIMATORS), ("unroll_mode", UNROLL_MODES)):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.min_matches < 5:
+            raise ConfigError(f"min_matches must be at least 5, got {self.min_matches}")
+        if self.bridge_gaps < 0:
+            raise ConfigError(f"bridge_gaps must be >= 0, got {self.bridge_gaps}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MotionSettings":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+def classify_work_px(settings: MotionSettings) -> int:
+    """SRM working size of the classifier: 48 px in fast mode (2.5 ms instead of 9.7 per frame at 96 px; the
+    same accuracy on the classifier benchmark's unseen synthetic seeds, see README), 96 px otherwise, unless
+    the settings say."""
+    if settings.classify_px:
+        return int(settings.classify_px)
+    return 48 if settings.match_mode == "fast" else 96
+
+
+@dataclass
+class ChunkResult:
+    """What :meth:`VisualOdometry.run` returns for positions ``first .. last``.
+
+    ``frames``: ``[index, label, t_s, class, status]`` per frame the chunk owns (class ``FT``/``FL``, ``""``
+    when not classified; status ``ok``, ``dark``, ``saturated``, ``unreadable``, ``bad_size``); ``steps``:
+    ``(position, index, t_s, StepMotion)`` of the steps into ``first+1 .. last``; ``problems``: ``[file,
+    frame, severity, reason]``; ``eof``: the position where a video ended early, else None."""
+
+    frames: list[list]
+    steps: list[tuple[int, int, float, StepMotion]]
+    problems: list[list]
+    eof: int | None = None
+
+
+class VisualOdometry:
+    """The frame-to-step engine (module docstring). ``T_body_cam``: ``(q_xyzw, t_m)`` of a camera that is not
+    the capsule body's (a dual capsule's rear camera): its steps are reported as the body's motion."""
+
+    def __init__(self, camera: CameraModel, settings: MotionSettings, radius_m: float,
+                 mask: np.ndarray | None = None, T_body_cam: tuple | None = None):
+        from bodyslam.matching import Matcher
+        from bodyslam.unroll import Unroller
+
+        if not (isinstance(radius_m, (int, float)) and math.isfinite(radius_m) and radius_m > 0):
+            raise ConfigError(f"lumen radius must be a positive number of metres, got {radius_m!r}")
+        self.camera, self.settings, self.radius_m = camera, settings, float(radius_m)
+        self.matcher = Matcher(camera, settings.match_mode, mask=mask)
+        self.unroller = Unroller(camera, mode=settings.unroll_mode) if settings.estimator == "thesis" else None
+        self.fov = camera.fov_mask() if mask is None else mask
+        self.classifier = None
+        if settings.classify:
+            from bodyslam.classify import TunnelClassifier
+
+            self.classifier = (TunnelClassifier.load(settings.model) if settings.model
+                               else TunnelClassifier.default())
+        self.work_px = classify_work_px(settings)
+        self.T_body_cam = None
+        if T_body_cam is not None:
+            self.T_body_cam = (Rotation.from_quat(T_body_cam[0]), np.asarray(T_body_cam[1], float).reshape(3))
+
+    # -- one pair ---------------------------------------------------------------------------------------------
+    def _estimate(self, m) -> StepMotion:
+        from bodyslam.motion import estimate_thesis, estimate_tube
+
+        if self.settings.estimator == "tube":
+            return estimate_tube(m, self.camera, self.radius_m, min_matches=self.settings.min_matches)
+        return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches)
+
+    def estimate_pair(self, f1, f2, estimate: Callable | None = None) -> StepMotion:
+        """Match two frames' features and estimate the step; in fast mode a tracked pair (Lucas-Kanade) whose
+        estimate fails (too few matches, uncertain) is matched again by descriptors, so tracking never costs
+        coverage. The step is in the body frame (:meth:`to_body`)."""
+        estimate = estimate or self._estimate
+        m = self.matcher.match_features(f1, f2)
+        s = estimate(m)
+        if not s.ok and m.method == "lk":
+            s = estimate(self.matcher.match_features(f1, f2, "descriptors"))
+        return self.to_body(s)
+
+    def to_body(self, s: StepMotion) -> StepMotion:
+        """A step measured by this camera, as the motion of the capsule body (front camera) frame."""
+        from bodyslam.motion import motion_from_transform
+
+        if self.T_body_cam is None or not s.ok or s.R_c1_c2 is None:
+            return s
+        R_bc, t_bc = self.T_body_cam
+        R = R_bc * Rotation.from_matrix(s.R_c1_c2) * R_bc.inv()
+        t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
+        return replace(motion_from_transform(R, t, s.n_matches), sigma_distance_m=s.sigma_distance_m,
+                       sigma_rotation_rad=s.sigma_rotation_rad)
+
+    def classify(self, img: np.ndarray) -> tuple[str, str]:
+        """``(class, status)`` of a frame: FT/FL by the kernel SVM (dark or saturated frames: FL), ``""`` and
+        ``ok`` when classification is off."""
+        if self.classifier is None:
+            return "", "ok"
+        from bodyslam.classify import frame_features, frame_status
+
+        status = frame_status(img, self.fov)
+        if status != "ok":
+            return "FL", status
+        return str(self.classifier.predict(frame_features(img, self.fov, work_px=self.work_px)[None])[0]), status
+
+    # -- a range of frames ------------------------------------------------------------------------------------
+    def run(self, frames: Iterable[Frame], first: int) -> ChunkResult:
+        """Records and steps of the frames at positions ``first ..`` (module docstring)."""
+        cam = self.camera
+        out = ChunkResult([], [], [])
+        prev = None  # (features or None, class)
+        for fr in frames:
+            if fr.end_of_video:
+                out.problems.append([fr.path, fr.pos, "error", fr.notes[0][1]])
+                out.eof = fr.pos
+                break
+            own = fr.pos > first or first == 0  # the seam frame belongs to the previous chunk
+            img, notes = fr.image, list(fr.notes)
+            status = "unreadable" if img is None else "ok"
+            if img is not None and img.shape[:2] != (cam.height, cam.width):
+                notes.append(("error", f"size {img.shape[1]}x{img.shape[0]} is not the camera's "
+                                       f"{cam.width}x{cam.height}"))
+                img, status = None, "bad_size"
+            feats, cls = None, ""
+            if img is not None:
+                feats = self.matcher.features(img)
+                cls, status = self.classify(img)
+            if own:
+                out.problems.extend([fr.path, fr.index, sev, reason] for sev, reason in notes)
+                out.frames.append([fr.index, fr.label, fr.t_s, cls, status])
+            if fr.pos > first:
+                if prev is None or prev[0] is None or feats is None:
+                    s = StepMotion.failed(StepStatus.BAD_FRAME)
+                elif self.classifier is not None and (prev[1] != "FT" or cls != "FT"):
+                    # the geometric model needs the lumen in view in both frames (dissertation Sec. 3.2.1)
+                    s = StepMotion.failed(StepStatus.NO_LUMEN)
+                else:
+                    s = self.estimate_pair(prev[0], feats)
+                out.steps.append((fr.pos, fr.index, fr.t_s, s))
+            prev = (feats, cls)
+        return out
+
+    def bridge(self, img_a: np.ndarray | None, img_b: np.ndarray | None) -> StepMotion | None:
+        """The motion from frame ``a`` straight to frame ``b`` (a gap's ends, tube estimator), or None."""
+        from bodyslam.motion import estimate_tube
+
+        if img_a is None or img_b is None:
+            return None
+        fa, fb = self.matcher.features(img_a), self.matcher.features(img_b)
+        s = self.estimate_pair(fa, fb, lambda m: estimate_tube(m, self.camera, self.radius_m,
+                                                                min_matches=self.settings.min_matches))
+        return s if s.ok else None
+
+
+# -- workers ----------------------------------------------------------------------------------------------------
+_ENGINES: dict = {}
+
+
+def engine_for(camera_d: dict, settings: MotionSettings, radius_m: float, mask: np.ndarray | None,
+               T_body_cam: tuple | None = None) -> VisualOdometry:
+    """A worker's engine, built once per process and (camera, settings, radius, mask)."""
+    key = (json.dumps(camera_d, sort_keys=True), settings, radius_m,
+           None if mask is None else hashlib.sha1(np.ascontiguousarray(mask)).hexdigest(), repr(T_body_cam))
+    if key not in _ENGINES:
+        _ENGINES.clear()
+        _ENGINES[key] = VisualOdometry(camera_from_dict(camera_d), settings, radius_m, mask, T_body_cam)
+    return _ENGINES[key]
+
+
+def set_worker_threads() -> None:
+    """One OpenCV thread per worker process (the pool has one process per core)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def chunk_task(task: dict) -> ChunkResult:
+    """A worker's chunk: ``task`` holds the source subset, camera, settings, radius, mask, first and last."""
+    set_worker_threads()
+    vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
+    src: FrameSource = task["source"]
+    return vo.run(src.read(task["first"], task["last"]), task["first"])
+
+
+def bridge_task(task: dict) -> StepMotion | None:
+    """A worker's gap: the motion from position ``a`` to ``b`` of the source."""
+    set_worker_threads()
+    vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
+    return vo.bridge(task["source_a"].read_one(task["a"]).image, task["source_b"].read_one(task["b"]).image)
+
+
+# -- gaps -------------------------------------------------------------------------------------------------------
+def find_gaps(statuses: list, max_len: int) -> list[tuple[int, int]]:
+    """Runs of steps without an estimate, as position pairs ``(a, b)``: steps ``a+1..b`` (0-based list items
+    ``a..b-1``) have none, the steps on both sides have one (so frames ``a`` and ``b`` face the tunnel and are
+    readable); runs of at most ``max_len``, none across an unreadable frame. ``statuses``: per step, a
+    :class:`StepStatus` or a StepMotion."""
+    st = [getattr(s, "status", s) for s in statuses]
+    out, k, n = [], 0, len(st)
+    while k < n:
+        if st[k] == StepStatus.OK:
+            k += 1
+            continue
+        j = k
+        while j < n and st[j] != StepStatus.OK:
+            j += 1
+        if k > 0 and j < n and j - k <= max_len and all(s != StepStatus.BAD_FRAME for s in st[k:j]):
+            out.append((k, j))
+        k = j
+    return out
+
+
+def split_motion(total: StepMotion, n: int) -> list[StepMotion]:
+    """``n`` equal steps whose composition is ``total`` (constant twist: rotation ``R^(1/n)``, translation on
+    the screw), each with status ``bridged`` and a 1-sigma of ``total``'s over sqrt(n) (independent steps)."""
+    from bodyslam.motion import motion_from_transform
+
+    R = Rotation.from_matrix(total.R_c1_c2)
+    dR = Rotation.from_rotvec(R.as_rotvec() / n)
+    # find t_s with sum_{i<n} dR^i t_s = t_total
+    A = np.zeros((3, 3))
+    Ri = np.eye(3)
+    for _ in range(n):
+        A += Ri
+        Ri = Ri @ dR.as_matrix()
+    t_s = np.linalg.solve(A, np.asarray(total.t_c1_c2_m, float))
+    s = motion_from_transform(dR, t_s, total.n_matches)
+    share = replace(s, status=StepStatus.BRIDGED, sigma_distance_m=total.sigma_distance_m / math.sqrt(n),
+                    sigma_rotation_rad=total.sigma_rotation_rad / math.sqrt(n))
+    return [share] * n
+
+
+def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
+                jobs: int | None = None, run_tasks=None) -> dict[int, StepMotion]:
+    """Bridge the gaps of ``steps`` (StepMotions or their statuses; list item ``i`` = the step into position
+    ``i + 1``): returns ``{list item: bridged share}``. ``task_base``: the engine's task fields (source, camera, settings, radius, mask);
+    ``run_tasks(func, tasks)``: how to run them (default: local worker processes)."""
+    if not settings.bridge_gaps or settings.estimator != "tube":
+        return {}
+    gaps = find_gaps(steps, settings.bridge_gaps)
+    if not gaps:
+        return {}
+    if run_tasks is None:
+        from bodyslam.parallel import imap_tasks
+
+        def run_tasks(func, tasks):
+            return imap_tasks(func, tasks, jobs)
+
+    src: FrameSource = task_base["source"]
+    tasks = [dict(task_base, source=None, a=a, b=b, source_a=src.subset(a, a), source_b=src.subset(b, b))
+             for a, b in gaps]
+    out = {}
+    for (a, b), total in zip(gaps, run_tasks(bridge_task, tasks)):
+        if total is not None:
+            for i, s in zip(range(a, b), split_motion(total, b - a)):
+                out[i] = s
+    return out
+
+
+# -- masks ------------------------------------------------------------------------------------------------------
+def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_sample: int = 30) -> np.ndarray | None:
+    """The valid field-of-view mask of a source (see :attr:`MotionSettings.mask`): None (the camera's image
+    circle), detected from ``n_sample`` frames spread over the exam (``"auto"``), or read from a PNG."""
+    if mask is None:
+        return None
+    if mask == "auto":
+        from bodyslam.matching import detect_fov_mask
+
+        n = len(source)
+        frames = []
+        for k in np.unique(np.linspace(0, n - 1, min(n_sample, n)).astype(int)):
+            fr = source.read_one(int(k))
+            if fr.image is not None and fr.image.shape[:2] == (camera.height, camera.width):
+                frames.append(fr.image)
+            elif fr.notes:
+                log.warning("%s: %s (skipped for mask detection)", fr.path, fr.notes[-1][1])
+        if not frames:
+            raise InputError(f"{source.source}: no readable frame to detect the field of view from")
+        m = detect_fov_mask(frames)
+        log.info("detected field of view: %d of %d pixels", int(m.sum()), m.size)
+        return m
+    img = read_image(mask, unchanged=True)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    if img.shape != (camera.height, camera.width):
+        raise InputError(f"{mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are {camera.width}x{camera.height}")
+    return img > 0
+
+
+# -- a sequence directory ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Sequence:
+    """What the pipeline may read of a sequence directory: frames, time stamps, calibration, lumen radius."""
+
+    path: Path
+    camera: CameraModel
+    camera_d: dict
+    n_frames: int
+    frame_rate_hz: float
+    radius_m: float
+    source: FrameSource
+    camera_name: str = "front"
+    T_body_cam: tuple | None = None  # (q_xyzw, t_m) of a non-front camera in the body (front camera) frame
+
+    @classmethod
+    def open(cls, seq_dir: str | os.PathLike, radius_m: float | None = None, camera: str = "front") -> "Sequence":
+        seq = Path(seq_dir)
+        meta = read_meta(seq)
+        if camera not in CAMERAS:
+            raise ConfigError(f"camera must be one of {', '.join(CAMERAS)}, got {camera!r}")
+        r = radius_m if radius_m is not None else meta.tube_radius_m
+        if r is None:
+            raise InputError(f"{seq}/meta.json: no tube_radius_m; give the lumen radius (--radius-m)")
+        if not (math.isfinite(r) and r > 0):
+            raise InputError(f"lumen radius must be a positive number of metres, got {r!r}")
+        extr = None
+        if camera == "front":
+            cam_d, frames_dir = meta.camera, seq / meta.frames_dir
+        else:
+            if meta.rear_camera is None:
+                raise InputError(f"{seq}/meta.json: no rear_camera (a single-camera capsule)")
+            rc = meta.rear_camera
+            cam_d, frames_dir = rc.camera, seq / rc.frames_dir
+            extr = (rc.q_front_rear_xyzw, rc.t_front_rear_m)
+        if not frames_dir.is_dir():
+            raise InputError(f"{frames_dir}: frames directory not found")
+        src = FrameSource.sequence(frames_dir, meta.n_frames, meta.frame_rate_hz)
+        return cls(seq, camera_from_dict(cam_d), cam_d, meta.n_frames, meta.frame_rate_hz, float(r), src, camera,
+                   extr)
+
+    @property
+    def frames_dir(self) -> Path:
+        return Path(self.source.source)
+
+    def frame(self, k: int) -> np.ndarray:
+        """Frame ``k`` as RGB; raises :class:`InputError` when unreadable or of the wrong size."""
+        fr = self.source.read_one(k)
+        if fr.image is None:
+            raise InputError(f"{fr.path}: {fr.notes[-1][1] if fr.notes else 'unreadable'}")
+        if fr.image.shape[:2] != (self.camera.height, self.camera.width):
+            raise InputError(f"{fr.path}: size {fr.image.shape[1]}x{fr.image.shape[0]} is not the camera's "
+                             f"{self.camera.width}x{self.camera.height}")
+        return fr.image
+
+    def stamp(self, k: int) -> float:
+        return k / self.frame_rate_hz
+
+    def task_base(self, settings: MotionSettings, mask: np.ndarray | None) -> dict:
+        return {"source": self.source, "camera": self.camera_d, "settings": settings, "radius_m": self.radius_m,
+                "mask": mask, "T_body_cam": self.T_body_cam}
+
+
+def chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
+    """Position ranges ``(a, b)`` of chunks of ``size`` steps that overlap by one frame."""
+    if n <= 1:
+        return [(0, max(n - 1, 0))]
+    b = list(range(0, n - 1, size)) + [n - 1]
+    return [(b[i], b[i + 1]) for i in range(len(b) - 1)]
+
+
+def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = MotionSettings(),
+                    jobs: int | None = None, radius_m: float | None = None, chunk_frames: int = 50,
+                    progress: Callable[[int, int], None] | None = None, camera: str = "front",
+                    problems: list | None = None) -> list[StepMotion]:
+    """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order), gaps
+    bridged. ``camera="rear"``: a dual-camera capsule's rear frames, reported as the body's motion.
+    ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame."""
+    from bodyslam.parallel import imap_tasks
+
+    seq = Sequence.open(seq_dir, radius_m, camera)
+    n = seq.n_frames
+    if n < 2:
+        raise InputError(f"{seq_dir}: need at least 2 frames, meta.json says {n}")
+    mask = resolve_mask(seq.source, seq.camera, settings.mask)
+    base = seq.task_base(settings, mask)
+    tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b) for a, b in chunk_bounds(n, chunk_frames)]
+    steps: list[StepMotion] = []
+    for res in imap_tasks(chunk_task, tasks, jobs):
+        for _, _, _, s in res.steps:
+            steps.append(s)
+        for p in res.problems:
+            log.warning("%s: %s", p[0], p[3])
+            if problems is not None:
+                problems.append(p)
+        if progress:
+            progress(len(steps), n - 1)
+    for i, s in bridge_gaps(steps, settings, base, jobs).items():
+        steps[i] = s
+    return steps

@@ -1,0 +1,113 @@
+"""The one type of a visual step, and what became of it (statuses).
+
+A *step* ``k`` is the capsule's motion from frame ``k-1`` to frame ``k``: the relative pose ``T_c1_c2`` (rotation
+``R_c1_c2``, translation ``t_c1_c2_m`` in frame ``k-1``'s camera axes) with its 1-sigma uncertainties, reported
+also as the dissertation's quantities (distance, roll, pitch, yaw, tilt; :mod:`bodyslam.geometry`). The same
+object is what the estimators return, what ``motion.csv`` stores (:func:`bodyslam.io.write_motion_csv` /
+:func:`bodyslam.io.read_motion_steps`), what dead reckoning and the fusion consume, and what batch chunks carry.
+
+Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which is what ``motion.csv`` holds):
+
+- ``ok``: estimated from the pair's matches;
+- ``bridged``: a share of a gap's end-to-end motion (:func:`bodyslam.odometry.split_motion`);
+- ``too_few_matches``, ``uncertain``, ``solver_failed``: the estimator gave no usable estimate;
+- ``no_lumen``: a frame of the pair faces the wall (classifier), so the tube model does not apply;
+- ``bad_frame``: a frame of the pair could not be read;
+- ``missing``: no row for the step in a ``motion.csv`` that was read back.
+
+Steps that are neither ``ok`` nor ``bridged`` carry NaN, never an invented number.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+
+import numpy as np
+
+__all__ = ["StepStatus", "StepMotion", "motion_from_transform", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
+
+NAN = float("nan")
+# 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
+SIGMA_T_DEFAULT_M = 1e-3
+SIGMA_R_DEFAULT_RAD = math.radians(1.0)
+
+
+class StepStatus(StrEnum):
+    OK = "ok"
+    BRIDGED = "bridged"
+    TOO_FEW_MATCHES = "too_few_matches"
+    UNCERTAIN = "uncertain"
+    SOLVER_FAILED = "solver_failed"
+    NO_LUMEN = "no_lumen"
+    BAD_FRAME = "bad_frame"
+    MISSING = "missing"
+
+
+@dataclass(frozen=True)
+class StepMotion:
+    """One step (module docstring). ``R_c1_c2`` is a 3x3 matrix when the estimator gives a full pose."""
+
+    distance_m: float = NAN
+    roll_rad: float = NAN
+    pitch_rad: float = NAN
+    yaw_rad: float = NAN
+    tilt_rad: float = NAN
+    n_matches: int = 0
+    status: StepStatus = StepStatus.OK
+    R_c1_c2: np.ndarray | None = field(default=None, repr=False)
+    t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
+    sigma_distance_m: float = NAN  # 1-sigma of distance_m (tube estimator: from the fit)
+    sigma_rotation_rad: float = NAN  # 1-sigma of the rotation (largest axis)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", StepStatus(self.status))  # also refuses an unknown status
+
+    @property
+    def ok(self) -> bool:
+        """Estimated from this pair's own matches."""
+        return self.status == StepStatus.OK
+
+    @property
+    def bridged(self) -> bool:
+        return self.status == StepStatus.BRIDGED
+
+    @property
+    def has_estimate(self) -> bool:
+        """A full pose the filters can use: ``ok`` or ``bridged``, with finite ``R_c1_c2`` and ``t_c1_c2_m``."""
+        return (self.status in (StepStatus.OK, StepStatus.BRIDGED) and self.R_c1_c2 is not None
+                and self.t_c1_c2_m is not None and bool(np.isfinite(self.t_c1_c2_m).all())
+                and bool(np.isfinite(self.R_c1_c2).all()))
+
+    @property
+    def sigma_t_m(self) -> float:
+        """1-sigma of the translation (m); :data:`SIGMA_T_DEFAULT_M` where none was given."""
+        return self.sigma_distance_m if np.isfinite(self.sigma_distance_m) else SIGMA_T_DEFAULT_M
+
+    @property
+    def sigma_r_rad(self) -> float:
+        """1-sigma of the rotation (rad); :data:`SIGMA_R_DEFAULT_RAD` where none was given."""
+        return self.sigma_rotation_rad if np.isfinite(self.sigma_rotation_rad) else SIGMA_R_DEFAULT_RAD
+
+    def with_status(self, status: StepStatus | str) -> "StepMotion":
+        return replace(self, status=StepStatus(status))
+
+    @classmethod
+    def failed(cls, status: StepStatus | str, n_matches: int = 0) -> "StepMotion":
+        """A step without an estimate, with its reason."""
+        return cls(n_matches=n_matches, status=StepStatus(status))
+
+
+def motion_from_transform(R_c1_c2, t_c1_c2_m: np.ndarray, n_matches: int = 0, sigma_distance_m: float = NAN,
+                          sigma_rotation_rad: float = NAN, status: StepStatus | str = StepStatus.OK) -> StepMotion:
+    """A step from a relative pose (``R_c1_c2``: scipy Rotation), with the conventions of
+    :mod:`bodyslam.geometry` for the dissertation's quantities (distance signed by the optical-axis direction,
+    roll about it, swing as pitch and yaw)."""
+    from bodyslam.geometry import swing_twist_z
+
+    t = np.asarray(t_c1_c2_m, float)
+    roll, swing = swing_twist_z(R_c1_c2)
+    dist = float(np.linalg.norm(t)) * (1.0 if t[2] >= 0 else -1.0)
+    return StepMotion(dist, float(roll[0]), float(swing[0, 0]), float(swing[0, 1]), float(np.linalg.norm(swing[0])),
+                      n_matches, StepStatus(status), R_c1_c2.as_matrix(), t, sigma_distance_m, sigma_rotation_rad)

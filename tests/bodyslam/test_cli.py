@@ -1,0 +1,83 @@
+"""The bodyslam command as a whole: a light start, a description and an example per subcommand, one exit-code
+rule (0 done, 3 done with problems listed, 1 unusable input, 130 interrupted)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bodyslam.cli import COMMANDS, _parser
+from bodyslam.cliutil import run_cli
+
+DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "bodyslam.cli", *args], capture_output=True, text=True)
+
+
+def test_help_imports_neither_opencv_nor_scipy():
+    """``bodyslam --help`` must start fast: the parser module may not pull in the heavy libraries (the
+    choices come from bodyslam.choices). Checked by what is imported, not by a timing."""
+    code = "import sys, bodyslam.cli; bodyslam.cli._parser(); print(sorted(m for m in ('cv2', 'scipy', 'sklearn') if m in sys.modules))"
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert p.returncode == 0 and p.stdout.strip() == "[]", p.stdout + p.stderr
+
+
+def test_every_subcommand_has_a_description_and_an_example():
+    sub = next(a for a in _parser()._actions if a.dest == "cmd")
+    assert set(sub.choices) == set(COMMANDS)
+    for name, parser in sub.choices.items():
+        assert parser.description and parser.epilog.startswith("example: bodyslam " + name), name
+
+
+def test_exit_codes_done_problems_unusable(tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(DEMO, seq, ignore=shutil.ignore_patterns("depth"))
+    # done: 0
+    assert run("check", str(seq)).returncode == 0
+    # done, with problems listed: a corrupt frame (check, motion), a malformed RF line (localize, batch)
+    (seq / "frames" / "000020.png").write_bytes(b"garbage")
+    p = run("check", str(seq))
+    assert p.returncode == 3 and "000020.png" in p.stdout
+    p = run("motion", str(seq), "--out", str(tmp_path / "m.csv"), "--mode", "fast", "--jobs", "1")
+    assert p.returncode == 3 and "000020.png" in p.stdout and (tmp_path / "m.csv").is_file()
+    shutil.copy(DEMO / "frames" / "000020.png", seq / "frames" / "000020.png")
+    with (seq / "rf.csv").open("a") as f:
+        f.write("oops,S1,-60\n")
+    p = run("localize", str(seq), "--out", str(tmp_path / "loc"), "--mode", "fast", "--jobs", "1")
+    assert p.returncode == 3 and "rf.csv" in p.stdout, p.stdout + p.stderr
+    assert (tmp_path / "loc" / "trajectory.tum").is_file()
+    p = run("batch", str(seq), "--out", str(tmp_path / "b"), "--jobs", "1")
+    assert p.returncode == 3, p.stdout + p.stderr
+    # unusable input: 1, one line, and a failed run leaves no output directory behind
+    (seq / "rf.csv").write_text("t,sensor,rss_dbm\n")
+    p = run("localize", str(seq), "--out", str(tmp_path / "loc2"), "--motion", str(tmp_path / "loc" / "motion.csv"))
+    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "RF" in p.stderr
+    assert not (tmp_path / "loc2").exists()
+
+
+def test_interrupt_exits_130():
+    def body(argv):
+        raise KeyboardInterrupt
+
+    assert run_cli(body, []) == 130
+
+
+def test_uncertainty_csv_has_one_schema(tmp_path):
+    """localize and batch (with and without RF) write uncertainty.csv with the same columns."""
+    from bodyslam.localize import UNCERTAINTY_COLUMNS
+
+    p = run("localize", str(DEMO), "--out", str(tmp_path / "loc"), "--mode", "fast", "--jobs", "1")
+    assert p.returncode == 0, p.stderr
+    p = run("batch", str(DEMO), "--out", str(tmp_path / "b"), "--jobs", "1")
+    assert p.returncode == 0, p.stderr
+    p = run("batch", str(DEMO / "frames"), "--out", str(tmp_path / "b2"), "--jobs", "1")
+    assert p.returncode == 0, p.stderr
+    for f in (tmp_path / "loc" / "uncertainty.csv", tmp_path / "b" / "demo_seed0" / "uncertainty.csv",
+              tmp_path / "b2" / "frames" / "uncertainty.csv"):
+        assert f.read_text().splitlines()[0].split(",") == UNCERTAINTY_COLUMNS, f
