@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyslam.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
+from bodyslam.vision.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
 from bodyslam.io import frame_name
 from bodyslam.meta import read_meta
 from testbed.scenario import load_scenario

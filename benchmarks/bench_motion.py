@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from bodyslam.io import read_tum, write_motion_csv
-from bodyslam.matching import Matcher
-from bodyslam.motion import estimate_thesis, estimate_tube
-from bodyslam.odometry import Sequence
-from bodyslam.unroll import Unroller
+from bodyslam.vision.matching import Matcher
+from bodyslam.vision.motion import estimate_thesis, estimate_tube
+from bodyslam.vision.odometry import Sequence
+from bodyslam.vision.unroll import Unroller
 from testbed.centerline import Centerline
 from testbed.scenario import load_scenario
 from testbed.score import score_motion
@@ -80,7 +80,7 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
             f = matcher.features(seq.frame(k))
             m = matcher.match_features(prev, f)
             tube = estimate_tube(m, seq.camera, seq.radius_m)
-            if not tube.ok and m.method == "lk":  # as bodyslam.odometry.VisualOdometry.estimate_pair
+            if not tube.ok and m.method == "lk":  # as bodyslam.vision.odometry.VisualOdometry.estimate_pair
                 m = matcher.match_features(prev, f, "descriptors")
                 tube = estimate_tube(m, seq.camera, seq.radius_m)
             prev = f

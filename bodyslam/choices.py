@@ -9,10 +9,10 @@ from __future__ import annotations
 
 __all__ = ["MATCH_MODES", "ESTIMATORS", "UNROLL_MODES", "FUSION_MODES", "TRACKERS", "SCHEMES", "CAMERAS"]
 
-MATCH_MODES = ("asift", "sift", "fast")  # bodyslam.matching.Matcher
-ESTIMATORS = ("tube", "thesis")  # bodyslam.motion.estimate_tube / estimate_thesis
-UNROLL_MODES = ("exact", "thesis")  # bodyslam.unroll.Unroller: camera model, or the linear Eq. 3.11
-FUSION_MODES = ("rss", "fix")  # bodyslam.fusion.fuse: EKF on raw RSS readings, or on ML position fixes
-TRACKERS = ("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf")  # bodyslam.pf.track
-SCHEMES = ("toa_doa_imu", "doa_imu", "toa_imu", "rf_only_cv", "rf_only", "imu_only")  # bodyslam.toa_doa.run_scheme
+MATCH_MODES = ("asift", "sift", "fast")  # bodyslam.vision.matching.Matcher
+ESTIMATORS = ("tube", "thesis")  # bodyslam.vision.motion.estimate_tube / estimate_thesis
+UNROLL_MODES = ("exact", "thesis")  # bodyslam.vision.unroll.Unroller: camera model, or the linear Eq. 3.11
+FUSION_MODES = ("rss", "fix")  # bodyslam.fusion.body_slam.fuse: EKF on raw RSS readings, or on ML position fixes
+TRACKERS = ("toa_rssi_pf", "toa_pf_true_eps", "rssi_pf")  # bodyslam.systems.pf.track
+SCHEMES = ("toa_doa_imu", "doa_imu", "toa_imu", "rf_only_cv", "rf_only", "imu_only")  # bodyslam.systems.toa_doa.run_scheme
 CAMERAS = ("front", "rear")  # which camera of a (dual-camera) capsule

@@ -62,8 +62,10 @@ def _parser() -> argparse.ArgumentParser:
 
     def cmd(name):
         desc, example = COMMANDS[name]
-        return sub.add_parser(name, help=desc, description=f"{desc}.", epilog=f"example: {example}",
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+        q = sub.add_parser(name, help=desc, description=f"{desc}.", epilog=f"example: {example}",
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        q.add_argument("-v", "--verbose", action="store_true", help=argparse.SUPPRESS)  # also after the command
+        return q
 
     c = cmd("check")
     c.add_argument("seqdir")
@@ -190,8 +192,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _motion_settings(args):
-    """The visual engine's settings from the common options (bodyslam.odometry.MotionSettings)."""
-    from bodyslam.odometry import MotionSettings
+    """The visual engine's settings from the common options (bodyslam.vision.odometry.MotionSettings)."""
+    from bodyslam.vision.odometry import MotionSettings
 
     return MotionSettings(args.mode, args.estimator, args.unroll_mode,
                           mask=getattr(args, "mask", None) if args.cmd != "batch" else None,
@@ -238,7 +240,7 @@ def _frames_of(inp):
 
 def _segment(args) -> int:
     from bodyslam.io import read_image, write_image
-    from bodyslam.segmentation import paint_regions, srm
+    from bodyslam.vision.segmentation import paint_regions, srm
 
     img = read_image(args.frame)
     cam = _camera_for(img, args.meta)
@@ -251,7 +253,7 @@ def _segment(args) -> int:
 def _train_classifier(args) -> int:
     import numpy as np
 
-    from bodyslam.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
+    from bodyslam.vision.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
     from bodyslam.errors import InputError
 
     X, y, names = [], [], []
@@ -279,7 +281,7 @@ def _train_classifier(args) -> int:
 def _classify(args) -> int:
     from collections import Counter
 
-    from bodyslam.classify import TunnelClassifier, features_of_frames
+    from bodyslam.vision.classify import TunnelClassifier, features_of_frames
     from bodyslam.io import read_image, write_csv
 
     paths, cam = _frames_of(args.input)
@@ -309,7 +311,7 @@ def _rf_localize(args) -> int:
     import numpy as np
 
     from bodyslam.io import read_json, write_csv
-    from bodyslam.rf import PathLossModel, locate_lls, locate_ml, locate_nls, read_rf, read_sensors
+    from bodyslam.fusion.rf import PathLossModel, locate_lls, locate_ml, locate_nls, read_rf, read_sensors
 
     names, pos, nrm = read_sensors(args.sensors)
     stamps, rss, problems = read_rf(args.rf, names)
@@ -343,13 +345,13 @@ def _rf_localize(args) -> int:
 
 
 def _write_position_track(out, t, pos, quat_wxyz, cov):
-    """``trajectory.tum`` and ``uncertainty.csv`` (bodyslam.localize's schema) of a localization run; returns
+    """``trajectory.tum`` and ``uncertainty.csv`` (bodyslam.fusion.localize's schema) of a localization run; returns
     the per-axis 1-sigma ``(n, 3)``."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 
     from bodyslam.io import write_tum
-    from bodyslam.localize import write_uncertainty
+    from bodyslam.fusion.localize import write_uncertainty
 
     rot = Rotation.identity(len(pos)) if quat_wxyz is None else Rotation.from_quat(quat_wxyz[:, [1, 2, 3, 0]])
     write_tum(out / "trajectory.tum", t, pos, rot)
@@ -366,8 +368,8 @@ def _rf_track(args) -> int:
 
     from bodyslam.errors import InputError
     from bodyslam.io import read_json, write_csv, write_tum
-    from bodyslam.pf import TrackSettings, track
-    from bodyslam.rf import read_rf_columns, read_sensors
+    from bodyslam.systems.pf import TrackSettings, track
+    from bodyslam.fusion.rf import read_rf_columns, read_sensors
 
     d = Path(args.seqdir)
     meta = read_json(d / "meta.json")
@@ -399,7 +401,7 @@ def _rf_track(args) -> int:
 def _magnetic_localize(args) -> int:
     import numpy as np
 
-    from bodyslam.magnetic import load_recording, replay
+    from bodyslam.systems.magnetic import load_recording, replay
 
     from bodyslam.io import prepare_output_dir
 
@@ -417,7 +419,7 @@ def _magnetic_localize(args) -> int:
 def _hybrid_localize(args) -> int:
     import numpy as np
 
-    from bodyslam.toa_doa import load_recording, run_scheme
+    from bodyslam.systems.toa_doa import load_recording, run_scheme
 
     from bodyslam.io import prepare_output_dir
 
@@ -438,9 +440,9 @@ def _localize(args) -> int:
     import numpy as np
 
     from bodyslam.io import prepare_output_dir, read_motion_steps, write_motion_csv
-    from bodyslam.localize import RfInput, localize, write_localization
+    from bodyslam.fusion.localize import RfInput, localize, write_localization
     from bodyslam.meta import read_meta
-    from bodyslam.odometry import Sequence, sequence_motion
+    from bodyslam.vision.odometry import Sequence, sequence_motion
 
     seq_dir = Path(args.seqdir)
     seq = Sequence.open(seq_dir, args.radius_m)
@@ -474,7 +476,7 @@ def _localize(args) -> int:
 
 
 def _batch(args) -> int:
-    from bodyslam.batch import BatchSettings, open_exams, parse_frame_list, read_marks, run_batch
+    from bodyslam.exam.batch import BatchSettings, open_exams, parse_frame_list, read_marks, run_batch
 
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
@@ -506,7 +508,7 @@ def _speed_stats(args) -> int:
 
     from bodyslam.errors import InputError
     from bodyslam.io import read_motion_csv
-    from bodyslam.speed import fit_speed_model, speed_statistics, summary_line, write_speed_report
+    from bodyslam.vision.speed import fit_speed_model, speed_statistics, summary_line, write_speed_report
 
     rows = read_motion_csv(args.motion_csv)
     rate = args.frame_rate
@@ -541,8 +543,8 @@ def _match(args) -> int:
     import numpy as np
 
     from bodyslam.io import read_image, write_image
-    from bodyslam.matching import Matcher
-    from bodyslam.unroll import Unroller
+    from bodyslam.vision.matching import Matcher
+    from bodyslam.vision.unroll import Unroller
 
     a, b = read_image(args.a), read_image(args.b)
     cam = _camera_for(a, args.meta)
@@ -569,7 +571,7 @@ def _match(args) -> int:
 
 def _unroll(args) -> int:
     from bodyslam.io import read_image, write_image
-    from bodyslam.unroll import Unroller
+    from bodyslam.vision.unroll import Unroller
 
     img = read_image(args.frame)
     un = Unroller(_camera_for(img, args.meta), args.size[0], args.size[1], mode=args.unroll_mode)
@@ -584,8 +586,8 @@ def _motion_or_track(args) -> int:
     import numpy as np
 
     from bodyslam.io import check_writable, write_motion_csv, write_tum
-    from bodyslam.odometry import Sequence, sequence_motion
-    from bodyslam.tracking import dead_reckon, path_travelled
+    from bodyslam.vision.odometry import Sequence, sequence_motion
+    from bodyslam.vision.tracking import dead_reckon, path_travelled
 
     settings = _motion_settings(args)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)

@@ -26,7 +26,7 @@ __all__ = ["SequenceMeta", "RfMeta", "RearCamera", "read_meta", "write_meta", "m
 @dataclass(frozen=True)
 class RfMeta:
     """The RF calibration a real system would have: file names and the path-loss model (a dict for
-    :meth:`bodyslam.rf.PathLossModel.from_dict`, already validated; ``None``: Table 2.2's defaults)."""
+    :meth:`bodyslam.fusion.rf.PathLossModel.from_dict`, already validated; ``None``: Table 2.2's defaults)."""
 
     file: str = "rf.csv"
     sensors: str = "sensors.csv"
@@ -118,7 +118,7 @@ def meta_from_dict(d: Any, path: Path | None = None) -> SequenceMeta:
                 raise InputError(f"{where}: rf.{key} must be a file name, got {r[key]!r}")
         pl = r.get("pathloss")
         if pl is not None:
-            from bodyslam.rf import PathLossModel
+            from bodyslam.fusion.rf import PathLossModel
 
             try:
                 PathLossModel.from_dict(pl)

@@ -9,7 +9,7 @@ object is what the estimators return, what ``motion.csv`` stores (:func:`bodysla
 Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which is what ``motion.csv`` holds):
 
 - ``ok``: estimated from the pair's matches;
-- ``bridged``: a share of a gap's end-to-end motion (:func:`bodyslam.odometry.split_motion`);
+- ``bridged``: a share of a gap's end-to-end motion (:func:`bodyslam.vision.odometry.split_motion`);
 - ``too_few_matches``, ``uncertain``, ``solver_failed``: the estimator gave no usable estimate;
 - ``no_lumen``: a frame of the pair faces the wall (classifier), so the tube model does not apply;
 - ``bad_frame``: a frame of the pair could not be read;

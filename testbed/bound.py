@@ -1,6 +1,6 @@
 """The posterior Cramer-Rao bound (PCRB) of Body-SLAM filtering (paper 000, Sec. 4, Eq. 28-29, Algorithm 2).
 
-Model (the one :func:`bodyslam.fusion.fuse` assumes, in its error-state form): state ``x = [p, theta]``;
+Model (the one :func:`bodyslam.fusion.body_slam.fuse` assumes, in its error-state form): state ``x = [p, theta]``;
 process ``x_(k+1) = A_k x_k + w``, ``A_k = [[I, -R_k [t_k]x], [0, R_s,k^T]]`` evaluated on the *true* trajectory
 (``R_k`` the true orientation, ``t_k``, ``R_s,k`` the true step), ``w ~ N(0, Q_k)`` with the visual steps' own
 1-sigma (steps without an estimate: the filter's bridging noise); measurements: the RSS of every sensor,
@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.ekf import process_model
-from bodyslam.rf import PathLossModel
+from bodyslam.fusion.ekf import process_model
+from bodyslam.fusion.rf import PathLossModel
 
 __all__ = ["pcrb_positions", "smoothing_bound_positions", "position_bounds", "efficient_mean_error"]
 

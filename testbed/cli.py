@@ -102,7 +102,7 @@ def _simulate(args) -> int:
         print(f"{args.out}: {system.simulate_scenario(scn, args.seed, args.out)}")
         return 0
     if args.speed_model:
-        from bodyslam.speed import load_speed_model
+        from bodyslam.vision.speed import load_speed_model
 
         # the fitted model replaces the scenario's motion statistics (frame rate stays the scenario's)
         fitted = {k: v for k, v in load_speed_model(args.speed_model).items() if k != "frame_rate_hz"}

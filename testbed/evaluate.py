@@ -22,12 +22,12 @@ from typing import Callable
 
 import numpy as np
 
-from bodyslam.fusion import fuse, kf_thesis, step_pose
+from bodyslam.fusion.body_slam import fuse, kf_thesis, step_pose
 from bodyslam.io import read_motion_steps, read_tum, write_image, write_json
-from bodyslam.localize import RfInput, localize
+from bodyslam.fusion.localize import RfInput, localize
 from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
-from bodyslam.rf import locate_nls, rss_per_frame
+from bodyslam.fusion.rf import locate_nls, rss_per_frame
 from testbed.bound import efficient_mean_error, position_bounds
 from testbed.score import score_motion
 from testbed.simulate import prepare_output_dir, simulate
@@ -45,7 +45,7 @@ def evaluate_sequence(d: Path) -> dict:
     rf = RfInput.read(d / meta.rf.file, d / meta.rf.sensors, meta.rf.pathloss)
     _, gt, grot = read_tum(d / "groundtruth.tum")
     steps = read_motion_steps(d / "motion.csv", range(1, len(gt)))
-    # the pipeline's one localization chain (bodyslam.localize), on the frames' time stamps
+    # the pipeline's one localization chain (bodyslam.fusion.localize), on the frames' time stamps
     loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss")
     ekf, fixes = loc.filtered, loc.fixes
     pos, nrm, pl = rf.sensors_w_m, rf.normals_w, rf.pathloss

@@ -12,7 +12,7 @@ Emulation per slot (clean signal and noise drawn separately): for each URA the S
 shadowing and Rayleigh small-scale fading (Sec. 5); TOA, azimuth and elevation (Eq. 3a, 5) plus Gaussian errors
 with the CRB variances of Eq. 7-8 at that SNR; the IMU reading ``u_k = a_k + N(0, sigma^2)`` per axis (Eq. 12).
 
-Algorithms (``bodyslam.toa_doa``): ``toa_doa_imu`` (Algorithm 1), ``doa_imu``, ``toa_imu``, ``imu_only`` (the
+Algorithms (``bodyslam.systems.toa_doa``): ``toa_doa_imu`` (Algorithm 1), ``doa_imu``, ``toa_imu``, ``imu_only`` (the
 same EKF with fewer channels) and ``rf_only`` (each slot's TOA/DOA alone). Scores (paper Sec. 5): RMS error over
 runs per step (Eq. 30) and its mean over the steps, against the mean square root of the PCRB of the same scheme;
 Table 2's mean drift per metre, ``sum_k mean error_k / sum_k (path travelled until k)``.
@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv, write_image, write_json, write_tum
 from bodyslam.plots import Figure
-from bodyslam.toa_doa import SCHEMES, Radio, Ura, channel_draws, run_scheme, scheme_pcrb, toa_doa
+from bodyslam.systems.toa_doa import SCHEMES, Radio, Ura, channel_draws, run_scheme, scheme_pcrb, toa_doa
 from testbed.centerline import Centerline, procedural_centerline
 from testbed.htmlpage import table, write_report_page
 from testbed.scenario import section

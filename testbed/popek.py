@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv, write_image, write_json, write_tum
-from bodyslam.magnetic import (ActuatorController, HallArray, MagneticEkf, Propulsion, RotationMonitor,
+from bodyslam.systems.magnetic import (ActuatorController, HallArray, MagneticEkf, Propulsion, RotationMonitor,
                                _force, cross, field_at, field_in_capsule, measure)
 from bodyslam.plots import Figure
 from testbed.htmlpage import table, write_report_page

@@ -30,7 +30,7 @@ import numpy as np
 
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv
-from bodyslam.rf import PathLossModel, read_sensors
+from bodyslam.fusion.rf import PathLossModel, read_sensors
 
 __all__ = ["SensorLayout", "PathLossModel", "TOAModel", "emulate_rf", "write_rf", "layout_from_config"]
 

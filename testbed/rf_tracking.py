@@ -18,7 +18,7 @@ Emulation (what the receivers measure; clean signal and noise separate, seeded):
 Written like any sequence: ``rf.csv`` (``t,sensor,rss_dbm,toa_s,uwb_field_db``), ``sensors.csv``,
 ``groundtruth.tum`` (positions; orientation along the current leg), ``meta.json`` (models, area), ``truth.json``
 (true permittivity, waypoints). Evaluation: :func:`evaluate_rf_tracking` runs the scenario's algorithms on the
-same draws (``bodyslam.pf``) and reports errors per algorithm in the format of the Body-SLAM runs.
+same draws (``bodyslam.systems.pf``) and reports errors per algorithm in the format of the Body-SLAM runs.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv, write_image, write_json, write_tum
-from bodyslam.pf import (C_MPS, TRACKERS, MicsRssiModel, RandomWaypoint, Track, TrackSettings, converged_from,
+from bodyslam.systems.pf import (C_MPS, TRACKERS, MicsRssiModel, RandomWaypoint, Track, TrackSettings, converged_from,
                          field_ratio, simple_distance, track, waypoint_distance)
 from bodyslam.plots import Figure
 from testbed.centerline import procedural_centerline
@@ -161,7 +161,7 @@ def _headings(pos: np.ndarray) -> Rotation:
 
 
 def track_settings(scn: dict) -> TrackSettings:
-    """The scenario's filter, motion and measurement models as :class:`bodyslam.pf.TrackSettings`. The RSSI
+    """The scenario's filter, motion and measurement models as :class:`bodyslam.systems.pf.TrackSettings`. The RSSI
     filter's resampling jitter (``rssi_jitter_m``, 1 mm) was chosen on ito_heading seeds 300-309, which no
     evaluation in the README uses: RSSI constrains a step far less than TOA, and with 0.2 mm the estimate lagged
     centimetres behind a capsule that moves on (mean RMS 42.5 / 5.2 / 7.5 mm for 0.2 / 1 / 2 mm)."""
@@ -171,7 +171,7 @@ def track_settings(scn: dict) -> TrackSettings:
 
 
 def run_algorithm(name: str, scn: dict, lo, hi, t, rx, meas, rng) -> Track:
-    """One algorithm on one run (``bodyslam.pf.track``: the testbed only supplies the scenario's settings)."""
+    """One algorithm on one run (``bodyslam.systems.pf.track``: the testbed only supplies the scenario's settings)."""
     return track(name, t, rx, meas, lo, hi, track_settings(scn), rng)
 
 

@@ -70,7 +70,7 @@ def test_interrupt_exits_130():
 
 def test_uncertainty_csv_has_one_schema(tmp_path):
     """localize and batch (with and without RF) write uncertainty.csv with the same columns."""
-    from bodyslam.localize import UNCERTAINTY_COLUMNS
+    from bodyslam.fusion.localize import UNCERTAINTY_COLUMNS
 
     p = run("localize", str(DEMO), "--out", str(tmp_path / "loc"), "--mode", "fast", "--jobs", "1")
     assert p.returncode == 0, p.stderr

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bodyslam.io import read_tum
-from bodyslam.rf import PathLossModel, read_sensors
+from bodyslam.fusion.rf import PathLossModel, read_sensors
 from testbed.bound import pcrb_positions
 
 DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"

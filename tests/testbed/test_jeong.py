@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from bodyslam.toa_doa import load_recording, run_scheme
+from bodyslam.systems.toa_doa import load_recording, run_scheme
 from testbed import jeong
 from testbed.scenario import load_scenario
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bodyslam.magnetic import load_recording, replay
+from bodyslam.systems.magnetic import load_recording, replay
 from testbed import popek
 from testbed.scenario import load_scenario
 

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from bodyslam.rf import PathLossModel, locate_lls, locate_ml, locate_nls, read_rf, read_sensors, rss_to_range
+from bodyslam.fusion.rf import PathLossModel, locate_lls, locate_ml, locate_nls, read_rf, read_sensors, rss_to_range
 from testbed.rf import SensorLayout, TOAModel, emulate_rf, write_rf
 
 PL = PathLossModel()

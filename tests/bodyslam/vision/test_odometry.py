@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from bodyslam.io import read_image, write_image
-from bodyslam.tracking import path_from_lengths
+from bodyslam.vision.tracking import path_from_lengths
 
-DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+DEMO = Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0"
 
 
 def run(*args):

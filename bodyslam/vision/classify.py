@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from bodyslam.errors import ConfigError, InputError
-from bodyslam.segmentation import Segmentation, srm
+from bodyslam.vision.segmentation import Segmentation, srm
 
 log = logging.getLogger(__name__)
 

@@ -4,10 +4,10 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 
 1. :meth:`RfInput.read`: sensors (``sensors.csv``), readings (``rf.csv``, malformed lines skipped and listed) and
    the path-loss calibration (``meta.json``'s ``rf.pathloss``; default Table 2.2);
-2. readings per frame (:func:`bodyslam.rf.rss_per_frame`: nearest within half a frame interval);
-3. ML position fixes per frame (:func:`bodyslam.rf.locate_ml`), which start the filter;
-4. the error-state EKF (:func:`bodyslam.fusion.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
-5. the path travelled (:func:`bodyslam.tracking.path_travelled`).
+2. readings per frame (:func:`bodyslam.fusion.rf.rss_per_frame`: nearest within half a frame interval);
+3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml`), which start the filter;
+4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
+5. the path travelled (:func:`bodyslam.vision.tracking.path_travelled`).
 
 :func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
 (online filter), ``uncertainty.csv`` (:data:`UNCERTAINTY_COLUMNS`, also written by dead reckoning and the other
@@ -25,11 +25,11 @@ import numpy as np
 
 from bodyslam.choices import FUSION_MODES
 from bodyslam.errors import ConfigError, InputError
-from bodyslam.fusion import FusionResult, fuse, rts_smooth
+from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
 from bodyslam.io import write_csv, write_image, write_tum
-from bodyslam.rf import Fix, PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
+from bodyslam.fusion.rf import Fix, PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion
-from bodyslam.tracking import path_travelled
+from bodyslam.vision.tracking import path_travelled
 
 __all__ = ["RfInput", "Localization", "localize", "write_localization", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
 

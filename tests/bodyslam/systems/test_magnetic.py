@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from bodyslam.magnetic import (MU0, ActuatorController, HallArray, Pi, Pi_star, Propulsion, RotationMonitor, Upsilon_star, field_at,
+from bodyslam.systems.magnetic import (MU0, ActuatorController, HallArray, Pi, Pi_star, Propulsion, RotationMonitor, Upsilon_star, field_at,
                                field_gradient, measure, measure_jacobian, process, process_jacobian, rotate,
                                rotate_inv, rotation_axis, torque_force)
 

@@ -13,11 +13,11 @@ from bodyslam.camera import camera_from_dict
 from bodyslam.geometry import relative_motion
 from bodyslam.io import read_image, read_tum
 from bodyslam.meta import read_meta
-from bodyslam.matching import Matcher
-from bodyslam.motion import motion_from_transform
-from bodyslam.tracking import dead_reckon
+from bodyslam.vision.matching import Matcher
+from bodyslam.vision.motion import motion_from_transform
+from bodyslam.vision.tracking import dead_reckon
 
-DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+DEMO = Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0"
 
 
 def run(*args):
@@ -96,7 +96,7 @@ def test_bad_inputs_get_one_line(tmp_path):
 def test_rear_camera_steps_are_reported_in_the_body_frame(tmp_path):
     """A rear camera's exact relative motion, converted with its extrinsics, is the front camera's motion."""
     from bodyslam.camera import FisheyeCamera
-    from bodyslam.odometry import MotionSettings, VisualOdometry
+    from bodyslam.vision.odometry import MotionSettings, VisualOdometry
     from bodyslam.steps import StepMotion
 
     R_cr, t_cr = Rotation.from_rotvec([0.0, np.pi, 0.0]), np.array([0.0, 0.0, -0.026])
@@ -144,9 +144,9 @@ def test_speed_statistics_drive_the_testbed(tmp_path):
 def test_gaps_are_found_between_estimated_steps_and_split_exactly():
     from scipy.spatial.transform import Rotation
 
-    from bodyslam.odometry import find_gaps, split_motion
+    from bodyslam.vision.odometry import find_gaps, split_motion
     from bodyslam.steps import StepMotion, motion_from_transform
-    from bodyslam.tracking import dead_reckon
+    from bodyslam.vision.tracking import dead_reckon
 
     ok = motion_from_transform(Rotation.from_rotvec([0.01, 0.0, 0.1]), np.array([0.0, 0.001, 0.004]), 50)
     no = StepMotion(status="no_lumen")

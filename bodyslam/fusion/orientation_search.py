@@ -4,7 +4,7 @@ Vision alone has no world frame and RF alone no orientation, so the fusion's sta
 again after long runs of steps without a visual estimate (the capsule may have turned any way meanwhile, and a
 linearised filter does not recover from errors of tens of degrees: measured on seeds 301, 306, 308).
 
-:func:`search_orientation` runs the filter (:class:`bodyslam.ekf.ErrorStateEkf`, all candidates as one batch)
+:func:`search_orientation` runs the filter (:class:`bodyslam.fusion.ekf.ErrorStateEkf`, all candidates as one batch)
 over the window ``k0 .. k1-1`` from: the centre orientation (the rigid alignment, or the filter's own
 prediction), the centre turned by each of the 59 other rotations of the icosahedral group (no orientation is
 more than 44 deg from one of the 60), and given extras; at a quarter and at half of the window, turns of 20 and
@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.ekf import ErrorStateEkf
+from bodyslam.fusion.ekf import ErrorStateEkf
 
 __all__ = ["SearchResult", "search_orientation"]
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bodyslam.fusion import align_to_fixes, fuse, rts_smooth
+from bodyslam.fusion.body_slam import align_to_fixes, fuse, rts_smooth
 from bodyslam.io import read_json, read_tum
-from bodyslam.rf import PathLossModel, locate_ml, read_rf, read_sensors
+from bodyslam.fusion.rf import PathLossModel, locate_ml, read_rf, read_sensors
 from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 
 
@@ -18,7 +18,7 @@ def Step(R: Rotation, t, sigma_t_m: float, sigma_r_rad: float, ok: bool) -> Step
         return StepMotion.failed(StepStatus.NO_LUMEN)
     return motion_from_transform(R, t, 50, sigma_t_m, sigma_r_rad)
 
-DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+DEMO = Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0"
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def test_alignment_recovers_a_known_frame():
     q = np.cumsum(rng.normal(0, 0.01, (30, 3)), axis=0)
     R = Rotation.from_rotvec([0.3, -1.0, 2.0])
     p0 = np.array([0.05, -0.02, 0.1])
-    from bodyslam.rf import Fix
+    from bodyslam.fusion.rf import Fix
 
     fixes = [Fix(p0 + R.apply(x), np.eye(3) * 1e-6, 32) for x in q]
     R_est, p_est, rms = align_to_fixes(q, fixes)
@@ -108,8 +108,8 @@ def test_localize_cli_on_the_demo(tmp_path):
 
 
 def test_thesis_kf_runs_and_improves_on_rf(demo):
-    from bodyslam.fusion import kf_thesis
-    from bodyslam.rf import locate_nls
+    from bodyslam.fusion.body_slam import kf_thesis
+    from bodyslam.fusion.rf import locate_nls
 
     steps, fixes, rss, pos, nrm, pl, gt = demo
     nls = [locate_nls(pos, r, pl) for r in rss]
@@ -119,8 +119,8 @@ def test_thesis_kf_runs_and_improves_on_rf(demo):
 
 
 def test_dead_reckoner_streams_the_filters_prediction(demo):
-    from bodyslam.fusion import DeadReckoner
-    from bodyslam.tracking import dead_reckon
+    from bodyslam.fusion.body_slam import DeadReckoner
+    from bodyslam.vision.tracking import dead_reckon
 
     steps, *_ , gt = demo
     steps = list(steps)
@@ -149,8 +149,8 @@ def test_thesis_kf_keeps_its_rotation_on_the_updated_heading():
     # rotations must be carried into the world by a rotation whose optical axis follows the filter's corrected
     # heading. Mean error over 10 fix draws: 1.30 cm; 1.57 when R_w_c stays dead reckoning's (the margin, 0.13
     # cm, is 4 standard errors of the 10-draw mean).
-    from bodyslam.fusion import kf_thesis
-    from bodyslam.rf import Fix
+    from bodyslam.fusion.body_slam import kf_thesis
+    from bodyslam.fusion.rf import Fix
 
     Rs, t = Rotation.from_rotvec([0, np.radians(5), 0]), np.array([0, 0, 0.01])
     R_true, p, gt, steps = Rotation.identity(), np.zeros(3), [np.zeros(3)], []
@@ -176,7 +176,7 @@ def synthetic_run(seed, n=120, gap=None, gap_roll_deg=0.0, fix_frames=60):
     Table 2.2 shadowing, ML fixes for the first ``fix_frames`` frames (the RSS filter uses fixes only to align
     its start). ``gap``: steps ``[a, b)`` without an estimate, during which the capsule also rolls
     ``gap_roll_deg`` per step."""
-    from bodyslam.rf import Fix
+    from bodyslam.fusion.rf import Fix
     from testbed.rf import SensorLayout, emulate_rf
 
     rng = np.random.default_rng(seed)
@@ -205,7 +205,7 @@ def synthetic_run(seed, n=120, gap=None, gap_roll_deg=0.0, fix_frames=60):
 def test_ekf_equals_the_kalman_filter_in_a_linear_gaussian_case():
     # A stopped capsule (every visual step is zero motion with its own 1-sigma) and RF fixes: the process is a
     # random walk and the fix is linear in the position, so the error-state EKF must be the textbook KF exactly.
-    from bodyslam.rf import Fix
+    from bodyslam.fusion.rf import Fix
 
     rng = np.random.default_rng(3)
     n, p_true = 60, np.array([0.01, -0.02, 0.03])
@@ -259,8 +259,8 @@ def test_orientation_is_searched_again_after_a_long_gap():
 
 
 def test_start_search_recovers_a_wrong_alignment_and_the_online_output_is_causal():
-    from bodyslam.ekf import ErrorStateEkf
-    from bodyslam.orientation_search import search_orientation
+    from bodyslam.fusion.ekf import ErrorStateEkf
+    from bodyslam.fusion.orientation_search import search_orientation
 
     *data, gt = synthetic_run(1)
     steps, fixes, rss, pos, nrm, pl = data
@@ -298,7 +298,7 @@ def test_candidates_run_together_equal_candidates_run_alone(mode, max_rejections
     # its own, including gated readings (a few per run here) and the divergence guard (with max_rejections=1 it
     # fires on the start 10 cm (fixes) or 50 cm (RSS) off: checked below by the run differing from the
     # max_rejections=5 one)
-    from bodyslam.ekf import ErrorStateEkf
+    from bodyslam.fusion.ekf import ErrorStateEkf
 
     *data, gt = synthetic_run(2, n=90, gap=(30, 36), gap_roll_deg=10.0, fix_frames=90)
     ekf = ErrorStateEkf(*data, mode, max_rejections)
@@ -321,7 +321,7 @@ def test_candidates_run_together_equal_candidates_run_alone(mode, max_rejections
 
 def test_the_committed_run_keeps_its_priors_and_posteriors():
     """x_prior / x_post of every frame, consistent with the process model and the output."""
-    from bodyslam.ekf import process_model
+    from bodyslam.fusion.ekf import process_model
 
     *data, gt = synthetic_run(3, n=60)
     res = fuse(*data, mode="rss", init_search=False)

@@ -3,9 +3,9 @@
 State per candidate ``c``: the pose ``T_w_c`` -- position ``p[c]`` (world/body frame, m) and orientation
 ``R[c]`` (3x3, ``R_w_c``) -- and the covariance ``P[c]`` over the error ``[dp, dtheta]`` with
 ``R = R_hat exp([dtheta]x)``. ``C`` candidates run side by side with the same inputs (the orientation search
-runs 60-90 starts at once, :mod:`bodyslam.orientation_search`); the plain filter is one candidate. Keeping
+runs 60-90 starts at once, :mod:`bodyslam.fusion.orientation_search`); the plain filter is one candidate. Keeping
 ``keep=True`` stores every frame's prior and posterior (``x_prior`` / ``x_post``, FilterPy's habit), which the
-RTS smoother (:func:`bodyslam.fusion.rts_smooth`) needs.
+RTS smoother (:func:`bodyslam.fusion.body_slam.rts_smooth`) needs.
 
 - :func:`process_model` (``F``, ``Q`` of one step; also what :mod:`testbed.bound` uses for the PCRB, so the
   bound models exactly the filter's process): the visual step ``T_c1_c2 = (R_s, t_s)`` is the input,
@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.choices import FUSION_MODES
 from bodyslam.errors import InputError
-from bodyslam.rf import Fix, PathLossModel
+from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.steps import StepMotion
 
 __all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "FilterPasses", "with_orientation_sigma",

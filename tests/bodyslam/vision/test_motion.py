@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bodyslam.camera import FisheyeCamera
-from bodyslam.matching import Matches
-from bodyslam.motion import estimate_thesis, estimate_tube, motion_from_transform
-from bodyslam.unroll import Unroller
+from bodyslam.vision.matching import Matches
+from bodyslam.vision.motion import estimate_thesis, estimate_tube, motion_from_transform
+from bodyslam.vision.unroll import Unroller
 
 R_TUBE = 0.015
 CAM = FisheyeCamera.equidistant(320, 320, 156.0)

@@ -7,7 +7,7 @@ import pytest
 
 from bodyslam.camera import FisheyeCamera
 from bodyslam.errors import ConfigError
-from bodyslam.unroll import Unroller
+from bodyslam.vision.unroll import Unroller
 
 
 def rays_at(phi, theta):

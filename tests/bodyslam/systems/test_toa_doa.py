@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from bodyslam.toa_doa import (HybridEkf, Radio, Ura, pcrb, q_continuous, q_discrete, run_scheme, snapshot_fix,
+from bodyslam.systems.toa_doa import (HybridEkf, Radio, Ura, pcrb, q_continuous, q_discrete, run_scheme, snapshot_fix,
                               toa_doa, jacobian, transition)
 
 ARRAYS = [Ura.spanning("front", (-0.2, 0.2, -0.5), 0.4, 0.4, 5, 5),

@@ -10,7 +10,7 @@ dissertation uses 16. ``b2`` is multiplied by ``relax = 0.1`` as in the referenc
 
 Speed: the merge loop is sequential union-find (SRM's order matters), which in Python costs ~3 us per pixel
 pair. :func:`srm` therefore segments a copy resized so its longer side is ``work_px`` (default 96 pixels: the
-classifier's region features are coarse, see :mod:`bodyslam.classify`) and returns labels at that size;
+classifier's region features are coarse, see :mod:`bodyslam.vision.classify`) and returns labels at that size;
 ``work_px=None`` segments at full resolution (``bodyslam segment --full``).
 
 Data form: :class:`Segmentation` with ``labels (h, w) int32`` (-1 outside the mask, else 0..n-1),

@@ -1,12 +1,12 @@
 """Visual odometry: the one engine that turns frames into steps (dissertation Sec. 3.2), for every command.
 
 :class:`VisualOdometry` holds what a worker needs for one camera and :class:`MotionSettings` -- the matcher
-(:mod:`bodyslam.matching`), the FT/FL classifier (:mod:`bodyslam.classify`), the field-of-view mask, the
-unroller and the estimator (:mod:`bodyslam.motion`) -- and :meth:`VisualOdometry.run` turns a range of frames
+(:mod:`bodyslam.vision.matching`), the FT/FL classifier (:mod:`bodyslam.vision.classify`), the field-of-view mask, the
+unroller and the estimator (:mod:`bodyslam.vision.motion`) -- and :meth:`VisualOdometry.run` turns a range of frames
 from a :class:`bodyslam.frames.FrameSource` into per-frame records (class, status) and steps
 (:class:`bodyslam.steps.StepMotion`). The classifier gate, masks, unroll mode, estimator and the fast mode's
 fall-back live here and nowhere else. ``bodyslam motion`` / ``track`` (:func:`sequence_motion`), ``bodyslam
-batch`` (:mod:`bodyslam.batch`, resumable chunks) and ``testbed evaluate`` all call it, so the same frames and
+batch`` (:mod:`bodyslam.exam.batch`, resumable chunks) and ``testbed evaluate`` all call it, so the same frames and
 settings give the same ``motion.csv`` whichever command ran (tested).
 
 Chunks: positions ``a .. b`` give the steps into ``a+1 .. b`` (frame ``a`` belongs to the previous chunk unless
@@ -17,7 +17,7 @@ Gap bridging (second pass, :func:`find_gaps`, :meth:`VisualOdometry.bridge`, :fu
 to ``bridge_gaps`` steps without an estimate *between* two estimated steps is measured end to end by matching
 the frame before the run with the frame after it, and split into equal shares (status ``bridged``). Runs at the
 start or end of an exam have only one estimated neighbour: they are not bridged, and the path-travelled rule
-(:func:`bodyslam.tracking.path_travelled`) treats both ends alike.
+(:func:`bodyslam.vision.tracking.path_travelled`) treats both ends alike.
 """
 
 from __future__ import annotations
@@ -107,8 +107,8 @@ class VisualOdometry:
 
     def __init__(self, camera: CameraModel, settings: MotionSettings, radius_m: float,
                  mask: np.ndarray | None = None, T_body_cam: tuple | None = None):
-        from bodyslam.matching import Matcher
-        from bodyslam.unroll import Unroller
+        from bodyslam.vision.matching import Matcher
+        from bodyslam.vision.unroll import Unroller
 
         if not (isinstance(radius_m, (int, float)) and math.isfinite(radius_m) and radius_m > 0):
             raise ConfigError(f"lumen radius must be a positive number of metres, got {radius_m!r}")
@@ -118,7 +118,7 @@ class VisualOdometry:
         self.fov = camera.fov_mask() if mask is None else mask
         self.classifier = None
         if settings.classify:
-            from bodyslam.classify import TunnelClassifier
+            from bodyslam.vision.classify import TunnelClassifier
 
             self.classifier = (TunnelClassifier.load(settings.model) if settings.model
                                else TunnelClassifier.default())
@@ -129,7 +129,7 @@ class VisualOdometry:
 
     # -- one pair ---------------------------------------------------------------------------------------------
     def _estimate(self, m) -> StepMotion:
-        from bodyslam.motion import estimate_thesis, estimate_tube
+        from bodyslam.vision.motion import estimate_thesis, estimate_tube
 
         if self.settings.estimator == "tube":
             return estimate_tube(m, self.camera, self.radius_m, min_matches=self.settings.min_matches)
@@ -148,7 +148,7 @@ class VisualOdometry:
 
     def to_body(self, s: StepMotion) -> StepMotion:
         """A step measured by this camera, as the motion of the capsule body (front camera) frame."""
-        from bodyslam.motion import motion_from_transform
+        from bodyslam.vision.motion import motion_from_transform
 
         if self.T_body_cam is None or not s.ok or s.R_c1_c2 is None:
             return s
@@ -163,7 +163,7 @@ class VisualOdometry:
         ``ok`` when classification is off."""
         if self.classifier is None:
             return "", "ok"
-        from bodyslam.classify import frame_features, frame_status
+        from bodyslam.vision.classify import frame_features, frame_status
 
         status = frame_status(img, self.fov)
         if status != "ok":
@@ -209,7 +209,7 @@ class VisualOdometry:
 
     def bridge(self, img_a: np.ndarray | None, img_b: np.ndarray | None) -> StepMotion | None:
         """The motion from frame ``a`` straight to frame ``b`` (a gap's ends, tube estimator), or None."""
-        from bodyslam.motion import estimate_tube
+        from bodyslam.vision.motion import estimate_tube
 
         if img_a is None or img_b is None:
             return None
@@ -280,7 +280,7 @@ def find_gaps(statuses: list, max_len: int) -> list[tuple[int, int]]:
 def split_motion(total: StepMotion, n: int) -> list[StepMotion]:
     """``n`` equal steps whose composition is ``total`` (constant twist: rotation ``R^(1/n)``, translation on
     the screw), each with status ``bridged`` and a 1-sigma of ``total``'s over sqrt(n) (independent steps)."""
-    from bodyslam.motion import motion_from_transform
+    from bodyslam.vision.motion import motion_from_transform
 
     R = Rotation.from_matrix(total.R_c1_c2)
     dR = Rotation.from_rotvec(R.as_rotvec() / n)
@@ -331,7 +331,7 @@ def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_s
     if mask is None:
         return None
     if mask == "auto":
-        from bodyslam.matching import detect_fov_mask
+        from bodyslam.vision.matching import detect_fov_mask
 
         n = len(source)
         frames = []

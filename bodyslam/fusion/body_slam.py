@@ -1,7 +1,7 @@
 """Body-SLAM fusion of visual motion and RF localization (dissertation Sec. 3.3), with covariances.
 
-The filter itself is :class:`bodyslam.ekf.ErrorStateEkf` (state, process model, RF updates, gating, divergence
-guard); where it starts and restarts is :mod:`bodyslam.orientation_search`. This module runs them over an exam:
+The filter itself is :class:`bodyslam.fusion.ekf.ErrorStateEkf` (state, process model, RF updates, gating, divergence
+guard); where it starts and restarts is :mod:`bodyslam.fusion.orientation_search`. This module runs them over an exam:
 
 - A step without an estimate (facing the wall, too few matches after a big jump) repeats the last estimated
   step (constant velocity) with a 1-sigma as large as that step (at least 3 mm) and 5 deg: handled, not skipped
@@ -9,7 +9,7 @@ guard); where it starts and restarts is :mod:`bodyslam.orientation_search`. This
 - Initialisation: the dead-reckoned path over the first ``init_frames`` frames (more, until it bends: 1.5 cm RMS
   spread along its second principal direction) is aligned to the RF fixes by a weighted Procrustes fit
   (rotation + translation), which gives ``p_0`` and ``R_w_c0``: vision alone has no world frame, RF alone no
-  orientation. The fit is then checked against other orientations (:func:`bodyslam.orientation_search.
+  orientation. The fit is then checked against other orientations (:func:`bodyslam.fusion.orientation_search.
   search_orientation`) over the first ``search_frames`` (80) frames, with a 30 deg orientation 1-sigma. Why: dead
   reckoning across steps without an estimate bends the path, and the fit was 166, 150, 127 and 79 deg off on
   four of 30 seeds; a linearised filter does not recover from that.
@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.ekf import ErrorStateEkf, FilterPasses, process_model, step_noise, step_pose, with_orientation_sigma
+from bodyslam.fusion.ekf import ErrorStateEkf, FilterPasses, process_model, step_noise, step_pose, with_orientation_sigma
 from bodyslam.errors import InputError
-from bodyslam.orientation_search import SearchResult, search_orientation
-from bodyslam.rf import Fix, PathLossModel
+from bodyslam.fusion.orientation_search import SearchResult, search_orientation
+from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.steps import StepMotion
 
 __all__ = ["FusionSettings", "FusionResult", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
@@ -78,7 +78,7 @@ class FusionResult:
 
 def predict(p: np.ndarray, R: Rotation, P: np.ndarray, t_s: np.ndarray, R_s: Rotation, sig_t: float,
             sig_r: float) -> tuple[np.ndarray, Rotation, np.ndarray, np.ndarray]:
-    """One process step of one pose (:func:`bodyslam.ekf.process_model`): ``(p', R', P', F)``."""
+    """One process step of one pose (:func:`bodyslam.fusion.ekf.process_model`): ``(p', R', P', F)``."""
     F, Q = process_model(R.as_matrix()[None], t_s, R_s.as_matrix(), sig_t, sig_r)
     return p + R.apply(t_s), R * R_s, F[0] @ P @ F[0].T + Q[0], F[0]
 
@@ -153,7 +153,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
     steps : list of StepMotion, ``n - 1``
         Step ``k`` is the motion from frame ``k`` to ``k + 1`` (:mod:`bodyslam.steps`).
     fixes : list of Fix, ``n``
-        RF position fixes per frame (:func:`bodyslam.rf.locate_ml`): they align the start, and are the
+        RF position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml`): they align the start, and are the
         measurements in ``fix`` mode.
     rss : (n, m) array, optional
         RSS readings per frame and sensor (dBm, NaN where none): the measurements in ``rss`` mode.

@@ -5,7 +5,7 @@ import pytest
 
 from bodyslam.camera import FisheyeCamera
 from bodyslam.errors import ConfigError
-from bodyslam.matching import Matcher, detect_fov_mask
+from bodyslam.vision.matching import Matcher, detect_fov_mask
 
 
 def capsule_like_frames(n=12, size=200, seed=0):

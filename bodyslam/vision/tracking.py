@@ -1,6 +1,6 @@
 """Dead reckoning (dissertation Eq. 3.16-3.18) and the path travelled, from per-step motion.
 
-The steps come from :mod:`bodyslam.odometry` (or a ``motion.csv``, :func:`bodyslam.io.read_motion_steps`).
+The steps come from :mod:`bodyslam.vision.odometry` (or a ``motion.csv``, :func:`bodyslam.io.read_motion_steps`).
 
 :func:`dead_reckon` accumulates per-step motion into poses ``T_w_c``. The world frame of a dead-reckoned
 trajectory is the first frame's camera frame. Composition (written correctly): ``R_w_k = R_w_(k-1) R_(k-1)_k`` and

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bodyslam.errors import ConfigError
-from bodyslam.pf import (C_MPS, MicsRssiModel, ParticleFilter, RandomWaypoint, attenuation_np_per_m, field_ratio,
+from bodyslam.systems.pf import (C_MPS, MicsRssiModel, ParticleFilter, RandomWaypoint, attenuation_np_per_m, field_ratio,
                          loglik_permittivity, loglik_toa, permittivity_from_field, simple_distance,
                          waypoint_distance)
 
@@ -133,7 +133,7 @@ def test_rf_track_cli_runs_on_recorded_files_and_reports_bad_lines(tmp_path):
 
 
 def test_converged_from_finds_the_first_step_below_the_threshold():
-    from bodyslam.pf import converged_from
+    from bodyslam.systems.pf import converged_from
 
     assert converged_from(np.array([0.09, 0.03, 0.008, 0.02, 0.004]), 0.01) == 2
     assert converged_from(np.array([0.09, 0.05]), 0.01) == 1  # never: the last step (nothing before it is trusted)

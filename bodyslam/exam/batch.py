@@ -8,7 +8,7 @@ folder of image files), or a video file. For each exam the run writes, under ``O
   ``saturated``, ``unreadable``, ``bad_size``);
 - ``motion.csv``: per-step motion (SPEC.md columns and the full step, as ``bodyslam motion`` writes it); ``frame``
   is the step's later frame;
-- ``trajectory.tum``: fused and smoothed (RF given: :func:`bodyslam.fusion.fuse` + RTS) or dead reckoning (the
+- ``trajectory.tum``: fused and smoothed (RF given: :func:`bodyslam.fusion.body_slam.fuse` + RTS) or dead reckoning (the
   first camera frame is the world frame), and ``uncertainty.csv`` (position 1-sigma per frame);
 - ``marks.csv`` for marked frames (``--mark``): position, 1-sigma, path travelled from the first frame and from
   each landmark frame, with 1-sigma;
@@ -42,7 +42,7 @@ and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per
 
 Dead reckoning and path length (no RF)
 --------------------------------------
-Steps are accumulated with the fusion's process model (:class:`bodyslam.fusion.DeadReckoner`): a step without an
+Steps are accumulated with the fusion's process model (:class:`bodyslam.fusion.body_slam.DeadReckoner`): a step without an
 estimate repeats the last estimated one with a 1-sigma as large as that step (a capsule facing the wall or after a
 jump is still moving; assuming a stop biased the path on thesis seeds). The path travelled is the sum of the
 applied step lengths, its variance the sum of the steps' variances; that is the "how far along the gut" figure.
@@ -70,7 +70,7 @@ from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
 from bodyslam.io import MOTION_COLUMNS, atomic_path, motion_row, read_json, step_from_row, write_csv, write_image, write_json
-from bodyslam.odometry import MotionSettings, chunk_bounds
+from bodyslam.vision.odometry import MotionSettings, chunk_bounds
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ DEFAULT_FPS = 2.0
 # -- exams ------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class BatchSettings:
-    """The visual engine's settings (:class:`bodyslam.odometry.MotionSettings`, fast matcher by default) and the
+    """The visual engine's settings (:class:`bodyslam.vision.odometry.MotionSettings`, fast matcher by default) and the
     batch's own: frames per checkpointed chunk and the fusion mode with RF."""
 
     motion: MotionSettings = MotionSettings(match_mode="fast")
@@ -386,21 +386,11 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
         exam.camera = {"model": "equidistant", "width": size[0], "height": size[1], "fov_deg": DEFAULT_FOV_DEG}
         assumed.append(f"camera: equidistant fisheye {DEFAULT_FOV_DEG:g} deg at {size[0]}x{size[1]} (no calibration)")
     camera_from_dict(exam.camera)
-    if fps is None and meta is not None:
-        fps = meta.frame_rate_hz
-    if fps is None:
-        fps = DEFAULT_FPS
-        assumed.append(f"frame rate {DEFAULT_FPS:g} frames/s")
-    if not (math.isfinite(float(fps)) and float(fps) > 0):
-        raise InputError(f"{src}: frame rate must be a positive number, got {fps}")
-    exam.frame_rate_hz = float(fps)
-    r = radius_m if radius_m is not None else (meta.tube_radius_m if meta else None)
-    if r is None:
-        r = DEFAULT_RADIUS_M
-        assumed.append(f"lumen radius {DEFAULT_RADIUS_M * 100:g} cm (distances scale with it)")
-    if not (math.isfinite(float(r)) and float(r) > 0):
-        raise InputError(f"{src}: lumen radius must be a positive number of metres, got {r}")
-    exam.radius_m = float(r)
+    exam.frame_rate_hz = _given_or_assumed(src, "frame rate", fps, meta.frame_rate_hz if meta else None,
+                                           DEFAULT_FPS, f"{DEFAULT_FPS:g} frames/s", assumed)
+    exam.radius_m = _given_or_assumed(src, "lumen radius (m)", radius_m, meta.tube_radius_m if meta else None,
+                                      DEFAULT_RADIUS_M, f"{DEFAULT_RADIUS_M * 100:g} cm (distances scale with it)",
+                                      assumed)
     exam.mask = mask
     rf_meta = meta.rf if meta is not None else None
     if rf is None and sensors is None and src.is_dir() and rf_meta:
@@ -417,13 +407,24 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
     return exam
 
 
+def _given_or_assumed(src, what: str, given, from_meta, default: float, default_text: str, assumed: list) -> float:
+    """An option's value: given > meta.json > the default (listed in ``assumed``); a positive number."""
+    v = given if given is not None else from_meta
+    if v is None:
+        v = default
+        assumed.append(f"{what.split(' (')[0]} {default_text}")
+    if not (isinstance(v, (int, float)) and math.isfinite(float(v)) and float(v) > 0):
+        raise InputError(f"{src}: {what} must be a positive number, got {v}")
+    return float(v)
+
+
 # -- per chunk (workers) ----------------------------------------------------------------------------------------
 def process_chunk(task: dict) -> dict:
-    """Positions ``first..last`` of one exam through the visual engine (:mod:`bodyslam.odometry`): class and
+    """Positions ``first..last`` of one exam through the visual engine (:mod:`bodyslam.vision.odometry`): class and
     status per frame, the motion of every step into them. Pure and deterministic (the result depends only on
     the frames and settings), so chunks can run anywhere, in any order. Returns a JSON-serialisable dict, which
     is the chunk's checkpoint file."""
-    from bodyslam.odometry import chunk_task
+    from bodyslam.vision.odometry import chunk_task
 
     res = chunk_task(task)
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"],
@@ -448,10 +449,10 @@ def code_fingerprint() -> str:
     would mix both)."""
     import hashlib
 
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parents[1]  # the bodyslam package
     h = hashlib.sha256()
-    for f in sorted([*root.glob("*.py"), *root.glob("models/*")]):
-        h.update(f.name.encode())
+    for f in sorted([*root.rglob("*.py"), *root.rglob("models/*")]):
+        h.update(str(f.relative_to(root)).encode())
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
@@ -484,7 +485,7 @@ def _prepare_out(out: Path, plan: dict, force: bool) -> None:
 
 
 def _mask_for(exam: Exam) -> np.ndarray | None:
-    from bodyslam.odometry import resolve_mask
+    from bodyslam.vision.odometry import resolve_mask
 
     return resolve_mask(exam.frame_source(), camera_from_dict(exam.camera), exam.mask)
 
@@ -591,9 +592,9 @@ def _iter_chunks(exam_dir: Path) -> Iterator[dict]:
 
 
 def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
-    """Bridge the exam's gaps (:func:`bodyslam.odometry.bridge_gaps`, the rule ``bodyslam motion`` follows)
+    """Bridge the exam's gaps (:func:`bodyslam.vision.odometry.bridge_gaps`, the rule ``bodyslam motion`` follows)
     once all its chunks are done; the result is a checkpoint too (``bridges.json``: ``{step item: row}``)."""
-    from bodyslam.odometry import bridge_gaps
+    from bodyslam.vision.odometry import bridge_gaps
     from bodyslam.steps import StepStatus
 
     f = d / "bridges.json"
@@ -621,10 +622,10 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     """Rebuild an exam's outputs from its chunk files and bridges (streamed)."""
     from scipy.spatial.transform import Rotation
 
-    from bodyslam.fusion import DeadReckoner
+    from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.io import write_tum
-    from bodyslam.localize import write_uncertainty
-    from bodyslam.tracking import path_from_lengths, step_length
+    from bodyslam.fusion.localize import write_uncertainty
+    from bodyslam.vision.tracking import path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
@@ -727,9 +728,9 @@ class _Track:
 
 def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: BatchSettings,
           problems: list[list]):
-    """The exam's localization (:func:`bodyslam.localize.localize`), or None with the reason listed."""
+    """The exam's localization (:func:`bodyslam.fusion.localize.localize`), or None with the reason listed."""
     from bodyslam.io import read_motion_steps, write_tum
-    from bodyslam.localize import RfInput, localize
+    from bodyslam.fusion.localize import RfInput, localize
 
     try:
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)

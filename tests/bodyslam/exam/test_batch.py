@@ -15,13 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
-from bodyslam.batch import BatchSettings, open_exams, read_calibration, run_batch
+from bodyslam.exam.batch import BatchSettings, open_exams, read_calibration, run_batch
 from bodyslam.frames import list_frames
-from bodyslam.odometry import MotionSettings
+from bodyslam.vision.odometry import MotionSettings
 from bodyslam.cli import main as cli_main
 from bodyslam.errors import InputError
 
-DEMO = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+DEMO = Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0"
 OUTPUTS = ("frames.csv", "motion.csv", "trajectory.tum", "uncertainty.csv", "marks.csv")
 FAST = BatchSettings(chunk_frames=8)
 

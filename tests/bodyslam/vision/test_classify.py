@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from bodyslam.classify import (FEATURES_9, FEATURES_RICH, TunnelClassifier, frame_features, frame_status,
+from bodyslam.vision.classify import (FEATURES_9, FEATURES_RICH, TunnelClassifier, frame_features, frame_status,
                                region_features, train)
 from bodyslam.errors import InputError
-from bodyslam.segmentation import paint_regions, srm
+from bodyslam.vision.segmentation import paint_regions, srm
 
 
 def disc_frame(size=96, dark_radius=20, centre=(48, 48), seed=0):

@@ -1,7 +1,7 @@
 """Particle-filter RF tracking of a capsule (papers 002 and 003: Ito, Anzai and Wang) and the waypoint method
 for moving distance and heading (paper 003).
 
-Measurement models (shared with the testbed's emulation, like :class:`bodyslam.rf.PathLossModel`):
+Measurement models (shared with the testbed's emulation, like :class:`bodyslam.fusion.rf.PathLossModel`):
 
 - UWB TOA through tissue of average relative permittivity ``eps_r`` (002 Eq. 6, 17): ``tau = sqrt(eps_r) d / c``,
   Gaussian sampling error ``sigma_s`` (Eq. 16).
