@@ -10,6 +10,15 @@ Clean signal and noise are separate, seeded models:
   of the applicable set, independent per reading (Eq. 2.1's ``S``).
 - TOA (s): ``d sqrt(eps_r) / c`` with an average tissue relative permittivity (clean), plus Gaussian ranging error
   ``sigma_toa_s`` (noise).
+- The real channel (:class:`ChannelModel`, all off by default, so ``thesis`` keeps the dissertation's ideal world
+  in which the estimator's model is exactly the truth's): shadowing correlated along the capsule's path with
+  Gudmundson's exponential model (M. Gudmundson, "Correlation model for shadow fading in mobile radio systems",
+  Electron. Lett. 27(23), 1991: ``corr = exp(-|dx| / d_corr)``, each sensor its own process); per-sensor
+  path-loss parameters that differ from the calibration written to ``meta.json`` (Sayrafian-Pour et al., "A
+  statistical path loss model for medical implant communication channels", PIMRC 2009 -- the source of Table
+  2.2 -- report the parameters varying with body location; the spread here is a stated choice); true sensor
+  positions off the ``sensors.csv`` the pipeline reads (placement error); missing readings (dropouts, not
+  written to ``rf.csv``) and outliers (a reading off by ``outlier_db``).
 
 Sensor layouts (:class:`SensorLayout`): the ``thesis`` grids (SPEC: two 4x4 grids on the front (y = +0.15 m) and
 back (y = -0.15 m) planes spanning x, z in [-0.15, 0.15] m), uniform rectangular arrays, the vertices of a cuboid,
@@ -32,7 +41,7 @@ from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv
 from bodyslam.fusion.rf import PathLossModel, read_sensors
 
-__all__ = ["SensorLayout", "PathLossModel", "TOAModel", "emulate_rf", "write_rf", "layout_from_config"]
+__all__ = ["SensorLayout", "PathLossModel", "TOAModel", "ChannelModel", "emulate_rf", "write_rf", "layout_from_config"]
 
 C_M_S = 299_792_458.0
 
@@ -98,6 +107,49 @@ class TOAModel:
         return np.asarray(d_m) * math.sqrt(self.eps_r) / C_M_S
 
 
+@dataclass(frozen=True)
+class ChannelModel:
+    """How the real channel departs from the calibration the pipeline is given (module docstring). Every
+    default is "no departure"; the ``realistic`` scenario's values and their reasons are in its file."""
+
+    shadowing_corr_m: float = 0.0  # Gudmundson correlation distance along the path (0: independent per reading)
+    pl0_sd_db: float = 0.0  # per-sensor offset of PL(d0) from the calibration, N(0, sd)
+    alpha_sd: float = 0.0  # per-sensor offset of the path-loss exponent, N(0, sd)
+    placement_sd_m: float = 0.0  # true sensor position = sensors.csv + N(0, sd) per axis
+    dropout_prob: float = 0.0  # a reading is lost
+    outlier_prob: float = 0.0  # a reading is off by +-outlier_db
+    outlier_db: float = 15.0
+
+    def __post_init__(self) -> None:
+        for name in ("shadowing_corr_m", "pl0_sd_db", "alpha_sd", "placement_sd_m", "outlier_db"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"[rf.channel] {name} must be >= 0, got {getattr(self, name)}")
+        for name in ("dropout_prob", "outlier_prob"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ConfigError(f"[rf.channel] {name} must be in [0, 1), got {getattr(self, name)}")
+
+    @property
+    def ideal(self) -> bool:
+        return self == ChannelModel(outlier_db=self.outlier_db)
+
+
+def correlated_shadowing(positions_w_m: np.ndarray, n_sensors: int, corr_m: float,
+                         rng: np.random.Generator) -> np.ndarray:
+    """Unit-variance shadowing ``(T, n)`` whose correlation between poses ``i, j`` is ``exp(-s_ij / corr_m)``,
+    ``s`` the path length between them (Gudmundson's model as a first-order Gauss-Markov process along the
+    path, exact for it); each sensor an independent process. ``corr_m = 0``: independent per reading."""
+    e = rng.normal(size=(len(positions_w_m), n_sensors))
+    if corr_m <= 0 or len(e) < 2:
+        return e
+    step = np.linalg.norm(np.diff(np.asarray(positions_w_m, float), axis=0), axis=1)
+    rho = np.exp(-step / corr_m)
+    out = np.empty_like(e)
+    out[0] = e[0]
+    for k in range(1, len(e)):
+        out[k] = rho[k - 1] * out[k - 1] + math.sqrt(1.0 - rho[k - 1] ** 2) * e[k]
+    return out
+
+
 def geometry(positions_w_m: np.ndarray, layout: SensorLayout):
     """Distances ``(T, n)`` and depths below each sensor's surface ``(T, n)``."""
     diff = layout.positions_w_m[None, :, :] - np.asarray(positions_w_m)[:, None, :]
@@ -107,15 +159,33 @@ def geometry(positions_w_m: np.ndarray, layout: SensorLayout):
 
 
 def emulate_rf(positions_w_m: np.ndarray, layout: SensorLayout, pl: PathLossModel = PathLossModel(),
-               toa: TOAModel = TOAModel(), rng: np.random.Generator | int | None = None) -> dict[str, np.ndarray]:
-    """Clean and noisy RSS (and TOA) for every pose and sensor: arrays ``(T, n)``."""
+               toa: TOAModel = TOAModel(), rng: np.random.Generator | int | None = None,
+               channel: ChannelModel = ChannelModel()) -> dict[str, np.ndarray]:
+    """Clean and noisy RSS (and TOA) for every pose and sensor: arrays ``(T, n)``. With a non-ideal ``channel``
+    the readings come from the *true* channel (sensors where they really are, their own path-loss parameters,
+    correlated shadowing), NaN where a reading was lost; ``layout`` and ``pl`` stay what the pipeline is told."""
     rng = np.random.default_rng(rng)
-    d, depth = geometry(positions_w_m, layout)
-    clean = pl.mean_rss_dbm(d, depth)
-    _, _, sigma = pl.params(depth)
-    shadow_rng, toa_rng = rng.spawn(2)
-    out = {"distance_m": d, "depth_m": depth, "rss_clean_dbm": clean,
-           "rss_dbm": clean + shadow_rng.normal(size=clean.shape) * sigma}
+    shadow_rng, toa_rng = rng.spawn(2)  # (the ideal channel's streams: thesis sequences stay as they were)
+    true_layout, pl0_off, alpha_off = layout, 0.0, 0.0
+    if not channel.ideal:
+        chan_rng = rng.spawn(1)[0]
+        n = len(layout.names)
+        moved = layout.positions_w_m + chan_rng.normal(0.0, channel.placement_sd_m, (n, 3))
+        true_layout = SensorLayout(layout.names, moved, layout.normals_w)
+        pl0_off = chan_rng.normal(0.0, channel.pl0_sd_db, n)
+        alpha_off = chan_rng.normal(0.0, channel.alpha_sd, n)
+    d, depth = geometry(positions_w_m, true_layout)
+    pl0, alpha, sigma = pl.params(depth)
+    clean = pl.pt_dbm - (pl0 + pl0_off) - 10.0 * (alpha + alpha_off) * np.log10(np.maximum(d, 1e-4) / pl.d0_m)
+    shadow = correlated_shadowing(positions_w_m, len(layout.names), channel.shadowing_corr_m, shadow_rng)
+    out = {"distance_m": d, "depth_m": depth, "rss_clean_dbm": clean, "rss_dbm": clean + shadow * sigma}
+    if not channel.ideal:
+        lost = chan_rng.random(clean.shape) < channel.dropout_prob
+        wild = chan_rng.random(clean.shape) < channel.outlier_prob
+        out["rss_dbm"] = np.where(wild, out["rss_dbm"] + chan_rng.choice([-1.0, 1.0], clean.shape) * channel.outlier_db,
+                                  out["rss_dbm"])
+        out["rss_dbm"][lost] = np.nan
+        out["true_sensors_w_m"] = true_layout.positions_w_m
     if toa.sigma_toa_s > 0:
         t_clean = toa.mean_toa_s(d)
         out["toa_clean_s"] = t_clean
@@ -130,6 +200,8 @@ def write_rf(path: str | os.PathLike, stamps_s: np.ndarray, layout: SensorLayout
     rows = []
     for k, t in enumerate(np.asarray(stamps_s)):
         for j, name in enumerate(layout.names):
+            if not np.isfinite(meas["rss_dbm"][k, j]):
+                continue  # a lost reading: no line (what a receiver that heard nothing writes)
             r = [float(t), name, float(meas["rss_dbm"][k, j])]
             if has_toa:
                 r.append(float(meas["toa_s"][k, j]))

@@ -25,7 +25,7 @@ from bodyslam.camera import CameraModel, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from testbed.centerline import Centerline, procedural_centerline
 from testbed.motion import MotionConfig
-from testbed.artifacts import Bubbles
+from testbed.artifacts import Bubbles, CameraOptics
 from testbed.render import RENDER_BACKENDS, Lighting, SensorNoise
 from testbed.texture import Texture, procedural_mucosa, texture_from_image
 from testbed.tube import Folds, Tube
@@ -125,7 +125,8 @@ class World:
     render_backend: str = "raycast"
     rear_baseline_m: float | None = None  # a second, rear-facing camera this far behind the front lens (None: off)
     bubbles: Bubbles = Bubbles()
-    rf: dict | None = None  # {"layout": SensorLayout, "pathloss": PathLossModel, "toa": TOAModel}, or None (off)
+    rf: dict | None = None  # {"layout", "pathloss", "toa", "channel"} (testbed.rf), or None (off)
+    optics: CameraOptics = CameraOptics()  # the capsule camera's imaging chain (field stop, overlay, JPEG ...)
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -135,13 +136,29 @@ def _radius_fn(sec: dict, rng: np.random.Generator):
     wl = float(sec.get("radius_wavelength_m", 0.15))
     if not (0.002 <= min(r0, r1) and max(r0, r1) <= 0.05):
         raise ConfigError(f"tube radius must be within 2-50 mm, got {r0} .. {r1} m")
+    # contracted segments: narrowings by `contraction_frac` of the radius, `contraction_length_m` long, one every
+    # `contraction_spacing_m` on average (positions drawn per seed); 0: none
+    c_frac = float(sec.get("contraction_frac", 0.0))
+    c_len = float(sec.get("contraction_length_m", 0.02))
+    c_gap = float(sec.get("contraction_spacing_m", 0.15))
+    if not (0 <= c_frac < 0.7 and c_len > 0 and c_gap > 0):
+        raise ConfigError(f"[tube] contraction_frac must be in [0, 0.7), lengths positive; got {c_frac}, {c_len}, "
+                          f"{c_gap}")
     ph = rng.uniform(0, 2 * math.pi, size=3)
+    centres = np.cumsum(rng.exponential(c_gap, size=400)) if c_frac > 0 else np.zeros(0)
 
     def fn(s):
         s = np.asarray(s, dtype=np.float64)
         frac = s / max(s[-1], 1e-9) if s.size > 1 else np.zeros_like(s)
         wave = (np.sin(2 * math.pi * s / wl + ph[0]) + 0.5 * np.sin(2 * math.pi * s / (0.37 * wl) + ph[1])) / 1.5
-        return r0 + (r1 - r0) * frac + var * wave
+        r = r0 + (r1 - r0) * frac + var * wave
+        if c_frac > 0:
+            near = centres[(centres > s.min() - 4 * c_len) & (centres < s.max() + 4 * c_len)]
+            squeeze = np.zeros_like(s)
+            for c in near:
+                squeeze = np.maximum(squeeze, np.exp(-0.5 * ((s - c) / (c_len / 2.3548)) ** 2))
+            r = r * (1.0 - c_frac * squeeze)
+        return r
 
     return fn, max(r0, r1) + var
 
@@ -188,6 +205,9 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
         spacing_m=float(tube_sec.get("fold_spacing_m", 0.008)),
         width_m=float(tube_sec.get("fold_width_m", 0.002)),
         coverage=float(tube_sec.get("fold_coverage", 0.7)),
+        lobes=int(tube_sec.get("lobes", 0)),
+        lobe_depth_frac=float(tube_sec.get("lobe_depth_frac", 0.0)),
+        lobe_twist_rad_per_m=float(tube_sec.get("lobe_twist_rad_per_m", 15.0)),
     )
     tube = Tube(cl, folds=folds, sections=int(tube_sec.get("sections", 96)),
                 ring_spacing_m=float(tube_sec.get("ring_spacing_m", 0.0015)))
@@ -225,18 +245,20 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
         if not 0.0 <= rear_baseline <= 0.05:
             raise ConfigError(f"[rear_camera] baseline_m must be within 0-0.05 m, got {rear_baseline}")
     bubbles = _dataclass_from(Bubbles, section(scn, "artifacts"), "artifacts")
+    optics = _dataclass_from(CameraOptics, section(scn, "optics"), "optics")
     rf = _rf_from(section(scn, "rf"), Path(scn["_origin"]).parent if "_origin" in scn else None)
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend, rear_baseline, bubbles, rf)
+                 backend, rear_baseline, bubbles, rf, optics)
 
 
 def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:
     """RF emulation settings; on by default with the thesis sensor grids (``[rf] enabled = false`` turns it off)."""
-    from testbed.rf import PathLossModel, TOAModel, layout_from_config
+    from testbed.rf import ChannelModel, PathLossModel, TOAModel, layout_from_config
 
     if not sec.get("enabled", True):
         return None
     pl = {k: (tuple(v) if isinstance(v, list) else v) for k, v in sec.get("pathloss", {}).items()}
     return {"layout": layout_from_config(sec, base_dir),
             "pathloss": _dataclass_from(PathLossModel, pl, "rf.pathloss"),
-            "toa": _dataclass_from(TOAModel, sec.get("toa", {}), "rf.toa")}
+            "toa": _dataclass_from(TOAModel, sec.get("toa", {}), "rf.toa"),
+            "channel": _dataclass_from(ChannelModel, sec.get("channel", {}), "rf.channel")}

@@ -90,14 +90,14 @@ def _render_one(k: int) -> int:
     rgb = res.rgb
     if w.bubbles.bubble_prob > 0:
         rgb = w.bubbles.apply(rgb, np.random.default_rng([w.seed, 7919, k, 2]), _W["fov"])
-    write_image(out / "frames" / frame_name(k), w.noise.apply(rgb, rng))
+    write_image(out / "frames" / frame_name(k), w.optics.apply(w.noise.apply(rgb, rng)))
     if w.write_depth:
         write_image(out / "depth" / frame_name(k), encode_range(res.range_m))
     if w.rear_baseline_m is not None:
         R_c_r, t_c_r = rear_extrinsics(w.rear_baseline_m)
         rear = _W["renderer"].render(R_w_c * R_c_r, p_w_c + R_w_c.apply(t_c_r))
         rng = np.random.default_rng([w.seed, 7919, k, 1])
-        write_image(out / "frames_rear" / frame_name(k), w.noise.apply(rear.rgb, rng))
+        write_image(out / "frames_rear" / frame_name(k), w.optics.apply(w.noise.apply(rear.rgb, rng)))
     return k
 
 
@@ -167,7 +167,7 @@ def simulate(
         from testbed.rf import emulate_rf, write_rf
 
         meas = emulate_rf(traj.positions_w_m, world.rf["layout"], world.rf["pathloss"], world.rf["toa"],
-                          world.rngs["rf"])
+                          world.rngs["rf"], world.rf["channel"])
         world.rf["layout"].write_csv(out / "sensors.csv")
         write_rf(out / "rf.csv", traj.stamps_s, world.rf["layout"], meas)
     truth = {
@@ -190,7 +190,12 @@ def simulate(
         "image_width": cam.width,
         "image_height": cam.height,
         "camera": cam.to_dict(),
-        "tube_radius_m": float(np.mean(world.tube.centerline.radius_m)),
+        # the nominal lumen radius the pipeline is told: this gut's mean (the ideal world), or a scenario's
+        # population prior ([tube] radius_in_meta_m, e.g. the realistic testbed: the true radius is hidden)
+        "tube_radius_m": float(world.scenario.get("tube", {}).get("radius_in_meta_m",
+                                                                   np.mean(world.tube.centerline.radius_m))),
+        "tube_radius_source": ("population prior (the true radius is hidden)"
+                               if "radius_in_meta_m" in world.scenario.get("tube", {}) else "mean of this tube"),
         "frames": {"dir": "frames", "pattern": "{index:06d}.png", "color": "RGB"},
         "depth": (
             {"dir": "depth", "kind": "range_along_ray", "scale_m_per_unit": RANGE_SCALE_M, "invalid_value": 0}

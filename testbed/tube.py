@@ -36,9 +36,30 @@ class Folds:
     spacing_m: float = 0.008
     width_m: float = 0.002
     coverage: float = 0.7
+    # A partly collapsed lumen: ``lobes`` longitudinal folds make the cross-section star-shaped, the wall between
+    # them pushed in by up to ``lobe_depth_frac`` of the radius; the star turns along the gut by
+    # ``lobe_twist_rad_per_m`` (0 lobes: a round lumen).
+    lobes: int = 0
+    lobe_depth_frac: float = 0.0
+    lobe_twist_rad_per_m: float = 15.0
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.depth_frac < 0.8 and 0 <= self.lobe_depth_frac < 0.6):
+            raise ConfigError(f"fold depth must be in [0, 0.8) and lobe depth in [0, 0.6) of the radius, got "
+                              f"{self.depth_frac}, {self.lobe_depth_frac}")
+        if self.lobes < 0 or self.lobes > 12:
+            raise ConfigError(f"lobes must be 0-12, got {self.lobes}")
 
     def profile(self, s_m: np.ndarray, phi: np.ndarray, phase: float = 0.0) -> np.ndarray:
-        """Fractional inward bulge at ``(s, phi)``; broadcasting arrays."""
+        """Fractional inward bulge at ``(s, phi)`` (circular folds and the lobes of a collapsed lumen, at most
+        0.85 of the radius); broadcasting arrays."""
+        out = self._folds(s_m, phi, phase)
+        if self.lobes and self.lobe_depth_frac > 0:
+            star = 0.5 + 0.5 * np.cos(self.lobes * (phi - self.lobe_twist_rad_per_m * s_m))
+            out = np.minimum(out + self.lobe_depth_frac * star ** 2, 0.85)
+        return out
+
+    def _folds(self, s_m, phi, phase: float) -> np.ndarray:
         if self.depth_frac <= 0:
             return np.zeros(np.broadcast(s_m, phi).shape)
         k = np.round(s_m / self.spacing_m)

@@ -96,3 +96,38 @@ def test_missing_sensors_and_bad_lines(tmp_path):
                        capture_output=True, text=True)
     assert p.returncode == 3  # done, with problems listed: the fixes were still written
     assert "skipped" in p.stdout and (tmp_path / "fixes.csv").exists()
+
+
+def test_realistic_channel_departs_from_the_calibration_as_configured():
+    """Correlated shadowing has Gudmundson's correlation along the path; per-sensor offsets, placement error,
+    dropouts and outliers appear at their configured sizes; the ideal channel draws what it always drew."""
+    from testbed.rf import ChannelModel, SensorLayout, correlated_shadowing, emulate_rf
+
+    rng = np.random.default_rng(5)
+    # a straight path of 20,000 poses 2 mm apart: lag-1 correlation exp(-0.002 / 0.01) = 0.819
+    path = np.c_[np.zeros(20000), np.zeros(20000), np.arange(20000) * 0.002]
+    s = correlated_shadowing(path, 4, 0.01, rng)
+    lag1 = np.mean([np.corrcoef(s[:-1, j], s[1:, j])[0, 1] for j in range(4)])
+    lag5 = np.mean([np.corrcoef(s[:-5, j], s[5:, j])[0, 1] for j in range(4)])
+    # 80,000 samples of a Gauss-Markov process: the estimates' standard error is ~0.005
+    assert lag1 == pytest.approx(np.exp(-0.2), abs=0.02) and lag5 == pytest.approx(np.exp(-1.0), abs=0.03)
+    assert s.std() == pytest.approx(1.0, abs=0.03)
+    layout, pl = SensorLayout.thesis_grids(), PathLossModel()
+    pos = np.c_[np.linspace(-0.05, 0.05, 3000), np.zeros(3000), np.zeros(3000)]
+    ideal_a = emulate_rf(pos, layout, pl, rng=7)
+    ideal_b = emulate_rf(pos, layout, pl, rng=7, channel=ChannelModel())
+    assert np.array_equal(ideal_a["rss_dbm"], ideal_b["rss_dbm"])
+    ch = ChannelModel(pl0_sd_db=3.0, placement_sd_m=0.005, dropout_prob=0.05, outlier_prob=0.02, outlier_db=15.0)
+    real = emulate_rf(pos, layout, pl, rng=7, channel=ch)
+    lost = np.isnan(real["rss_dbm"])
+    assert lost.mean() == pytest.approx(0.05, abs=0.01)  # 96,000 readings
+    moved = np.linalg.norm(real["true_sensors_w_m"] - layout.positions_w_m, axis=1)
+    assert 0.003 < np.sqrt(np.mean(moved**2) / 3) < 0.007  # 32 sensors, sd 5 mm per axis
+    # per sensor, the mean departure from the calibrated model (shadowing averages out over 3000 readings)
+    d = np.linalg.norm(layout.positions_w_m[None] - pos[:, None], axis=2)
+    depth = np.maximum(np.einsum("tnk,nk->tn", layout.positions_w_m[None] - pos[:, None], layout.normals_w), 0)
+    resid = real["rss_dbm"] - pl.mean_rss_dbm(d, depth)
+    ok = ~lost & (np.abs(resid) < 12)  # outliers (15 dB) left out
+    per_sensor = np.array([resid[ok[:, j], j].mean() for j in range(32)])
+    assert 1.5 < per_sensor.std() < 5.0  # the 3 dB PL(d0) spread (plus what the placement error adds)
+    assert np.mean(np.abs(resid[~lost]) > 12) > 0.01  # outliers are there
