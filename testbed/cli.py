@@ -56,6 +56,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ev.add_argument("--keep-frames", action="store_true", help="keep the rendered frames (default: deleted)")
     ev.add_argument("--force", action="store_true")
+    ev.add_argument("--reuse", action="store_true",
+                    help="score again the sequences of an earlier run in --out (their motion.csv, RF and truth): no "
+                         "rendering, no motion; for re-scoring after a change to the filters")
     ev.add_argument("--jobs", type=int, default=None,
                     help="seeds run in parallel, one per core by default (1: one seed at a time on every core)")
 
@@ -154,8 +157,9 @@ def _evaluate(args) -> int:
         print(system.report_line(rep))
         print(f"wrote {args.out}/report.json, report.html and plots")
         return 0
-    report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force,
-                      keep=args.keep_frames, progress=lambda msg: print(msg, flush=True), jobs=args.jobs)
+    report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force or args.reuse,
+                      keep=args.keep_frames, progress=lambda msg: print(msg, flush=True), jobs=args.jobs,
+                      reuse=args.reuse)
     print(main_report_line(report))
     print(f"wrote {args.out}/report.json and plots")
     return 0

@@ -55,6 +55,10 @@ class FusionSettings:
     init_search: bool = True  # check the alignment against other orientations
     search_frames: int = 80  # the window of a search (its decision lag)
     regap_steps: int | None = 5  # search again after this many steps without an estimate (None: never)
+    # strictly causal start: no alignment to the first window's fixes (which uses fixes up to frame 40-80 for
+    # frame 0); every orientation is searched from frame 0's RF fix, and the output until the decision is the
+    # candidates' mixture on the readings so far -- frame k uses frames 0..k only
+    causal_start: bool = False
 
 
 @dataclass
@@ -192,7 +196,17 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         dr[k] = dr[k - 1] + Rdr.apply(t_s)
         Rdr = Rdr * R_s
     searches: list[SearchResult] = []
-    if init is None:
+    if init is None and cfg.causal_start:
+        f0 = fixes[0]
+        p0 = f0.position_w_m if f0.status == "ok" else np.zeros(3)  # else: the middle of the body frame
+        var_p = np.diag(f0.cov_m2) + 1e-4 if f0.status == "ok" else np.full(3, 0.1**2)
+        P = np.diag([*var_p] + [np.radians(45.0) ** 2] * 3)  # each candidate covers its 44-deg cell
+        R0 = Rotation.identity()
+        alignment = (R0, p0)
+        found = search_orientation(searcher, 0, min(n, cfg.search_frames), R0, lambda R: p0, P, [])
+        R0, p0 = found.R, found.p_w_m
+        searches.append(found)
+    elif init is None:
         # The window grows until the dead-reckoned path bends: its second principal RMS spread must reach
         # init_spread_m. Along a straight path the rotation about the path's direction is unobservable
         # (measured: a 40-frame straight start aligned 155 deg off about its axis).

@@ -333,3 +333,23 @@ def test_the_committed_run_keeps_its_priors_and_posteriors():
     assert np.allclose(ps.F[k], F[0], atol=1e-15)
     assert np.allclose(ps.prior_P[k + 1], F[0] @ ps.post_P[k] @ F[0].T + Q[0], atol=1e-15)
     assert np.allclose(res.committed_positions_w_m, ps.post_p, atol=0)
+
+
+def test_the_strictly_causal_start_uses_no_later_reading():
+    """With ``causal_start`` frame k's estimate depends on frames 0..k only -- inside the start window too, where
+    the default start aligns the first 40+ frames' fixes (a look-ahead)."""
+    from bodyslam.fusion.rf import Fix
+
+    *data, gt = synthetic_run(4, n=100)
+    steps, fixes, rss, pos, nrm, pl = data
+    rss2 = rss.copy()
+    rss2[20:] += 6.0
+    fixes2 = [f if k < 20 else Fix(f.position_w_m + 0.05, f.cov_m2, f.n_sensors, f.status) for k, f in enumerate(fixes)]
+    causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True)
+    causal2 = fuse(steps, fixes2, rss2, pos, nrm, pl, mode="rss", causal_start=True)
+    assert np.array_equal(causal.positions_w_m[:20], causal2.positions_w_m[:20])
+    ahead = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss")
+    ahead2 = fuse(steps, fixes2, rss2, pos, nrm, pl, mode="rss")
+    assert not np.allclose(ahead.positions_w_m[:20], ahead2.positions_w_m[:20])  # the look-ahead start does see them
+    # and it still tracks: after its 80-frame decision the causal filter is within 2 cm (measured 0.6-1.0 cm)
+    assert np.linalg.norm(causal.positions_w_m[80:] - gt[80:], axis=1).mean() < 0.02
