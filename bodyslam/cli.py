@@ -601,7 +601,7 @@ def _motion_or_track(args) -> int:
         write_motion_csv(args.out, range(1, len(steps) + 1), stamps[1:], steps)
     else:
         pos, rot = dead_reckon(steps)
-        write_tum(args.out, stamps, pos, rot)
+        write_tum(args.out, stamps, pos, rot, world="first camera frame")
     path, var = path_travelled(steps)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")

@@ -160,16 +160,18 @@ def read_meta(seq_dir: str | os.PathLike) -> dict[str, Any]:
 
 
 def write_tum(
-    path: str | os.PathLike, stamps_s: np.ndarray, positions_w_m: np.ndarray, rotations_w_c: Rotation
+    path: str | os.PathLike, stamps_s: np.ndarray, positions_w_m: np.ndarray, rotations_w_c: Rotation,
+    world: str = "body frame",
 ) -> None:
-    """Write poses ``T_w_c`` as TUM lines ``t x y z qx qy qz qw``."""
+    """Write poses ``T_w_c`` as TUM lines ``t x y z qx qy qz qw``; ``world`` names the world frame in the header
+    (the body frame of fused trajectories; ``"first camera frame"`` for dead reckoning)."""
     stamps_s = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
     pos = np.asarray(positions_w_m, dtype=np.float64).reshape(-1, 3)
     q_xyzw = rotations_w_c.as_quat(canonical=True).reshape(-1, 4)  # scipy order is scalar-last (x y z w)
     if not (len(stamps_s) == len(pos) == len(q_xyzw)):
         raise ValueError("stamps, positions and rotations must have the same length")
     buf = io.StringIO()
-    buf.write("# timestamp_s x_m y_m z_m qx qy qz qw (T_w_c, world = body frame)\n")
+    buf.write(f"# timestamp_s x_m y_m z_m qx qy qz qw (T_w_c, world = {world})\n")
     for t, p, q in zip(stamps_s, pos, q_xyzw):
         buf.write(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
     write_text_atomic(path, buf.getvalue())

@@ -65,9 +65,12 @@ def evaluate_sequence(d: Path) -> dict:
         "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix").positions_w_m,
         "ekf_rss": ekf.positions_w_m,
         # strictly causal: frame k sees frames 0..k only (no alignment window; the start searched from frame 0)
-        "ekf_rss_causal": fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True).positions_w_m,
+        "ekf_rss_causal": None,
         "ekf_rss_rts": loc.smoothed.positions_w_m,
     }
+    causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True)
+    est["ekf_rss_causal"] = causal.positions_w_m
+    with_cov = {"ekf_rss": ekf, "ekf_rss_causal": causal, "ekf_rss_rts": loc.smoothed}
     problems = rf.problems
     sig_t, sig_r = _measured_step_noise(steps, gt, grot)
     # prior of the bound: no information beyond the abdomen (10 cm, 45 deg); every RF reading counted once. The
@@ -80,7 +83,23 @@ def evaluate_sequence(d: Path) -> dict:
             "smoothing_bound_m2": np.trace(smooth, axis1=1, axis2=2),
             "smoothing_bound_mean_error_m": efficient_mean_error(smooth),
             "truth": gt, "rf_problems": len(problems),
+            "consistency": {k: consistency(r.positions_w_m, r.cov[:, :3, :3], gt) for k, r in with_cov.items()},
+            "orientation_error_deg": {k: np.degrees((r.rotations_w_c.inv() * grot).magnitude())
+                                      for k, r in with_cov.items()},
             "motion": score_motion(d, d / "motion.csv")}
+
+
+CHI2_3_683 = 3.527  # the 3-D region holding 68.3% of a Gaussian: what "inside 1-sigma" means for a position
+
+
+def consistency(positions_w_m: np.ndarray, cov_m2: np.ndarray, truth_w_m: np.ndarray) -> dict:
+    """How honest a position's stated uncertainty is, per frame: NEES ``e^T C^-1 e`` (3 on average for an honest
+    filter), whether the error is inside the 68.3% ellipsoid, and the fraction of the three axes with
+    ``|e_i| <= sigma_i`` (0.683 expected)."""
+    e = positions_w_m - truth_w_m
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov_m2, e[..., None])[..., 0])
+    sd = np.sqrt(np.maximum(np.diagonal(cov_m2, axis1=1, axis2=2), 1e-30))
+    return {"nees": nees, "inside_68": nees <= CHI2_3_683, "axis_inside_1sigma": np.mean(np.abs(e) <= sd, axis=1)}
 
 
 def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
@@ -166,6 +185,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     jobs = available_cores() if jobs is None else max(1, int(jobs))
     jobs = min(jobs, len(seeds))
     per_seed, errs, pcrbs, motion, timing, eff = [], {a: [] for a in ALGORITHMS}, [], [], [], []
+    cons: dict[str, list] = {}
+    orient: dict[str, list] = {}
     sm, sm_eff = [], []
     first = None
     t_start = time.perf_counter()
@@ -178,6 +199,9 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
             errs[a].append(res["errors"][a])
         pcrbs.append(res["pcrb_m2"])
         eff.append(res["pcrb_mean_error_m"])
+        for a, c in res["consistency"].items():
+            cons.setdefault(a, []).append(c)
+            orient.setdefault(a, []).append(res["orientation_error_deg"][a])
         sm.append(res["smoothing_bound_m2"])
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
@@ -205,6 +229,13 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
             "rts_rmse_over_sqrt_bound": float(np.sqrt(np.mean(np.concatenate(errs["ekf_rss_rts"]) ** 2))
                                               / np.sqrt(np.concatenate(sm).mean()))},
         "table_4_1": {k: float(np.mean([m[k] for m in motion])) for k in motion[0] if k.endswith(("_cm", "_deg"))},
+        # honest uncertainty: NEES (3 expected), frames inside the 68.3% ellipsoid, axes inside 1-sigma (0.683)
+        "consistency": {a: {"mean_nees": float(np.concatenate([c["nees"] for c in v]).mean()),
+                            "inside_68pct_ellipsoid": float(np.concatenate([c["inside_68"] for c in v]).mean()),
+                            "axis_inside_1sigma": float(np.concatenate([c["axis_inside_1sigma"] for c in v]).mean())}
+                        for a, v in cons.items()},
+        "orientation_error_deg": {a: {"mean": float(np.concatenate(v).mean()),
+                                      "p90": float(np.percentile(np.concatenate(v), 90))} for a, v in orient.items()},
         "per_seed": per_seed,
         "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
                     **{f"{k}_total": round(sum(t[k] for t in timing), 2) for k in timing[0]}},
@@ -231,7 +262,13 @@ def _html(out: Path, report: dict) -> None:
 
     rows = [[LABELS[k], f"{v['mean_error_cm']:.2f}", f"{v['rmse_cm']:.2f}", f"{v['median_error_cm']:.2f}",
              f"{v['p90_error_cm']:.2f}", f"{v['rmse_over_sqrt_pcrb']:.2f}"] for k, v in report["algorithms"].items()]
+    crows = [[LABELS[k], f"{v['mean_nees']:.2f}", f"{v['inside_68pct_ellipsoid']:.2f}", f"{v['axis_inside_1sigma']:.2f}",
+              f"{report['orientation_error_deg'][k]['mean']:.1f}", f"{report['orientation_error_deg'][k]['p90']:.1f}"]
+             for k, v in report["consistency"].items()]
     body = (table(["algorithm", "mean (cm)", "RMSE (cm)", "median (cm)", "p90 (cm)", "RMSE / sqrt(PCRB)"], rows)
+            + "<h2>Is the stated uncertainty honest? Orientation</h2>"
+            + table(["algorithm", "mean NEES (3 if honest)", "inside the 68% ellipsoid", "axes inside 1-sigma (0.68)",
+                     "orientation error mean (deg)", "p90 (deg)"], crows)
             + "<h2>Per-step motion (Table 4.1)</h2>"
             + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
             + "<h2>Plots (Fig. 4.20-4.24)</h2>")

@@ -674,7 +674,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                                   fused.smoothed.cov[:, :3, :3],
                                   np.sqrt(np.trace(fused.smoothed.cov[:, 3:, 3:], axis1=1, axis2=2)))
     sd = np.sqrt(np.trace(cov, axis1=1, axis2=2))
-    write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q))
+    write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q),
+              world="body frame" if fused is not None else "first camera frame")
     write_uncertainty(d / "uncertainty.csv", frame_idx, t, cov, sd_head, path_m, path_var)
     marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems)
     _plots(exam, d, t, P, path_m, fused is not None)
