@@ -59,6 +59,10 @@ class FusionSettings:
     # frame 0); every orientation is searched from frame 0's RF fix, and the output until the decision is the
     # candidates' mixture on the readings so far -- frame k uses frames 0..k only
     causal_start: bool = False
+    # per-sensor RSS bias states (bodyslam.fusion.ekf): correlation distance along the path (0: off) and stationary
+    # 1-sigma (dB) of the persistent part of each sensor's readings
+    bias_corr_m: float = 0.0
+    bias_sd_db: float = 4.0
 
 
 @dataclass
@@ -186,7 +190,8 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
     if fixes is None or len(fixes) != n:
         raise InputError(f"need one RF fix per frame for initialisation ({n}), got "
                          f"{0 if fixes is None else len(fixes)}")
-    ekf = ErrorStateEkf(steps, fixes, rss, sensors_w_m, normals_w, pl, cfg.mode, cfg.max_rejections)
+    ekf = ErrorStateEkf(steps, fixes, rss, sensors_w_m, normals_w, pl, cfg.mode, cfg.max_rejections,
+                        cfg.bias_corr_m, cfg.bias_sd_db)
     searcher = copy.copy(ekf)  # the same inputs, its own state: searches run while the committed run is open
     # dead reckoning in the first camera frame, for the initial alignment
     dr = np.zeros((n, 3))
@@ -240,13 +245,13 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
     gap_ends = set(_gap_ends(steps, cfg.regap_steps)) if cfg.regap_steps else set()
 
-    def decide(b, p_b, R_b, P_b):
+    def decide(k_end, p_b, R_b, P_b, bias_b):
         """At the end of a long gap: search the orientation from the predicted pose (position kept)."""
-        if b not in gap_ends:
+        if k_end not in gap_ends:
             return None
-        sig = max(float(np.sqrt(np.trace(P_b[3:, 3:]) / 3)), np.radians(30.0))
-        found = search_orientation(searcher, b, min(n, b + cfg.search_frames), R_b, lambda R: p_b,
-                                   with_orientation_sigma(P_b, sig), [])
+        sig = max(float(np.sqrt(np.trace(P_b[3:6, 3:6]) / 3)), np.radians(30.0))
+        found = search_orientation(searcher, k_end, min(n, k_end + cfg.search_frames), R_b, lambda R: p_b,
+                                   with_orientation_sigma(P_b, sig), [], bias_b)
         searches.append(found)
         return found.R, sig
 
@@ -277,24 +282,33 @@ def _gap_ends(steps: list[StepMotion], min_len: int) -> list[int]:
 
 def rts_smooth(res: FusionResult) -> FusionResult:
     """Rauch-Tung-Striebel smoother over the committed filter run (error-state, rotations composed on the
-    right). Memory: the run's stored passes; time linear in the frames."""
+    right; with the RSS bias states, they are smoothed too). Memory: the run's stored passes; time linear in
+    the frames."""
     ps_ = res.passes
     n = len(ps_.post_p)
+    m = 0 if ps_.post_b is None else ps_.post_b.shape[1]
     xs = np.zeros((n, 3))
     Rs = np.zeros((n, 3, 3))
-    Ps = np.zeros((n, 6, 6))
+    bs = np.zeros((n, m))
+    Ps = np.zeros_like(ps_.post_P)
     xs[-1], Rs[-1], Ps[-1] = ps_.post_p[-1], ps_.post_R[-1], ps_.post_P[-1]
+    if m:
+        bs[-1] = ps_.post_b[-1]
     for k in range(n - 2, -1, -1):
         F = ps_.F[k]  # prior of k+1 came from post of k through F
         Pp = ps_.prior_P[k + 1]
         C = ps_.post_P[k] @ F.T @ np.linalg.inv(Pp)
         dx = np.r_[xs[k + 1] - ps_.prior_p[k + 1], Rotation.from_matrix(ps_.prior_R[k + 1].T @ Rs[k + 1]).as_rotvec()]
+        if m:
+            dx = np.r_[dx, bs[k + 1] - ps_.prior_b[k + 1]]
         corr = C @ dx
         xs[k] = ps_.post_p[k] + corr[:3]
-        Rs[k] = ps_.post_R[k] @ Rotation.from_rotvec(corr[3:]).as_matrix()
+        Rs[k] = ps_.post_R[k] @ Rotation.from_rotvec(corr[3:6]).as_matrix()
+        if m:
+            bs[k] = ps_.post_b[k] + corr[6:]
         Ps[k] = ps_.post_P[k] + C @ (Ps[k + 1] - Pp) @ C.T
-    return FusionResult(xs, Rotation.from_matrix(Rs), Ps, res.n_rejected, res.n_updates, res.passes, res.init,
-                        res.alignment, res.P0, res.dead_reckoning, res.searches, res.resets,
+    return FusionResult(xs, Rotation.from_matrix(Rs), Ps[:, :6, :6], res.n_rejected, res.n_updates, res.passes,
+                        res.init, res.alignment, res.P0, res.dead_reckoning, res.searches, res.resets,
                         res.committed_positions_w_m)
 
 

@@ -18,6 +18,13 @@ RTS smoother (:func:`bodyslam.fusion.body_slam.rts_smooth`) needs.
   that rejects everything can never recover). The negative log-likelihood of the readings (each term capped at
   the gate, so one outlier cannot decide) is summed per candidate: it ranks starts.
 - The covariance update is in Joseph form: it stays symmetric positive semi-definite under rounding.
+- Optional RSS bias states (``bias_corr_m > 0``, ``mode="rss"``): one per sensor, ``b_j`` (dB), the part of a
+  reading the path-loss model does not explain and that persists -- shadowing correlated along the path and the
+  sensor's own departure from the calibration. A first-order Gauss-Markov process in the distance travelled
+  (``b' = rho b + w``, ``rho = exp(-|t_s| / bias_corr_m)``, stationary 1-sigma ``bias_sd_db``, the discrete form of
+  Gudmundson's exponential correlation); a reading is ``mean(p) + b_j + v`` with white ``v`` of the rest of the
+  model's variance (at least 1 dB). The state becomes ``[dp, dtheta, b]`` (``6 + m``); without them it is 6 and
+  every number is as before.
 """
 
 from __future__ import annotations
@@ -96,9 +103,9 @@ def with_orientation_sigma(P: np.ndarray, sig_rad: float) -> np.ndarray:
     """A copy of ``P`` (``(..., 6, 6)``) whose orientation block is ``sig_rad^2 I``, uncorrelated with the
     position (a re-start)."""
     P = np.array(P, float, copy=True)
-    P[..., 3:, :3] = 0.0
-    P[..., :3, 3:] = 0.0
-    P[..., 3:, 3:] = np.eye(3) * sig_rad**2
+    P[..., 3:6, :] = 0.0
+    P[..., :, 3:6] = 0.0
+    P[..., 3:6, 3:6] = np.eye(3) * sig_rad**2
     return P
 
 
@@ -110,11 +117,13 @@ class FilterPasses:
 
     prior_p: np.ndarray
     prior_R: np.ndarray
-    prior_P: np.ndarray
+    prior_P: np.ndarray  # (n, D, D): D = 6, or 6 + m with the RSS bias states
     F: np.ndarray
     post_p: np.ndarray
     post_R: np.ndarray
     post_P: np.ndarray
+    prior_b: np.ndarray | None = None  # (n, m) bias states (m = 0 without them)
+    post_b: np.ndarray | None = None
 
 
 class ErrorStateEkf:
@@ -128,7 +137,7 @@ class ErrorStateEkf:
 
     def __init__(self, steps: list[StepMotion], fixes: list[Fix] | None, rss: np.ndarray | None,
                  sensors_w_m: np.ndarray | None, normals_w: np.ndarray | None, pl: PathLossModel | None,
-                 mode: str = "rss", max_rejections: int = 5):
+                 mode: str = "rss", max_rejections: int = 5, bias_corr_m: float = 0.0, bias_sd_db: float = 4.0):
         if mode not in FUSION_MODES:
             raise InputError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
         if mode == "rss" and (rss is None or sensors_w_m is None or pl is None):
@@ -137,17 +146,31 @@ class ErrorStateEkf:
         self.mode, self.max_rejections = mode, max_rejections
         self.t_applied, self.sig_t, self.sig_r = process_noise(steps)
         self.R_steps = np.array([step_pose(s)[0].as_matrix() for s in steps]).reshape(-1, 3, 3)
+        self.m_bias = len(sensors_w_m) if (mode == "rss" and bias_corr_m > 0) else 0
+        self.D = 6 + self.m_bias
+        self.bias_sd_db = float(bias_sd_db)
+        if self.m_bias:
+            self.rho = np.exp(-np.linalg.norm(self.t_applied, axis=1) / bias_corr_m)
 
     # -- the state --------------------------------------------------------------------------------------------
-    def start(self, p: np.ndarray, R: np.ndarray, P: np.ndarray) -> None:
+    def start(self, p: np.ndarray, R: np.ndarray, P: np.ndarray, b: np.ndarray | None = None) -> None:
         """Candidates' start at the first frame of a run (before its update): ``p (C, 3)``, ``R (C, 3, 3)`` (or
-        Rotations), ``P (C, 6, 6)``."""
+        Rotations), ``P (C, 6, 6)`` or ``(C, D, D)``; ``b (C, m)`` the bias states (default zero, with their
+        stationary covariance)."""
         if isinstance(R, Rotation):
             R = R.as_matrix()
         self.p = np.array(p, float).reshape(-1, 3)
         self.R = np.array(R, float).reshape(-1, 3, 3)
-        self.P = np.array(P, float).reshape(-1, 6, 6)
         C = len(self.p)
+        P = np.array(P, float)
+        P = P.reshape(-1, P.shape[-1], P.shape[-1])
+        if P.shape[-1] != self.D:
+            full = np.zeros((len(P), self.D, self.D))
+            full[:, :6, :6] = P[:, :6, :6]
+            full[:, 6:, 6:] = np.eye(self.m_bias) * self.bias_sd_db**2
+            P = full
+        self.P = np.broadcast_to(P, (C, self.D, self.D)).copy() if len(P) == 1 and C > 1 else P
+        self.b = np.zeros((C, self.m_bias)) if b is None else np.array(b, float).reshape(C, self.m_bias)
         self.nll = np.zeros(C)
         self.streak = np.zeros(C, int)
         self.n_rejected = np.zeros(C, int)
@@ -157,6 +180,14 @@ class ErrorStateEkf:
         """Into frame ``k`` with step ``k - 1``; returns ``F (C, 6, 6)``."""
         ts, Rs = self.t_applied[k - 1], self.R_steps[k - 1]
         F, Q = process_model(self.R, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
+        if self.m_bias:  # the bias states' Gauss-Markov step, block-diagonal to the pose's
+            C, D, rho = len(F), self.D, self.rho[k - 1]
+            F6, Q6 = F, Q
+            F, Q = np.zeros((C, D, D)), np.zeros((C, D, D))
+            F[:, :6, :6], Q[:, :6, :6] = F6, Q6
+            F[:, 6:, 6:] = np.eye(self.m_bias) * rho
+            Q[:, 6:, 6:] = np.eye(self.m_bias) * (1.0 - rho**2) * self.bias_sd_db**2
+            self.b = self.b * rho
         self.p = self.p + self.R @ ts
         self.R = self.R @ Rs
         self.P = F @ self.P @ F.transpose(0, 2, 1) + Q
@@ -181,9 +212,9 @@ class ErrorStateEkf:
             do = ~gated | guard
             P = P.copy()
             P[guard, :3, :3] += GUARD_FIX_COV_SCALE * f.cov_m2
-            P[guard, 3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
+            P[guard, 3:6, 3:6] += np.eye(3) * GUARD_THETA_RAD**2
             streak = np.where(do, 0, streak)
-            H = np.repeat(np.hstack([np.eye(3), np.zeros((3, 3))])[None], C, axis=0)
+            H = np.repeat(np.hstack([np.eye(3), np.zeros((3, self.D - 3))])[None], C, axis=0)
             Rm = np.repeat(f.cov_m2[None], C, axis=0)
         else:
             r = self.rss[k]
@@ -198,6 +229,13 @@ class ErrorStateEkf:
             Hp = (10.0 * alpha / np.log(10.0))[..., None] * diff / (d**2)[..., None]
             y = r[ok][None] - self.pl.mean_rss_dbm(d, depth)
             H = np.concatenate([Hp, np.zeros_like(Hp)], axis=2)  # (C, m, 6)
+            if self.m_bias:  # reading j = mean(p) + b_j + white noise of the model's remaining variance
+                idx = np.nonzero(ok)[0]
+                Hb = np.zeros((C, len(idx), self.m_bias))
+                Hb[:, np.arange(len(idx)), idx] = 1.0
+                H = np.concatenate([H, Hb], axis=2)
+                y = y - self.b[:, idx]
+                sigma = np.sqrt(np.maximum(sigma**2 - self.bias_sd_db**2, 1.0))
             S = H @ P @ H.transpose(0, 2, 1) + sigma[:, :, None] ** 2 * np.eye(len(y[0]))[None]
             dS = np.diagonal(S, axis1=1, axis2=2)
             z2 = y * y / dS
@@ -209,7 +247,7 @@ class ErrorStateEkf:
             guard = bad & (streak >= self.max_rejections)
             P = P.copy()
             P[guard, :3, :3] += np.eye(3) * GUARD_RSS_SIGMA_M**2
-            P[guard, 3:, 3:] += np.eye(3) * GUARD_THETA_RAD**2
+            P[guard, 3:6, 3:6] += np.eye(3) * GUARD_THETA_RAD**2
             keep[guard] = True
             streak = np.where(guard, 0, streak)
             do = keep.sum(axis=1) >= 1
@@ -220,9 +258,11 @@ class ErrorStateEkf:
         S = H @ P @ H.transpose(0, 2, 1) + Rm
         K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
         dx = (K @ y[..., None])[..., 0]
-        IKH = np.eye(6)[None] - K @ H
+        IKH = np.eye(self.D)[None] - K @ H
         P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
-        R_new = R @ Rotation.from_rotvec(dx[:, 3:]).as_matrix()
+        R_new = R @ Rotation.from_rotvec(dx[:, 3:6]).as_matrix()
+        if self.m_bias:
+            self.b = np.where(do[:, None], self.b + dx[:, 6:], self.b)
         self.p = np.where(do[:, None], p + dx[:, :3], p)
         self.R = np.where(do[:, None, None], R_new, R)
         self.P = np.where(do[:, None, None], P_new, P)
@@ -230,7 +270,8 @@ class ErrorStateEkf:
         self.n_updates = self.n_updates + do
 
     # -- a run ------------------------------------------------------------------------------------------------
-    def run(self, p, R, P, k0: int, k1: int, keep: bool = False, resets: dict | None = None, decide=None):
+    def run(self, p, R, P, k0: int, k1: int, keep: bool = False, resets: dict | None = None, decide=None,
+            b=None):
         """Frames ``k0 .. k1-1`` from the candidates' state at ``k0`` (before its update).
 
         ``resets`` ``{frame: (R (3, 3) or Rotation, sigma_rad)}``: after the prediction into that frame every
@@ -242,21 +283,23 @@ class ErrorStateEkf:
         Returns ``(positions (C, f, 3), rotations (C, f, 3, 3), covariances (C, f, 6, 6), cumulative nll (C,
         f), passes or None)`` with ``f = k1 - k0``. One pass: the cost is linear in the frames.
         """
-        self.start(p, R, P)
+        self.start(p, R, P, b)
         C, f = len(self.p), k1 - k0
         if (keep or decide is not None) and C != 1:
             raise ValueError("keep and decide are for one candidate")
         resets = {} if resets is None else resets
         pos, rot, covs, nll_k = np.zeros((C, f, 3)), np.zeros((C, f, 3, 3)), np.zeros((C, f, 6, 6)), np.zeros((C, f))
+        D = self.D
         if keep:
-            prior_p, prior_R, prior_P = np.zeros((f, 3)), np.zeros((f, 3, 3)), np.zeros((f, 6, 6))
-            Fs = np.zeros((max(f - 1, 0), 6, 6))
+            prior_p, prior_R, prior_P = np.zeros((f, 3)), np.zeros((f, 3, 3)), np.zeros((f, D, D))
+            Fs = np.zeros((max(f - 1, 0), D, D))
+            prior_b, post_b, post_P = np.zeros((f, self.m_bias)), np.zeros((f, self.m_bias)), np.zeros((f, D, D))
         for k in range(k0, k1):
             i = k - k0
             if k > k0:
                 F = self.predict(k)
                 if k not in resets and decide is not None:
-                    d = decide(k, self.p[0].copy(), Rotation.from_matrix(self.R[0]), self.P[0].copy())
+                    d = decide(k, self.p[0].copy(), Rotation.from_matrix(self.R[0]), self.P[0].copy(), self.b[0].copy())
                     if d is not None:
                         resets[k] = d
                 if k in resets:
@@ -266,10 +309,12 @@ class ErrorStateEkf:
                 if keep:
                     Fs[i - 1] = F[0]
             if keep:
-                prior_p[i], prior_R[i], prior_P[i] = self.p[0], self.R[0], self.P[0]
+                prior_p[i], prior_R[i], prior_P[i], prior_b[i] = self.p[0], self.R[0], self.P[0], self.b[0]
             self.update(k)
-            pos[:, i], rot[:, i], covs[:, i], nll_k[:, i] = self.p, self.R, self.P, self.nll
+            pos[:, i], rot[:, i], covs[:, i], nll_k[:, i] = self.p, self.R, self.P[:, :6, :6], self.nll
+            if keep:
+                post_P[i], post_b[i] = self.P[0], self.b[0]
         passes = None
         if keep:
-            passes = FilterPasses(prior_p, prior_R, prior_P, Fs, pos[0].copy(), rot[0].copy(), covs[0].copy())
+            passes = FilterPasses(prior_p, prior_R, prior_P, Fs, pos[0].copy(), rot[0].copy(), post_P, prior_b, post_b)
         return pos, rot, covs, nll_k, passes

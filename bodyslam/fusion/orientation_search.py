@@ -48,10 +48,10 @@ def _cube_axes() -> np.ndarray:
 
 def search_orientation(ekf: ErrorStateEkf, k0: int, k1: int, R_centre: Rotation,
                        position_of: Callable[[Rotation], np.ndarray], P: np.ndarray,
-                       extra: list[Rotation]) -> SearchResult:
+                       extra: list[Rotation], bias: np.ndarray | None = None) -> SearchResult:
     """The orientation at frame ``k0`` under which the filter best explains frames ``k0 .. k1-1`` (module
     docstring). ``position_of(R)``: the start position that goes with ``R``; every candidate starts from the
-    covariance ``P (6, 6)``."""
+    covariance ``P`` (6 x 6, or the filter's whole state) and the RSS bias states ``bias`` (default zero)."""
     group = Rotation.create_group("I")
     cands = [R_centre] + [R_centre * g for g in group if g.magnitude() > 1e-6] + list(extra)
     pool = []  # (R, p, cumulative nll per frame, positions, covariances, first frame it may be used)
@@ -59,7 +59,8 @@ def search_orientation(ekf: ErrorStateEkf, k0: int, k1: int, R_centre: Rotation,
     def add(Rs, first):
         ps = np.array([position_of(R) for R in Rs])
         pos, _, covs, nll_k, _ = ekf.run(ps, np.array([R.as_matrix() for R in Rs]),
-                                         np.repeat(P[None], len(Rs), axis=0), k0, k1)
+                                         np.repeat(P[None], len(Rs), axis=0), k0, k1,
+                                         b=None if bias is None else np.repeat(bias[None], len(Rs), axis=0))
         pool.extend((R, pr, nk, x, c, first) for R, pr, nk, x, c in zip(Rs, ps, nll_k, pos, covs))
 
     add(cands, k0)
