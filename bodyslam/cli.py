@@ -498,6 +498,9 @@ def _batch(args) -> int:
               f"+- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; {s['problems']} problem(s)")
         for a in s["assumed"]:
             print(f"  assumed {a}")
+        if s.get("video_ended_at") is not None:
+            print(f"  the video ends after {s['video_ended_at']} decodable frames (its container said "
+                  f"{s['frames_expected']}: a container's count is an estimate)")
     print(f"{rep.chunks_computed} chunk(s) computed, {rep.chunks_reused} reused; {rep.n_problems} problem(s) "
           f"({rep.n_errors} error(s)) in {rep.out / 'problems.csv'}")
     return PROBLEMS if rep.n_problems else DONE

@@ -10,7 +10,8 @@ no image and an ``error`` note, and the caller decides (a step across it has sta
 Folder listing: image files in the order of the last number in their names; that number is the frame index.
 Missing numbers are reported as one gap problem each; files that are not images (by extension) are skipped
 and reported. A video's frames are numbered from 0; a video that ends before its container's frame count
-yields a last record with ``index == -1`` (:attr:`Frame.end_of_video`).
+yields a last record with ``index == -1`` (:attr:`Frame.end_of_video`): a container's frame count is an estimate
+(a WMV that says 19 frames may hold 18), so that is the end of the exam, not a problem.
 """
 
 from __future__ import annotations
@@ -120,8 +121,8 @@ class FrameSource:
                 ok, bgr = cap.read()
                 if not ok:
                     yield Frame(pos, -1, pos / self.frame_rate_hz, self.source, None,
-                                [("error", f"video unreadable from frame {pos} on (the container says "
-                                           f"{self.n_frames} frames)")], path_is_video=True)
+                                [("info", f"the video ends at frame {pos} (its container says {self.n_frames} "
+                                          f"frames: an estimate)")], path_is_video=True)
                     return
                 yield Frame(pos, pos, pos / self.frame_rate_hz, self.source, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
                             [], path_is_video=True)

@@ -177,8 +177,7 @@ class VisualOdometry:
         out = ChunkResult([], [], [])
         prev = None  # (features or None, class)
         for fr in frames:
-            if fr.end_of_video:
-                out.problems.append([fr.path, fr.pos, "error", fr.notes[0][1]])
+            if fr.end_of_video:  # a container's frame count is an estimate: every decodable frame was read
                 out.eof = fr.pos
                 break
             own = fr.pos > first or first == 0  # the seam frame belongs to the previous chunk
