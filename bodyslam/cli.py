@@ -281,9 +281,10 @@ def _train_classifier(args) -> int:
 def _classify(args) -> int:
     from collections import Counter
 
+    from bodyslam.io import check_writable, read_image, write_csv
     from bodyslam.vision.classify import TunnelClassifier, features_of_frames
-    from bodyslam.io import read_image, write_csv
 
+    check_writable(args.out)
     paths, cam = _frames_of(args.input)
     if cam is None:
         cam = _camera_for(read_image(paths[0]), args.meta)

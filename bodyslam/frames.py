@@ -44,6 +44,7 @@ class Frame:
     path: str  # the file read (the video file for videos)
     image: np.ndarray | None  # RGB uint8 (h, w, 3), None when unusable
     notes: list[tuple[str, str]] = field(default_factory=list)  # (severity, reason)
+    path_is_video: bool = False
 
     @property
     def end_of_video(self) -> bool:
@@ -53,8 +54,6 @@ class Frame:
     def label(self) -> str:
         """The file name of a folder frame, ``#index`` of a video frame."""
         return os.path.basename(self.path) if not self.path_is_video else f"#{self.index}"
-
-    path_is_video: bool = False
 
 
 @dataclass
@@ -82,12 +81,6 @@ class FrameSource:
 
     def __len__(self) -> int:
         return self.offset + len(self.frames) if self.kind == "folder" else self.n_frames
-
-    def index_of(self, pos: int) -> int:
-        return self.frames[pos - self.offset][0] if self.kind == "folder" else pos
-
-    def stamp_s(self, pos: int) -> float:
-        return self.index_of(pos) / self.frame_rate_hz
 
     def subset(self, first: int, last: int) -> "FrameSource":
         """The same source restricted to positions ``first .. last`` (for a worker's task: small to send)."""

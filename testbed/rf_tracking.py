@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import ConfigError
 from bodyslam.io import write_csv, write_image, write_json, write_tum
-from bodyslam.systems.pf import (C_MPS, TRACKERS, MicsRssiModel, RandomWaypoint, Track, TrackSettings, converged_from,
+from bodyslam.systems.pf import (C_MPS, TRACKERS, MicsRssiModel, Track, TrackSettings, converged_from,
                          field_ratio, simple_distance, track, waypoint_distance)
 from bodyslam.plots import Figure
 from testbed.centerline import procedural_centerline

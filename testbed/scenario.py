@@ -127,6 +127,9 @@ class World:
     bubbles: Bubbles = Bubbles()
     rf: dict | None = None  # {"layout", "pathloss", "toa", "channel"} (testbed.rf), or None (off)
     optics: CameraOptics = CameraOptics()  # the capsule camera's imaging chain (field stop, overlay, JPEG ...)
+    # the lumen radius meta.json tells the pipeline: None = this tube's mean (the ideal world), else a population
+    # prior ([tube] radius_in_meta_m; the realistic testbed hides the true radius)
+    radius_in_meta_m: float | None = None
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -247,8 +250,11 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     bubbles = _dataclass_from(Bubbles, section(scn, "artifacts"), "artifacts")
     optics = _dataclass_from(CameraOptics, section(scn, "optics"), "optics")
     rf = _rf_from(section(scn, "rf"), Path(scn["_origin"]).parent if "_origin" in scn else None)
+    told = tube_sec.get("radius_in_meta_m")
+    if told is not None and not (isinstance(told, (int, float)) and 0.002 <= told <= 0.05):
+        raise ConfigError(f"[tube] radius_in_meta_m must be a radius of 2-50 mm (in m), got {told!r}")
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend, rear_baseline, bubbles, rf, optics)
+                 backend, rear_baseline, bubbles, rf, optics, None if told is None else float(told))
 
 
 def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:

@@ -190,12 +190,11 @@ def simulate(
         "image_width": cam.width,
         "image_height": cam.height,
         "camera": cam.to_dict(),
-        # the nominal lumen radius the pipeline is told: this gut's mean (the ideal world), or a scenario's
-        # population prior ([tube] radius_in_meta_m, e.g. the realistic testbed: the true radius is hidden)
-        "tube_radius_m": float(world.scenario.get("tube", {}).get("radius_in_meta_m",
-                                                                   np.mean(world.tube.centerline.radius_m))),
-        "tube_radius_source": ("population prior (the true radius is hidden)"
-                               if "radius_in_meta_m" in world.scenario.get("tube", {}) else "mean of this tube"),
+        # the nominal lumen radius the pipeline is told (World.radius_in_meta_m)
+        "tube_radius_m": float(np.mean(world.tube.centerline.radius_m) if world.radius_in_meta_m is None
+                               else world.radius_in_meta_m),
+        "tube_radius_source": ("mean of this tube" if world.radius_in_meta_m is None
+                               else "population prior (the true radius is hidden)"),
         "frames": {"dir": "frames", "pattern": "{index:06d}.png", "color": "RGB"},
         "depth": (
             {"dir": "depth", "kind": "range_along_ray", "scale_m_per_unit": RANGE_SCALE_M, "invalid_value": 0}

@@ -9,7 +9,7 @@ folder of image files), or a video file. For each exam the run writes, under ``O
 - ``motion.csv``: per-step motion (SPEC.md columns and the full step, as ``bodyslam motion`` writes it); ``frame``
   is the step's later frame;
 - ``trajectory.tum``: fused and smoothed (RF given: :func:`bodyslam.fusion.body_slam.fuse` + RTS) or dead reckoning (the
-  first camera frame is the world frame), and ``uncertainty.csv`` (position 1-sigma per frame);
+  first camera frame is the world frame), and ``uncertainty.csv`` (:data:`bodyslam.fusion.localize.UNCERTAINTY_COLUMNS`);
 - ``marks.csv`` for marked frames (``--mark``): position, 1-sigma, path travelled from the first frame and from
   each landmark frame, with 1-sigma;
 - ``summary.json`` and plots. ``OUT/problems.csv`` lists every problem of every exam
@@ -40,12 +40,16 @@ Workers hold one chunk's frames at a time; the coordinator streams chunk files i
 numbers per frame (positions and path lengths for the marks and plots: ~100 bytes per frame). With RF, fusion
 and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per frame).
 
-Dead reckoning and path length (no RF)
---------------------------------------
-Steps are accumulated with the fusion's process model (:class:`bodyslam.fusion.body_slam.DeadReckoner`): a step without an
-estimate repeats the last estimated one with a 1-sigma as large as that step (a capsule facing the wall or after a
-jump is still moving; assuming a stop biased the path on thesis seeds). The path travelled is the sum of the
-applied step lengths, its variance the sum of the steps' variances; that is the "how far along the gut" figure.
+Gaps, dead reckoning and path length
+------------------------------------
+Once an exam's chunks are in, its short gaps are bridged as ``bodyslam motion`` bridges them
+(:func:`bodyslam.vision.odometry.bridge_gaps`; the result is a checkpoint too, ``bridges.json``), so both write the
+same ``motion.csv``. Without RF, steps are accumulated with the fusion's process model
+(:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one with a
+1-sigma as large as that step). The path travelled -- the "how far along the gut" figure -- is
+:func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a run of steps without an
+estimate the mean length of its estimated neighbours (one rule at both ends of an exam, so it does not depend on
+the frame order), with the steps' variances summed.
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -95,10 +99,6 @@ class BatchSettings:
     chunk_frames: int = 100
     fusion: str = "rss"
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "BatchSettings":
-        return cls(MotionSettings.from_dict(d["motion"]), int(d["chunk_frames"]), str(d["fusion"]))
-
 
 @dataclass
 class Exam:
@@ -121,10 +121,8 @@ class Exam:
     assumed: list[str] = field(default_factory=list)
     problems: list[list] = field(default_factory=list, repr=False)  # found while listing (gaps, non-images)
 
-    def index_of(self, pos: int) -> int:
-        return self.frames[pos][0] if self.kind == "folder" else pos
-
     def frame_source(self) -> FrameSource:
+        # (while the exam is being opened its frame rate is not known yet: 1 frame/s for the size probe)
         return FrameSource(self.kind, self.source, self.frame_rate_hz or 1.0, self.frames, self.n_frames)
 
     def describe(self) -> dict:

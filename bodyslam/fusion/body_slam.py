@@ -95,8 +95,10 @@ class DeadReckoner:
     """Streaming dead reckoning with the filter's process model and its covariance (no measurements).
 
     World frame: the first camera frame, known exactly (``P = 0`` at frame 0). Per :meth:`step`: the pose
-    ``p_w_m``, ``R_w_c``, the 6x6 covariance ``P`` over ``[p, theta]``, and the path travelled ``path_m`` (sum of
-    the applied step lengths) with its variance ``path_var_m2`` (steps independent). Memory is constant.
+    ``p_w_m``, ``R_w_c``, the 6x6 covariance ``P`` over ``[p, theta]``, and ``path_m`` / ``path_var_m2``: the
+    length the process model applies (steps without an estimate repeat the last one: the causal rule a filter
+    needs) and its variance. Memory is constant. The path travelled the outputs report is
+    :func:`bodyslam.vision.tracking.path_travelled` (one rule at both ends of an exam), not this.
     """
 
     def __init__(self) -> None:
@@ -193,13 +195,13 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
     ekf = ErrorStateEkf(steps, fixes, rss, sensors_w_m, normals_w, pl, cfg.mode, cfg.max_rejections,
                         cfg.bias_corr_m, cfg.bias_sd_db)
     searcher = copy.copy(ekf)  # the same inputs, its own state: searches run while the committed run is open
-    # dead reckoning in the first camera frame, for the initial alignment
+    # dead reckoning in the first camera frame (steps without an estimate: no motion), for the initial alignment
     dr = np.zeros((n, 3))
-    Rdr = Rotation.identity()
+    Rdr = np.eye(3)
     for k, s in enumerate(steps, start=1):
-        R_s, t_s = step_pose(s)
-        dr[k] = dr[k - 1] + Rdr.apply(t_s)
-        Rdr = Rdr * R_s
+        t_s = s.t_c1_c2_m if s.has_estimate else np.zeros(3)
+        dr[k] = dr[k - 1] + Rdr @ t_s
+        Rdr = Rdr @ ekf.R_steps[k - 1]
     searches: list[SearchResult] = []
     if init is None and cfg.causal_start:
         f0 = fixes[0]
@@ -249,6 +251,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         """At the end of a long gap: search the orientation from the predicted pose (position kept)."""
         if k_end not in gap_ends:
             return None
+        R_b = Rotation.from_matrix(R_b)
         sig = max(float(np.sqrt(np.trace(P_b[3:6, 3:6]) / 3)), np.radians(30.0))
         found = search_orientation(searcher, k_end, min(n, k_end + cfg.search_frames), R_b, lambda R: p_b,
                                    with_orientation_sigma(P_b, sig), [], bias_b)

@@ -77,6 +77,16 @@ def step_pose(s: StepMotion) -> tuple[Rotation, np.ndarray]:
     return Rotation.identity(), np.zeros(3)
 
 
+def step_rotation_matrices(steps: list[StepMotion]) -> np.ndarray:
+    """``R_c1_c2 (n, 3, 3)`` of every step, orthonormalised in one vectorised call; identity without an
+    estimate (as :func:`step_pose`, without a Rotation per step: this is on the whole-exam path)."""
+    mats = np.repeat(np.eye(3)[None], len(steps), axis=0)
+    has = [k for k, s in enumerate(steps) if s.has_estimate]
+    if has:
+        mats[has] = Rotation.from_matrix(np.array([steps[k].R_c1_c2 for k in has])).as_matrix()
+    return mats
+
+
 def step_noise(s: StepMotion, last_t: np.ndarray) -> tuple[np.ndarray, float, float]:
     """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
     a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity)."""
@@ -100,8 +110,8 @@ def process_noise(steps: list[StepMotion]) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def with_orientation_sigma(P: np.ndarray, sig_rad: float) -> np.ndarray:
-    """A copy of ``P`` (``(..., 6, 6)``) whose orientation block is ``sig_rad^2 I``, uncorrelated with the
-    position (a re-start)."""
+    """A copy of ``P`` (``(..., D, D)``) whose orientation block is ``sig_rad^2 I``, uncorrelated with the rest
+    of the state (a re-start)."""
     P = np.array(P, float, copy=True)
     P[..., 3:6, :] = 0.0
     P[..., :, 3:6] = 0.0
@@ -130,9 +140,9 @@ class ErrorStateEkf:
     """The filter (module docstring) over frames ``0 .. n-1`` of one exam.
 
     Inputs fixed at construction: ``steps`` (``n - 1``), ``fixes`` (``n``), ``rss (n, m)`` with the sensors and
-    the path-loss model (``mode="rss"``). State after :meth:`start`: ``p (C, 3)``, ``R (C, 3, 3)``, ``P (C, 6,
-    6)``, ``nll (C,)`` (summed), ``streak (C,)`` (gated measurements in a row), ``n_rejected``/``n_updates
-    (C,)``.
+    the path-loss model (``mode="rss"``). State after :meth:`start`: ``p (C, 3)``, ``R (C, 3, 3)``, ``P (C, D,
+    D)`` (``D = 6``, or ``6 + m`` with the bias states ``b (C, m)``), ``nll (C,)`` (summed), ``streak (C,)``
+    (gated measurements in a row), ``n_rejected``/``n_updates (C,)``.
     """
 
     def __init__(self, steps: list[StepMotion], fixes: list[Fix] | None, rss: np.ndarray | None,
@@ -142,10 +152,10 @@ class ErrorStateEkf:
             raise InputError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
         if mode == "rss" and (rss is None or sensors_w_m is None or pl is None):
             raise InputError("RSS fusion needs the readings, the sensor positions and the path-loss model")
-        self.steps, self.fixes, self.rss, self.pos, self.nrm, self.pl = steps, fixes, rss, sensors_w_m, normals_w, pl
+        self.fixes, self.rss, self.pos, self.nrm, self.pl = fixes, rss, sensors_w_m, normals_w, pl
         self.mode, self.max_rejections = mode, max_rejections
         self.t_applied, self.sig_t, self.sig_r = process_noise(steps)
-        self.R_steps = np.array([step_pose(s)[0].as_matrix() for s in steps]).reshape(-1, 3, 3)
+        self.R_steps = step_rotation_matrices(steps)
         self.m_bias = len(sensors_w_m) if (mode == "rss" and bias_corr_m > 0) else 0
         self.D = 6 + self.m_bias
         self.bias_sd_db = float(bias_sd_db)
@@ -177,7 +187,7 @@ class ErrorStateEkf:
         self.n_updates = np.zeros(C, int)
 
     def predict(self, k: int) -> np.ndarray:
-        """Into frame ``k`` with step ``k - 1``; returns ``F (C, 6, 6)``."""
+        """Into frame ``k`` with step ``k - 1``; returns ``F (C, D, D)``."""
         ts, Rs = self.t_applied[k - 1], self.R_steps[k - 1]
         F, Q = process_model(self.R, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
         if self.m_bias:  # the bias states' Gauss-Markov step, block-diagonal to the pose's
@@ -276,7 +286,7 @@ class ErrorStateEkf:
 
         ``resets`` ``{frame: (R (3, 3) or Rotation, sigma_rad)}``: after the prediction into that frame every
         candidate's orientation is replaced and its orientation covariance set to ``sigma_rad^2 I``
-        (uncorrelated with the position). ``decide(k, p (3,), R Rotation, P (6, 6))`` (one candidate): called
+        (uncorrelated with the position). ``decide(k, p (3,), R (3, 3), P (D, D), b (m,))`` (one candidate): called
         after each prediction into a frame without a given reset; a ``(R, sigma_rad)`` it returns is applied the
         same way and recorded in ``resets``. ``keep``: store the priors and posteriors (one candidate).
 
@@ -299,7 +309,7 @@ class ErrorStateEkf:
             if k > k0:
                 F = self.predict(k)
                 if k not in resets and decide is not None:
-                    d = decide(k, self.p[0].copy(), Rotation.from_matrix(self.R[0]), self.P[0].copy(), self.b[0].copy())
+                    d = decide(k, self.p[0].copy(), self.R[0].copy(), self.P[0].copy(), self.b[0].copy())
                     if d is not None:
                         resets[k] = d
                 if k in resets:

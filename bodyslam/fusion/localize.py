@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyslam.choices import FUSION_MODES
-from bodyslam.errors import ConfigError, InputError
+from bodyslam.errors import InputError
 from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
 from bodyslam.io import write_csv, write_image, write_tum
 from bodyslam.fusion.rf import Fix, PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
@@ -65,13 +64,10 @@ class Localization:
     filtered: FusionResult  # the online (causal after its start window) filter
     smoothed: FusionResult  # RTS
     fixes: list[Fix]  # ML fixes per frame
+    rss_dbm: np.ndarray  # (n, m) the readings of each frame (NaN: none)
     path_m: np.ndarray  # (n,) path travelled from the first frame
     path_var_m2: np.ndarray  # (n,)
     rf_problems: list[str]
-
-    @property
-    def n_fixes(self) -> int:
-        return sum(f.status == "ok" for f in self.fixes)
 
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
@@ -83,8 +79,6 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     InputError
         Fewer than 3 frames with an RF fix (the visual path cannot be placed in the body frame).
     """
-    if mode not in FUSION_MODES:
-        raise ConfigError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
     stamps_s = np.asarray(stamps_s, float)
     if len(stamps_s) != len(steps) + 1:
         raise ValueError(f"{len(steps)} steps need {len(steps) + 1} frame stamps, got {len(stamps_s)}")
@@ -96,7 +90,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode)
     path, var = path_travelled(steps)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
-    return Localization(frames, stamps_s, ekf, rts_smooth(ekf), fixes, path, var, list(rf.problems))
+    return Localization(frames, stamps_s, ekf, rts_smooth(ekf), fixes, rss, path, var, list(rf.problems))
 
 
 def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2: np.ndarray,

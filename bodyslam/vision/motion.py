@@ -45,7 +45,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.camera import CameraModel
 from bodyslam.errors import ConfigError
 from bodyslam.vision.matching import Matches
-from bodyslam.steps import StepMotion, StepStatus, motion_from_transform  # noqa: F401  (re-exported)
+from bodyslam.steps import StepMotion, motion_from_transform  # noqa: F401  (re-exported)
 from bodyslam.vision.unroll import Unroller
 
 __all__ = ["ESTIMATORS", "StepMotion", "estimate_thesis", "estimate_tube", "motion_from_transform"]

@@ -27,7 +27,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -40,7 +40,7 @@ from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import Frame, FrameSource
 from bodyslam.io import read_image
 from bodyslam.meta import read_meta
-from bodyslam.steps import StepMotion, StepStatus
+from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 
 log = logging.getLogger(__name__)
 
@@ -70,11 +70,6 @@ class MotionSettings:
             raise ConfigError(f"min_matches must be at least 5, got {self.min_matches}")
         if self.bridge_gaps < 0:
             raise ConfigError(f"bridge_gaps must be >= 0, got {self.bridge_gaps}")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "MotionSettings":
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
 
 
 def classify_work_px(settings: MotionSettings) -> int:
@@ -148,15 +143,12 @@ class VisualOdometry:
 
     def to_body(self, s: StepMotion) -> StepMotion:
         """A step measured by this camera, as the motion of the capsule body (front camera) frame."""
-        from bodyslam.vision.motion import motion_from_transform
-
         if self.T_body_cam is None or not s.ok or s.R_c1_c2 is None:
             return s
         R_bc, t_bc = self.T_body_cam
         R = R_bc * Rotation.from_matrix(s.R_c1_c2) * R_bc.inv()
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
-        return replace(motion_from_transform(R, t, s.n_matches), sigma_distance_m=s.sigma_distance_m,
-                       sigma_rotation_rad=s.sigma_rotation_rad)
+        return motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad)
 
     def classify(self, img: np.ndarray) -> tuple[str, str]:
         """``(class, status)`` of a frame: FT/FL by the kernel SVM (dark or saturated frames: FL), ``""`` and
@@ -279,8 +271,6 @@ def find_gaps(statuses: list, max_len: int) -> list[tuple[int, int]]:
 def split_motion(total: StepMotion, n: int) -> list[StepMotion]:
     """``n`` equal steps whose composition is ``total`` (constant twist: rotation ``R^(1/n)``, translation on
     the screw), each with status ``bridged`` and a 1-sigma of ``total``'s over sqrt(n) (independent steps)."""
-    from bodyslam.vision.motion import motion_from_transform
-
     R = Rotation.from_matrix(total.R_c1_c2)
     dR = Rotation.from_rotvec(R.as_rotvec() / n)
     # find t_s with sum_{i<n} dR^i t_s = t_total
@@ -290,9 +280,8 @@ def split_motion(total: StepMotion, n: int) -> list[StepMotion]:
         A += Ri
         Ri = Ri @ dR.as_matrix()
     t_s = np.linalg.solve(A, np.asarray(total.t_c1_c2_m, float))
-    s = motion_from_transform(dR, t_s, total.n_matches)
-    share = replace(s, status=StepStatus.BRIDGED, sigma_distance_m=total.sigma_distance_m / math.sqrt(n),
-                    sigma_rotation_rad=total.sigma_rotation_rad / math.sqrt(n))
+    share = motion_from_transform(dR, t_s, total.n_matches, total.sigma_distance_m / math.sqrt(n),
+                                  total.sigma_rotation_rad / math.sqrt(n), StepStatus.BRIDGED)
     return [share] * n
 
 
@@ -394,10 +383,6 @@ class Sequence:
         return cls(seq, camera_from_dict(cam_d), cam_d, meta.n_frames, meta.frame_rate_hz, float(r), src, camera,
                    extr)
 
-    @property
-    def frames_dir(self) -> Path:
-        return Path(self.source.source)
-
     def frame(self, k: int) -> np.ndarray:
         """Frame ``k`` as RGB; raises :class:`InputError` when unreadable or of the wrong size."""
         fr = self.source.read_one(k)
@@ -407,9 +392,6 @@ class Sequence:
             raise InputError(f"{fr.path}: size {fr.image.shape[1]}x{fr.image.shape[0]} is not the camera's "
                              f"{self.camera.width}x{self.camera.height}")
         return fr.image
-
-    def stamp(self, k: int) -> float:
-        return k / self.frame_rate_hz
 
     def task_base(self, settings: MotionSettings, mask: np.ndarray | None) -> dict:
         return {"source": self.source, "camera": self.camera_d, "settings": settings, "radius_m": self.radius_m,

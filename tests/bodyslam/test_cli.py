@@ -8,7 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 
 from bodyslam.cli import COMMANDS, _parser
 from bodyslam.cliutil import run_cli

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bodyslam.camera import camera_from_dict
 from bodyslam.geometry import relative_motion
 from bodyslam.io import read_image, read_tum
 from bodyslam.meta import read_meta
