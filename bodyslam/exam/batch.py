@@ -686,6 +686,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": "fused (RF + vision, RTS-smoothed)" if fused is not None else "dead reckoning",
+               # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors
+               "rss_error_correlation": (fused.channel.as_dict() if fused is not None and fused.channel else None),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m}
     write_json(d / "summary.json", summary)

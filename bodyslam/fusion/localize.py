@@ -7,7 +7,10 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 2. readings per frame (:func:`bodyslam.fusion.rf.rss_per_frame`: nearest within half a frame interval);
 3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml`), which start the filter;
 4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
-5. the path travelled (:func:`bodyslam.vision.tracking.path_travelled`).
+5. their covariances scaled by the readings' measured correlation (:mod:`bodyslam.fusion.channel`: the smoother's
+   by the whole exam's, the online filter's frame ``k`` by frames ``0 .. k``'s), so that the stated 1-sigma
+   admits a channel that is not the calibration's independent shadowing (1.0 on an ideal one);
+6. the path travelled (:func:`bodyslam.vision.tracking.path_travelled`).
 
 :func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
 (online filter), ``uncertainty.csv`` (:data:`UNCERTAINTY_COLUMNS`, also written by dead reckoning and the other
@@ -25,12 +28,14 @@ import numpy as np
 
 from bodyslam.errors import InputError
 from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
+from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, inflate, normalised_residuals,
+                                     residual_correlation)
 from bodyslam.io import write_csv, write_image, write_tum
 from bodyslam.fusion.rf import Fix, PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion
 from bodyslam.vision.tracking import path_travelled
 
-__all__ = ["RfInput", "Localization", "localize", "write_localization", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
+__all__ = ["RfInput", "Localization", "localize", "online_inflation", "write_localization", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
 
 UNCERTAINTY_COLUMNS = ["frame", "t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m", "sd_heading_rad", "path_m",
                        "sd_path_m"]
@@ -68,11 +73,16 @@ class Localization:
     path_m: np.ndarray  # (n,) path travelled from the first frame
     path_var_m2: np.ndarray  # (n,)
     rf_problems: list[str]
+    # the readings' measured correlation behind the smoother's covariance, and the online filter's factor per
+    # frame (None / ones: covariances as the filter computed them, ``honest_cov=False``)
+    channel: ResidualCorrelation | None = None
+    kappa_online: np.ndarray | None = None
 
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
-             frames: np.ndarray | None = None, mode: str = "rss") -> Localization:
-    """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring).
+             frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True) -> Localization:
+    """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring). ``honest_cov``:
+    scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
 
     Raises
     ------
@@ -88,9 +98,23 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
         raise InputError(f"RF not usable: {sum(f.status == 'ok' for f in fixes)} frame(s) with an RF fix, "
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode)
+    smoothed = rts_smooth(ekf)
+    channel = kappa_online = None
+    if honest_cov:
+        kappa_online = online_inflation(ekf, rss, rf)
+        channel = residual_correlation(normalised_residuals(rss, smoothed.positions_w_m, rf.sensors_w_m,
+                                                            rf.normals_w, rf.pathloss))
+        ekf, smoothed = inflate(ekf, kappa_online), inflate(smoothed, channel.kappa)
     path, var = path_travelled(steps)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
-    return Localization(frames, stamps_s, ekf, rts_smooth(ekf), fixes, rss, path, var, list(rf.problems))
+    return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
+                        kappa_online)
+
+
+def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput) -> np.ndarray:
+    """Per frame ``k``, the correlation factor of the readings of frames ``0 .. k`` at an online run's positions
+    (:func:`bodyslam.fusion.channel.causal_inflation`)."""
+    return causal_inflation(normalised_residuals(rss, res.positions_w_m, rf.sensors_w_m, rf.normals_w, rf.pathloss))
 
 
 def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2: np.ndarray,

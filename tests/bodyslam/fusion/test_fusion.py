@@ -171,13 +171,13 @@ def test_thesis_kf_keeps_its_rotation_on_the_updated_heading():
 
 # -- synthetic runs with known truth: a capsule curving through the thesis sensor grids ---------------------------
 
-def synthetic_run(seed, n=120, gap=None, gap_roll_deg=0.0, fix_frames=60):
+def synthetic_run(seed, n=120, gap=None, gap_roll_deg=0.0, fix_frames=60, channel=None):
     """Truth, visual steps with the filter's assumed noise (0.3 mm, 0.2 deg per axis), RSS from Eq. 2.1 with
-    Table 2.2 shadowing, ML fixes for the first ``fix_frames`` frames (the RSS filter uses fixes only to align
-    its start). ``gap``: steps ``[a, b)`` without an estimate, during which the capsule also rolls
-    ``gap_roll_deg`` per step."""
+    Table 2.2 shadowing (through ``channel``, a :class:`testbed.rf.ChannelModel`, if given), ML fixes for the first
+    ``fix_frames`` frames (the RSS filter uses fixes only to align its start). ``gap``: steps ``[a, b)`` without
+    an estimate, during which the capsule also rolls ``gap_roll_deg`` per step. The path: 0.4 cm steps."""
     from bodyslam.fusion.rf import Fix
-    from testbed.rf import SensorLayout, emulate_rf
+    from testbed.rf import ChannelModel, SensorLayout, emulate_rf
 
     rng = np.random.default_rng(seed)
     layout, pl = SensorLayout.thesis_grids(), PathLossModel()
@@ -196,7 +196,7 @@ def synthetic_run(seed, n=120, gap=None, gap_roll_deg=0.0, fix_frames=60):
         R = R * Rs
         gt.append(p)
     gt = np.array(gt)
-    rss = emulate_rf(gt, layout, pl, rng=seed)["rss_dbm"]
+    rss = emulate_rf(gt, layout, pl, rng=seed, channel=channel or ChannelModel())["rss_dbm"]
     fixes = [locate_ml(layout.positions_w_m, layout.normals_w, r, pl) if k < fix_frames
              else Fix(np.full(3, np.nan), np.full((3, 3), np.nan), 0, "failed") for k, r in enumerate(rss)]
     return steps, fixes, rss, layout.positions_w_m, layout.normals_w, pl, gt
