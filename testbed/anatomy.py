@@ -17,6 +17,16 @@ gains are detours into a contact region and are refused. The 50 mm default was c
 have (EdinGCA_3D_00090: gains 473, 91, 75, 71, 60 mm, then 48, 37, 27 ... which no longer improve the score), so
 it is tuned on the data it is scored on; see ``benchmarks/bench_centerline.py``.
 
+Meshes that are not watertight (issue 15: real segmentations come in open pieces with holes of several cm): every
+boundary loop -- a hole in the wall or the open end of a piece -- is capped by a fan of triangles from the loop's
+centroid (:func:`cap_boundaries`), which closes the voxelised shell so the fill finds each piece's inside. Each
+piece's skeleton gives its own end-to-end path (the same spanning tree and loop repair); the paths are chained end
+to end (:func:`_chain_pieces`): from the longest, the next piece is the one whose end is nearest to the chain's
+end, a gap counted longer the more either end would have to turn to meet it, and gaps are bridged by a cubic
+Hermite curve along the two end tangents, its radius interpolated. Pieces shorter than ``min_piece_mm`` (debris)
+and gaps over ``max_gap_mm`` are left out, with a warning. A watertight mesh takes none of these steps: its figure
+is unchanged. Scored on the CT gut cut open (``benchmarks/bench_centerline.py --open``).
+
 Data form: returns a :class:`~testbed.centerline.Centerline` in metres (mesh frame scaled to mm, then to m).
 """
 
@@ -35,17 +45,17 @@ from testbed.centerline import Centerline
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_mesh", "extract_centerline", "load_reference_csv", "score_centerline"]
+__all__ = ["load_mesh", "extract_centerline", "load_reference_csv", "score_centerline", "cap_boundaries"]
 
 
-def load_mesh(path: str | Path, repair: bool = False):
-    """Load a closed triangle mesh (OBJ/STL/PLY/OFF/GLB).
+def load_mesh(path: str | Path, repair: bool = False, allow_open: bool = False):
+    """Load a closed triangle mesh (OBJ/STL/PLY/OFF/GLB); ``allow_open``: an open one as it is.
 
     Raises
     ------
     InputError
-        Missing file, not a mesh, empty, or not watertight (with ``repair``: holes are filled first, documented
-        as trimesh's ``fill_holes``; still open afterwards is an error).
+        Missing file, not a mesh, empty, or not watertight unless ``allow_open`` (with ``repair``: holes are
+        filled first, documented as trimesh's ``fill_holes``; still open afterwards is an error).
     """
     import trimesh
 
@@ -58,16 +68,41 @@ def load_mesh(path: str | Path, repair: bool = False):
         raise InputError(f"{path}: not a readable mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"{path}: contains no triangles")
-    if not mesh.is_watertight:
-        if repair:
-            trimesh.repair.fill_holes(mesh)
-            trimesh.repair.fix_normals(mesh)
-        if not mesh.is_watertight:
-            raise InputError(
-                f"{path}: mesh is not watertight (open boundary), so its inside is undefined"
-                + ("" if repair else "; try --repair to fill holes")
-            )
+    if not mesh.is_watertight and repair:
+        trimesh.repair.fill_holes(mesh)
+        trimesh.repair.fix_normals(mesh)
+    if not mesh.is_watertight and not allow_open:
+        raise InputError(f"{path}: mesh is not watertight (open boundary), so its inside is undefined"
+                         + ("" if repair else "; try --repair to fill holes"))
     return mesh
+
+
+def cap_boundaries(mesh):
+    """``(capped mesh, loops, largest loop span in mesh units)``: every boundary loop (edges of one face)
+    closed by a fan from its centroid. Orientation is not kept: the caps are for the voxel fill, which needs a
+    closed shell, not a consistent one."""
+    import trimesh
+
+    e = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    bnd = uniq[counts == 1]
+    if len(bnd) == 0:
+        return mesh, 0, 0.0
+    nv = len(mesh.vertices)
+    g = sparse.coo_matrix((np.ones(len(bnd)), (bnd[:, 0], bnd[:, 1])), shape=(nv, nv))
+    _, label = csgraph.connected_components(g, directed=False)
+    loop_of_edge = label[bnd[:, 0]]
+    loops = np.unique(loop_of_edge)
+    verts, faces, span = [np.asarray(mesh.vertices, float)], [np.asarray(mesh.faces)], 0.0
+    for i, lp in enumerate(loops):
+        ed = bnd[loop_of_edge == lp]
+        ring = np.unique(ed)
+        pts = mesh.vertices[ring]
+        span = max(span, float(np.max(np.linalg.norm(pts - pts.mean(0), axis=1))) * 2)
+        verts.append(pts.mean(0)[None])
+        faces.append(np.c_[ed, np.full(len(ed), nv + i)])
+    capped = trimesh.Trimesh(np.vstack(verts), np.vstack(faces), process=False)
+    return capped, len(loops), span
 
 
 def extract_centerline(
@@ -77,15 +112,50 @@ def extract_centerline(
     repair: bool = False,
     smoothing_mm: float | None = None,
     min_gain_mm: float = 50.0,
+    min_piece_mm: float = 20.0,
+    max_gap_mm: float = 80.0,
 ) -> Centerline:
-    """Centre line of a tubular closed mesh (see module docstring)."""
-    from skimage.morphology import skeletonize
-
-    mesh = load_mesh(mesh_or_path, repair) if isinstance(mesh_or_path, (str, Path)) else mesh_or_path.copy()
+    """Centre line of a tubular mesh, closed or in open pieces (see module docstring)."""
+    mesh = (load_mesh(mesh_or_path, repair, allow_open=True) if isinstance(mesh_or_path, (str, Path))
+            else mesh_or_path.copy())
     if not pitch_mm > 0:
         raise InputError(f"pitch must be positive, got {pitch_mm} mm")
     mesh.vertices = mesh.vertices * np.asarray(voxel_size_mm, dtype=np.float64)
-    vox = mesh.voxelized(pitch_mm).fill()
+    sm = pitch_mm * 0.7 if smoothing_mm is None else smoothing_mm
+    if mesh.is_watertight:
+        pts_mm, r_mm, n_comp = _piece_path(mesh, pitch_mm, min_gain_mm)
+        if n_comp > 1:
+            log.warning("skeleton has %d pieces; the centre line follows the largest", n_comp)
+        return Centerline.from_points(pts_mm / 1000.0, r_mm / 1000.0, ds_m=1e-3, smoothing_m=sm / 1000.0)
+    # open: each piece capped and skeletonised on its own (pieces that touch must not merge), then chained
+    parts = mesh.split(only_watertight=False)
+    pieces, n_loops, span = [], 0, 0.0
+    for part in parts:
+        if float(np.max(part.extents)) < min_piece_mm:
+            continue  # debris
+        capped, nl, sp = cap_boundaries(part)
+        n_loops, span = n_loops + nl, max(span, sp)
+        try:
+            p_mm, r_mm, _ = _piece_path(capped, pitch_mm, min_gain_mm)
+        except InputError:
+            continue  # encloses nothing at this pitch
+        if np.sum(np.linalg.norm(np.diff(p_mm, axis=0), axis=1)) >= min_piece_mm:
+            pieces.append((p_mm, r_mm))
+    if not pieces:
+        raise InputError(f"mesh is in {len(parts)} open piece(s), none enclosing a tube of {min_piece_mm:.0f} mm "
+                         "or more at this pitch")
+    pts_mm, r_mm, n_used = _chain_pieces(pieces, max_gap_mm)
+    log.warning("mesh is not watertight: %d piece(s), %d open boundaries capped (the largest %.0f mm across); "
+                "centre line chained from %d piece(s) over %d gap(s)", len(parts), n_loops, span, n_used, n_used - 1)
+    return Centerline.from_points(pts_mm / 1000.0, r_mm / 1000.0, ds_m=1e-3, smoothing_m=sm / 1000.0)
+
+
+def _piece_path(mesh_mm, pitch_mm: float, min_gain_mm: float):
+    """``(points (k, 3) mm, radius (k,) mm, skeleton components)``: the end-to-end path of a closed mesh's
+    voxelised inside (module docstring), in the largest skeleton component."""
+    from skimage.morphology import skeletonize
+
+    vox = mesh_mm.voxelized(pitch_mm).fill()
     inside = np.asarray(vox.matrix, dtype=bool)
     if inside.sum() < 50:
         raise InputError("mesh encloses too few voxels at this pitch; lower --pitch-mm")
@@ -114,11 +184,112 @@ def extract_centerline(
     n_comp = csgraph.connected_components(tree_g, directed=False)[0]
     skel_g = sparse.coo_matrix((length, (pairs[:, 0], pairs[:, 1])), shape=(n, n)).tocsr()
     path = _reroute_through_loops(skel_g + skel_g.T, tree_g, r, min_gain_mm)
-    pts_mm = origin + idx[path] * pitch_mm
-    if n_comp > 1:
-        log.warning("skeleton has %d pieces; the centre line follows the largest", n_comp)
-    sm = pitch_mm * 0.7 if smoothing_mm is None else smoothing_mm
-    return Centerline.from_points(pts_mm / 1000.0, r[path] / 1000.0, ds_m=1e-3, smoothing_m=sm / 1000.0)
+    return origin + idx[path] * pitch_mm, r[path], n_comp
+
+
+def _end_tangent(p: np.ndarray, at_end: bool, reach_mm: float = 10.0) -> np.ndarray:
+    """Unit direction in which a polyline leaves through one of its ends (over its last ``reach_mm``)."""
+    q = p if at_end else p[::-1]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+    back = q[np.searchsorted(s, s[-1] - reach_mm, side="right") - 1]
+    v = q[-1] - back
+    return v / max(float(np.linalg.norm(v)), 1e-9)
+
+
+def _bridge(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray, step_mm: float = 1.0) -> np.ndarray:
+    """Cubic Hermite points strictly between ``a`` (leaving along ``ta``) and ``b`` (arriving along ``tb``)."""
+    gap = float(np.linalg.norm(b - a))
+    n = max(int(gap / step_mm), 1)
+    u = (np.arange(1, n) / n)[:, None]
+    h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+    return h00 * a + h10 * gap * ta + h01 * b + h11 * gap * tb
+
+
+def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3):
+    """One polyline from pieces ``[(points (k, 3) mm, radius (k,) mm)]``: ``(points, radii, pieces used)``.
+
+    :func:`_link` joins them into chains; while more than one chain is left, the chains are linked again as pieces
+    with the gap limit doubled (``rounds`` times at most: a piece that no end reaches within ``max_gap_mm`` may
+    still belong between two chains). The longest chain is the centre line.
+    """
+    chains = [(p, r, 1) for p, r in pieces]
+    limit = max_gap_mm
+    for _ in range(rounds):
+        chains = _link(chains, limit)
+        if len(chains) == 1:
+            break
+        limit *= 2.0
+    best = max(chains, key=lambda c: float(np.sum(np.linalg.norm(np.diff(c[0], axis=0), axis=1))))
+    if best[2] < len(pieces):
+        log.warning("%d skeleton piece(s) not joined to the longest chain (gaps over %.0f mm): left out",
+                    len(pieces) - best[2], limit / 2.0)
+    return best
+
+
+def _link(pieces: list, max_gap_mm: float) -> list:
+    """Chains ``[(points, radii, pieces in it)]`` from ``pieces`` (the same form).
+
+    Greedy matching of piece ends, as the greedy heuristic of the travelling-salesman path: every pair of ends of
+    different pieces within ``max_gap_mm`` is a candidate gap, costed by its length, counted longer the more the two
+    ends would have to turn to meet it (``d (1 + (1 - t_a.g) + (1 + t_b.g))``, ``t`` the direction a piece leaves
+    through that end, ``g`` the gap's direction from ``a`` to ``b``); gaps are taken cheapest first when both ends
+    are still free and the gap joins two different chains.
+    """
+    ends = []  # (piece, at_end, point, outward tangent)
+    for i, (p, _, _) in enumerate(pieces):
+        ends.append((i, False, p[0], _end_tangent(p, False)))
+        ends.append((i, True, p[-1], _end_tangent(p, True)))
+    cand = []
+    for a in range(len(ends)):
+        for b in range(a + 1, len(ends)):
+            ia, _, pa, ta = ends[a]
+            ib, _, pb, tb = ends[b]
+            if ia == ib:
+                continue
+            gap = pb - pa
+            d = float(np.linalg.norm(gap))
+            if d > max_gap_mm:
+                continue
+            g = gap / max(d, 1e-9)
+            cand.append((d * (1.0 + (1.0 - ta @ g) + (1.0 + tb @ g)), a, b))
+    parent = list(range(len(pieces)))
+
+    def root(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    link: dict[int, int] = {}  # end -> the end it is joined to
+    for _, a, b in sorted(cand):
+        if a in link or b in link or root(ends[a][0]) == root(ends[b][0]):
+            continue
+        link[a], link[b] = b, a
+        parent[root(ends[a][0])] = root(ends[b][0])
+    # walk each chain from a free end
+    chains, seen = [], set()
+    for start in range(len(ends)):
+        if start in link or ends[start][0] in seen:
+            continue
+        pts, rad, n_used, e = [], [], 0, start
+        while True:
+            i, at_end, _, _ = ends[e]
+            seen.add(i)
+            p, r, k = pieces[i]
+            p, r = (p[::-1], r[::-1]) if at_end else (p, r)  # entered at this end: run away from it
+            if pts:
+                mid = _bridge(pts[-1][-1], _end_tangent(pts[-1], True), p[0], -_end_tangent(p, False))
+                pts.append(mid)
+                rad.append(np.interp(np.arange(1, len(mid) + 1) / (len(mid) + 1), [0, 1], [rad[-1][-1], r[0]]))
+            pts.append(p)
+            rad.append(r)
+            n_used += k
+            other = 2 * i + (0 if at_end else 1)  # the piece's far end
+            if other not in link:
+                break
+            e = link[other]
+        chains.append((np.vstack(pts), np.concatenate(rad), n_used))
+    return chains
 
 
 def load_reference_csv(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.ndarray:

@@ -69,7 +69,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="mm per mesh unit along x, y, z (the CT voxel size when the mesh is in grid units)")
     e.add_argument("--pitch-mm", type=float, default=1.0, help="voxelisation pitch in mm (default 1)")
     e.add_argument("--reference", help="expert mid-line CSV (x,y,z columns in mesh units) to score against")
-    e.add_argument("--repair", action="store_true", help="try to repair a mesh that is not watertight")
+    e.add_argument("--repair", action="store_true",
+                   help="fill a mesh's small holes first (trimesh fill_holes); without it, and for what stays open, "
+                        "every open boundary is capped and the pieces' centre lines chained (testbed.anatomy)")
 
     sub.add_parser("scenarios", help="list the shipped scenarios")
     return p

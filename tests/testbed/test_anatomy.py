@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from bodyslam.errors import InputError
 from testbed.anatomy import extract_centerline, load_mesh, score_centerline
@@ -82,3 +83,31 @@ def test_centerline_cli_reports_errors_in_one_line(tmp_path):
                        capture_output=True, text=True)
     assert p.returncode == 1
     assert p.stderr.strip().startswith("error:") and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_a_tube_in_open_pieces_with_a_hole_keeps_its_centre_line(tmp_path):
+    """The S tube cut through in two places (3 and 8 mm of tube missing: three open pieces) and a 12 mm hole in one
+    side of its wall: the open ends and the hole are capped, each piece skeletonised, the pieces chained across
+    the gaps. Measured: mean 0.25 mm, max 0.99 mm, coverage 1.0 against the true axis, 188 mm long; the closed
+    tube gives 0.25 mm, max 0.85 mm, 188 mm (one 0.5 mm voxel; the axis is 199 mm)."""
+    import trimesh
+
+    cl = s_curve()
+    mesh = closed_tube_mesh(cl)
+    cen = mesh.triangles_center
+    s_mm = cl.s_m[cKDTree(cl.points_w * 1000.0).query(cen)[1]] * 1000.0
+    drop = (np.abs(s_mm - 60.0) < 1.5) | (np.abs(s_mm - 110.0) < 4.0)
+    f0 = int(np.argmin(np.abs(s_mm - 85.0)))
+    drop |= (np.linalg.norm(cen - cen[f0], axis=1) < 6.0) & (mesh.face_normals @ mesh.face_normals[f0] > 0.3)
+    opened = trimesh.Trimesh(mesh.vertices, mesh.faces[~drop], process=False)
+    opened.remove_unreferenced_vertices()
+    assert not opened.is_watertight and len(opened.split(only_watertight=False)) == 3
+    path = tmp_path / "open_tube.ply"
+    opened.export(path)
+    with pytest.raises(InputError, match="not watertight"):
+        load_mesh(path)  # as a closed mesh it is refused; the centre line takes it
+    got = extract_centerline(path, pitch_mm=0.5)
+    sc = score_centerline(got.points_w * 1000.0, cl.points_w[10:-10] * 1000.0)
+    # bridged gaps are cubic curves along the piece ends' directions: within a millimetre of a gently bending axis
+    assert sc["mean_mm"] < 0.8 and sc["max_mm"] < 3.0 and sc["coverage"] == 1.0, sc
+    assert abs(got.length_m - cl.length_m) < 0.015  # skeletons stop ~one radius short of each end cap
