@@ -7,6 +7,8 @@
 (2-10 mm long each, where a segmentation loses a few slices: 18 pieces where the cuts do not touch) and 10 holes
 in the wall (the faces within 5-25 mm of a random wall point that face the same way: one side of the tube, up to
 5 cm across), placed with the seed. The expert mid-line places the cuts; the extraction does not see it.
+``--long-cuts``: harsher, 5-50 mm of tube missing at each cut and holes through the whole tube (the first damage
+model tried; docs/RESULTS.md reports both).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ SI_PROPER = 2610  # expert path index of the gastro-duodenal junction: 0..2610 i
 
 
 def open_up(mesh, voxel_mm, ref_mm: np.ndarray, seed: int, n_cuts: int = 17, gap_mm=(2.0, 10.0),
-            n_holes: int = 10, hole_mm=(5.0, 25.0)):
+            n_holes: int = 10, hole_mm=(5.0, 25.0), one_sided: bool = True):
     """A copy of ``mesh`` (grid units) with sections cut out and holes punched (module docstring)."""
     import trimesh
     from scipy.spatial import cKDTree
@@ -39,7 +41,8 @@ def open_up(mesh, voxel_mm, ref_mm: np.ndarray, seed: int, n_cuts: int = 17, gap
         drop |= np.abs(s_face - c) <= half
     normals = mesh.face_normals
     for f in rng.choice(np.nonzero(~drop)[0], n_holes, replace=False):
-        drop |= (np.linalg.norm(cen - cen[f], axis=1) <= rng.uniform(*hole_mm)) & (normals @ normals[f] > 0.3)
+        drop |= (np.linalg.norm(cen - cen[f], axis=1) <= rng.uniform(*hole_mm)) & (
+            (normals @ normals[f] > 0.3) if one_sided else True)
     out = trimesh.Trimesh(mesh.vertices, mesh.faces[~drop], process=False)
     out.remove_unreferenced_vertices()
     return out
@@ -52,6 +55,7 @@ def main() -> None:
     ap.add_argument("--pitch-mm", type=float, default=1.0)
     ap.add_argument("--open", type=int, nargs="*", default=None, metavar="SEED",
                     help="cut the mesh open first, once per seed (module docstring)")
+    ap.add_argument("--long-cuts", action="store_true", help="5-50 mm cuts and holes through the tube")
     args = ap.parse_args()
     conv = Path(args.anatomy) / "EdinGCA_3D_00090" / "converted"
     ref = load_reference_csv(conv / "small_intestine_path_centerline.csv", VOXEL_MM)
@@ -60,7 +64,8 @@ def main() -> None:
         from testbed.anatomy import load_mesh
 
         whole = load_mesh(conv / args.mesh)
-        runs = [(seed, open_up(whole, VOXEL_MM, ref, seed)) for seed in (args.open or [0])]
+        harsh = dict(gap_mm=(5.0, 50.0), one_sided=False) if args.long_cuts else {}
+        runs = [(seed, open_up(whole, VOXEL_MM, ref, seed, **harsh)) for seed in (args.open or [0])]
     for seed, mesh in runs:
         what = args.mesh if seed is None else (
             f"{args.mesh} cut open (seed {seed}: {len(mesh.split(only_watertight=False))} pieces, "
