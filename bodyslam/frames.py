@@ -3,7 +3,9 @@
 A source is a small, picklable description (it is sent to worker processes and Dask workers); reading opens the
 files there. :meth:`FrameSource.read` yields :class:`Frame` records for a range of *positions* (0 .. n-1, the
 order of the exam): the frame number (``index``: a sequence's ``k``, the last number in an image file's name,
-a video's frame number), its time stamp (``index / frame_rate``), the RGB image or ``None`` and notes
+a video's frame number), its time stamp (folders: ``index / frame_rate``; videos: the container's presentation
+time of the frame, so a variable-frame-rate file is timed right -- ``index / frame_rate`` only where the container
+gives none), the RGB image or ``None`` and notes
 ``(severity, reason)`` saying what was wrong. Nothing raises for one bad frame: a corrupt file is a frame with
 no image and an ``error`` note, and the caller decides (a step across it has status ``bad_frame``).
 
@@ -16,6 +18,7 @@ yields a last record with ``index == -1`` (:attr:`Frame.end_of_video`): a contai
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -117,8 +120,8 @@ class FrameSource:
                                 [("info", f"the video ends at frame {pos} (its container says {self.n_frames} "
                                           f"frames: an estimate)")], path_is_video=True)
                     return
-                yield Frame(pos, pos, pos / self.frame_rate_hz, self.source, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
-                            [], path_is_video=True)
+                yield Frame(pos, pos, _presentation_time_s(cap, pos, self.frame_rate_hz), self.source,
+                            cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), [], path_is_video=True)
         finally:
             cap.release()
 
@@ -134,6 +137,16 @@ class FrameSource:
             if fr.end_of_video:
                 break
         return None
+
+
+def _presentation_time_s(cap, pos: int, frame_rate_hz: float) -> float:
+    """The time stamp (s) of the frame ``cap`` has just read: its presentation time in the container (OpenCV's
+    ``CAP_PROP_POS_MSEC`` after a read), or ``pos / frame_rate_hz`` where the backend gives none (negative, not a
+    number, or 0 after the first frame)."""
+    ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+    if math.isfinite(ms) and ms >= 0 and (ms > 0 or pos == 0):
+        return ms / 1000.0
+    return pos / frame_rate_hz
 
 
 def decode_frame(data: bytes, name: str) -> tuple[np.ndarray | None, list[tuple[str, str]]]:
