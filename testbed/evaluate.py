@@ -160,7 +160,7 @@ def _run_seed(args) -> dict:
     t2 = time.perf_counter()
     res = evaluate_sequence(d)
     t3 = time.perf_counter()
-    if not keep:
+    if not keep and not reused:  # frames this run did not render are not its to delete
         for sub in ("frames", "depth"):
             p = d / sub
             if p.is_dir():

@@ -8,7 +8,7 @@ import sys
 def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     out = tmp_path / "eval"
     p = subprocess.run([sys.executable, "-m", "testbed.cli", "evaluate", "demo", "--seeds", "1", "--frames", "20",
-                        "--out", str(out)], capture_output=True, text=True)
+                        "--out", str(out), "--keep-frames"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["n_runs"] == 1 and rep["seeds"] == [0] and rep["frames_per_run"] == 20
@@ -32,7 +32,8 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     for png in ("trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png", "error_histogram.png",
                 "error_cdf.png"):
         assert (out / png).stat().st_size > 1000
-    assert not (out / "sequences" / "seed_0" / "frames").exists()  # frames are not kept by default
+    # the kept frames survive a re-scoring that did not render them (it used to delete them)
+    assert len(list((out / "sequences" / "seed_0" / "frames").iterdir())) == 20
 
 
 def test_seeds_in_parallel_give_the_same_report_and_an_html_page(tmp_path):
@@ -46,6 +47,7 @@ def test_seeds_in_parallel_give_the_same_report_and_an_html_page(tmp_path):
         page = (out / "report.html").read_text()
         assert "RMSE / sqrt(PCRB)" in page and 'src="error_cdf.png"' in page and "seeds 3-4" in page
     assert reps["2"]["seconds"]["jobs"] == 2 and reps["1"]["seeds"] == reps["2"]["seeds"] == [3, 4]
+    assert not (tmp_path / "eval_1" / "sequences" / "seed_3" / "frames").exists()  # not kept by default
     # each seed is computed the same way whatever the parallelism: identical figures
     assert reps["1"]["algorithms"] == reps["2"]["algorithms"]
 
