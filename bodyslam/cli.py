@@ -312,7 +312,7 @@ def _rf_localize(args) -> int:
     import numpy as np
 
     from bodyslam.io import read_json, write_csv
-    from bodyslam.fusion.rf import PathLossModel, locate_lls, locate_ml, locate_nls, read_rf, read_sensors
+    from bodyslam.fusion.rf import PathLossModel, locate_lls, locate_ml_frames, locate_nls, read_rf, read_sensors
 
     names, pos, nrm = read_sensors(args.sensors)
     stamps, rss, problems = read_rf(args.rf, names)
@@ -324,13 +324,14 @@ def _rf_localize(args) -> int:
             pl = PathLossModel.from_dict(meta["rf"]["pathloss"])
     rows = []
     prog = Progress("rf-localize")
+    ml = locate_ml_frames(pos, nrm, rss, pl) if args.method == "ml" else None  # all frames in one solve
     for k, t in enumerate(stamps):
         if args.method == "lls":
             fx = locate_lls(pos, rss[k], pl)
         elif args.method == "nls":
             fx = locate_nls(pos, rss[k], pl)
         else:
-            fx = locate_ml(pos, nrm, rss[k], pl)
+            fx = ml[k]
         c = fx.cov_m2
         rows.append([t, *fx.position_w_m, c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2], fx.n_sensors,
                      fx.status])

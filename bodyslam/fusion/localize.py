@@ -5,7 +5,8 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 1. :meth:`RfInput.read`: sensors (``sensors.csv``), readings (``rf.csv``, malformed lines skipped and listed) and
    the path-loss calibration (``meta.json``'s ``rf.pathloss``; default Table 2.2);
 2. readings per frame (:func:`bodyslam.fusion.rf.rss_per_frame`: nearest within half a frame interval);
-3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml`), which start the filter;
+3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml_frames`: every frame in one vectorised solve),
+   which start the filter;
 4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
 5. their covariances scaled by the readings' measured correlation (:mod:`bodyslam.fusion.channel`: the smoother's
    by the whole exam's, the online filter's frame ``k`` by frames ``0 .. k``'s), so that the stated 1-sigma
@@ -31,7 +32,7 @@ from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
 from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, inflate, normalised_residuals,
                                      residual_correlation)
 from bodyslam.io import write_csv, write_image, write_tum
-from bodyslam.fusion.rf import Fix, PathLossModel, locate_ml, read_rf, read_sensors, rss_per_frame
+from bodyslam.fusion.rf import Fix, PathLossModel, locate_ml_frames, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion
 from bodyslam.vision.tracking import path_travelled
 
@@ -93,7 +94,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     if len(stamps_s) != len(steps) + 1:
         raise ValueError(f"{len(steps)} steps need {len(steps) + 1} frame stamps, got {len(stamps_s)}")
     rss = rss_per_frame(rf.stamps_s, rf.rss_dbm, stamps_s, frame_rate_hz)
-    fixes = [locate_ml(rf.sensors_w_m, rf.normals_w, r, rf.pathloss) for r in rss]
+    fixes = locate_ml_frames(rf.sensors_w_m, rf.normals_w, rss, rf.pathloss)
     if sum(f.status == "ok" for f in fixes) < 3:
         raise InputError(f"RF not usable: {sum(f.status == 'ok' for f in fixes)} frame(s) with an RF fix, "
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")

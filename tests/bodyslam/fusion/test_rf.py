@@ -1,0 +1,48 @@
+"""RF fixes for many frames at once (bodyslam.fusion.rf.locate_ml_frames) against the per-frame scipy solves."""
+
+import numpy as np
+
+from bodyslam.fusion.rf import PathLossModel, locate_ml, locate_ml_frames
+
+
+def ml_cost(fix, rss, layout, pl):
+    """The soft-L1 cost the ML fix minimises, over the readings it kept (scipy's form, f_scale 2)."""
+    ok = np.isfinite(rss)
+    mean, sig, _ = pl.predict(fix.position_w_m, layout.positions_w_m[ok], layout.normals_w[ok])
+    z = (rss[ok] - mean) / sig
+    keep = np.abs(z) < 3.0 if fix.n_sensors < ok.sum() else np.ones(len(z), bool)
+    return float(np.sum(4.0 * (np.sqrt(1.0 + (z[keep] / 2.0) ** 2) - 1.0)))
+
+
+def test_vectorised_fixes_reach_the_per_frame_minima():
+    """300 capsule positions in the abdomen read by the thesis sensors with Table 2.2 shadowing, 10% of readings
+    lost, 2% off by 15 dB, and three frames with fewer than 4 readings. The model's deep / near-surface switch makes
+    the cost discontinuous, so a solver may stop at a kink the other passes: what must hold is that the vectorised
+    fixes are as good. Measured (seeds 0-2 of this set-up): status equal on 99.7-100% of frames; positions within
+    4.2-4.3 um on the median frame (scipy's own tolerance), within 0.1 mm on 88-92%; the vectorised cost no higher
+    than scipy's (+0.01) on 98.6-99.3%; mean error against the truth 5.49 cm either way (0.04 cm apart at most).
+    Bands below sit under those with room for another platform's rounding."""
+    from testbed.rf import ChannelModel, SensorLayout, emulate_rf
+
+    rng = np.random.default_rng(0)
+    layout, pl = SensorLayout.thesis_grids(), PathLossModel()
+    truth = rng.uniform([-0.12, -0.1, -0.12], [0.12, 0.1, 0.12], (300, 3))
+    rss = emulate_rf(truth, layout, pl, rng=1, channel=ChannelModel(dropout_prob=0.1, outlier_prob=0.02))["rss_dbm"]
+    rss[[5, 77, 200], 3:] = np.nan  # 3 readings left: no fix
+    ref = [locate_ml(layout.positions_w_m, layout.normals_w, r, pl) for r in rss]
+    got = locate_ml_frames(layout.positions_w_m, layout.normals_w, rss, pl, block=128)  # 3 blocks
+    assert [g.status for g in got][5] == "too_few_sensors" and got[77].n_sensors == 3
+    same = np.mean([a.status == b.status for a, b in zip(ref, got)])
+    both = [k for k in range(len(rss)) if ref[k].status == got[k].status == "ok"]
+    d = np.array([np.linalg.norm(ref[k].position_w_m - got[k].position_w_m) for k in both])
+    no_worse = np.mean([ml_cost(got[k], rss[k], layout, pl) <= ml_cost(ref[k], rss[k], layout, pl) + 0.01
+                        for k in both])
+    err_ref = np.mean([np.linalg.norm(ref[k].position_w_m - truth[k]) for k in both])
+    err_got = np.mean([np.linalg.norm(got[k].position_w_m - truth[k]) for k in both])
+    assert same >= 0.98 and np.median(d) < 2e-5 and np.mean(d < 1e-4) > 0.8, (same, np.median(d), np.mean(d < 1e-4))
+    assert no_worse > 0.95 and abs(err_got - err_ref) < 0.02 * err_ref, (no_worse, err_ref, err_got)
+    # where the positions agree, so do the covariances (scipy's robust-scaled Jacobian)
+    agree = [k for k, dk in zip(both, d) if dk < 1e-6]
+    for k in agree:
+        np.testing.assert_allclose(got[k].cov_m2, ref[k].cov_m2, rtol=1e-3, atol=1e-12)
+    assert len(agree) >= 10  # measured 22-30
