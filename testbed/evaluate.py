@@ -129,11 +129,17 @@ def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stats(e_m: np.ndarray, pcrb_m2: np.ndarray) -> dict:
-    e = e_m * 100
+    """Error statistics over the frames an algorithm gave a position for (RF only: frames with a fix); how many it
+    gave none for is counted."""
+    ok = np.isfinite(e_m)
+    e = e_m[ok] * 100
     rmse = float(np.sqrt(np.mean(e**2)))
-    return {"mean_error_cm": float(e.mean()), "rmse_cm": rmse, "median_error_cm": float(np.median(e)),
-            "p90_error_cm": float(np.percentile(e, 90)), "max_error_cm": float(e.max()),
-            "rmse_over_sqrt_pcrb": rmse / float(np.sqrt(pcrb_m2.mean()) * 100)}
+    out = {"mean_error_cm": float(e.mean()), "rmse_cm": rmse, "median_error_cm": float(np.median(e)),
+           "p90_error_cm": float(np.percentile(e, 90)), "max_error_cm": float(e.max()),
+           "rmse_over_sqrt_pcrb": rmse / float(np.sqrt(pcrb_m2[ok].mean()) * 100)}
+    if not ok.all():
+        out["frames_without_position"] = int((~ok).sum())
+    return out
 
 
 def _run_seed(args) -> dict:
@@ -319,7 +325,8 @@ def _plots(out: Path, first: dict, e_fused: np.ndarray, e_rf: np.ndarray, e_dr: 
         f.line(k, first["errors"][name] * 100, label=name, colour=col)
     f.line(k, np.sqrt(first["pcrb_m2"]) * 100, label="sqrt(PCRB)", colour=(31, 119, 180))
     write_image(out / "error_vs_step.png", f.image())
-    edges = np.linspace(0, max(np.percentile(e_rf * 100, 99), 1.0), 31)
+    e_rf = e_rf[np.isfinite(e_rf)]  # frames without an RF fix have no RF error
+    edges = np.linspace(0, max(np.percentile(e_rf * 100, 99) if len(e_rf) else 0.0, 1.0), 31)
     h, _ = np.histogram(np.clip(e_fused * 100, 0, edges[-1]), bins=edges, density=True)
     write_image(out / "error_histogram.png",
                 Figure("Body-SLAM error histogram (all seeds)", "error (cm)", "density").bars(edges, h).image())

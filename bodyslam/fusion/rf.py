@@ -392,8 +392,8 @@ def _ml_block(s, nrm, rss, pl: PathLossModel, gate_sigma: float) -> list[Fix]:
             dist = np.maximum(np.linalg.norm(diff, axis=2), 1e-12)
             return (dist - d_rng[rows]) / sig_rng[rows], diff / (dist * sig_rng[rows])[..., None]
 
-        x1, _, conv1 = _lm_frames(nls, x0, r_ok)
-        x1 = np.where((conv1 & np.isfinite(x1).all(axis=1))[:, None], x1, centroid)
+        x1, _, _ = _lm_frames(nls, x0, r_ok)
+        x1 = np.where(np.isfinite(x1).all(axis=1, keepdims=True), x1, centroid)
 
         def ml_for(yy):
             def ml(rows, x):  # (RSS - mean(x)) / sigma and its Jacobian (as pl.predict), every frame and sensor
@@ -405,17 +405,18 @@ def _ml_block(s, nrm, rss, pl: PathLossModel, gate_sigma: float) -> list[Fix]:
                 return (yy[rows] - pl.mean_rss_dbm(dist, depth)) / sigma, -grad / sigma[..., None]
             return ml
 
-        x2, J2, conv2 = _lm_frames(ml_for(y), x1, r_ok)
+        x2, J2, _ = _lm_frames(ml_for(y), x1, r_ok)
         res, _ = ml_for(y)(np.arange(len(x2)), x2)
         sel = r_ok & (np.abs(res) < gate_sigma)  # gate outlying readings, refit once
         again = (sel != r_ok).any(axis=1) & (sel.sum(axis=1) >= 4)
         if again.any():
-            xa, Ja, ca = _lm_frames(ml_for(y[again]), x2[again], sel[again])
-            x2[again], J2[again], conv2[again] = xa, Ja, ca
+            xa, Ja, _ = _lm_frames(ml_for(y[again]), x2[again], sel[again])
+            x2[again], J2[again] = xa, Ja
         used = np.where(again[:, None], sel, r_ok)
         for i, f in enumerate(np.nonzero(run)[0]):
             JtJ = J2[i].T @ J2[i]
-            if not (conv2[i] and np.isfinite(x2[i]).all()) or abs(np.linalg.det(JtJ)) < 1e-30:
+            # (not converged within max_iter: the last iterate, as scipy's least_squares returns at max_nfev)
+            if not np.isfinite(x2[i]).all() or abs(np.linalg.det(JtJ)) < 1e-30:
                 fixes[f] = _no_fix(int(n_ok[f]), "failed")
                 continue
             fixes[f] = Fix(x2[i].copy(), np.linalg.inv(JtJ), int(used[i].sum()))

@@ -69,3 +69,14 @@ def test_consistency_of_an_honest_and_an_overconfident_estimate():
     assert abs(c["axis_inside_1sigma"].mean() - 0.683) < 0.02
     over = consistency(e, cov / 4, np.zeros((n, 3)))
     assert over["nees"].mean() > 10 and over["inside_68"].mean() < 0.3
+
+
+def test_frames_without_a_position_are_counted_not_averaged():
+    import numpy as np
+
+    from testbed.evaluate import _stats
+
+    e = np.array([0.01, np.nan, 0.03, 0.02])  # m; frame 1 had no RF fix
+    s = _stats(e, np.full(4, 1e-4))
+    assert s["mean_error_cm"] == 2.0 and s["frames_without_position"] == 1 and s["max_error_cm"] == 3.0
+    assert "frames_without_position" not in _stats(e[[0, 2, 3]], np.full(3, 1e-4))
