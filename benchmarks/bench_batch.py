@@ -6,7 +6,10 @@ the streaming dead reckoning) and samples the resident memory of its whole proce
 its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole process, start-up included) and
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
-    .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch]
+    .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
+
+``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
+so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85).
 
 Goal (issue 7): >= 100 frames/s in fast mode on this 2-core machine; peak memory at 10,000 frames no more than
 10% above that at 2,000.
@@ -79,6 +82,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--keep", type=Path, default=Path("/tmp/bench_batch"))
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--rf", action="store_true", help="also run the exam with its RF and print the throughput ratio")
     args = ap.parse_args()
     lengths = [int(x) for x in args.frames.split(",")]
     args.keep.mkdir(parents=True, exist_ok=True)
@@ -108,6 +112,16 @@ def main() -> None:
         print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
               f"(whole process, 2 cores); peak memory (process tree) {peak / 2**20:.0f} MiB; steps {summ['steps']}",
               flush=True)
+        if args.rf:
+            out_rf = args.keep / f"out_{args.mode}_{n}_rf"
+            shutil.rmtree(out_rf, ignore_errors=True)
+            el_rf, peak_rf, rc_rf = run_measured([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out",
+                                                  str(out_rf), "--mode", args.mode])
+            traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
+            res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,
+                          rf_rc=rc_rf, rf_over_no_rf=el / el_rf)
+            print(f"  with RF ({traj}): {el_rf:.1f} s = {n / el_rf:.1f} frames/s, peak {peak_rf / 2**20:.0f} MiB; "
+                  f"throughput with RF / without: {el / el_rf:.2f}", flush=True)
     if len(lengths) > 1:
         a, b = res[min(lengths)], res[max(lengths)]
         print(f"peak memory {max(lengths)} vs {min(lengths)} frames: {b['peak_tree_rss_mib'] / a['peak_tree_rss_mib']:.3f}x")
