@@ -3,7 +3,7 @@
 Workers are *spawned*, never forked: a child forked from a process that already runs OpenCV's (or Embree's)
 thread pool can deadlock on a lock held at fork time. Results come back in task order, as they finish, so a
 caller can stream them (progress, bounded memory). A pool has one worker per core, so each worker keeps to one
-BLAS/OpenMP thread (threadpoolctl, at its start) and its chunk tasks to one OpenCV thread
+BLAS/OpenMP thread (``OMP/OPENBLAS/MKL_NUM_THREADS=1`` in the environment it is spawned with) and its chunk tasks to one OpenCV thread
 (:func:`bodyslam.vision.odometry.set_worker_threads`): more would only compete for the same cores.
 """
 
@@ -23,12 +23,7 @@ def available_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def _one_thread_per_worker() -> None:
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # scikit-learn's dependency; without it BLAS keeps its default
-        return
-    threadpool_limits(1)
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None, ordered: bool = True) -> Iterator[T]:
@@ -40,5 +35,17 @@ def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None,
     if jobs == 1:
         yield from map(func, tasks)
         return
-    with mp.get_context("spawn").Pool(jobs, initializer=_one_thread_per_worker) as pool:
+    # the workers read these when they load BLAS: set for the spawn only (a user's own setting is kept)
+    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+    for v in _THREAD_VARS:
+        os.environ.setdefault(v, "1")
+    try:
+        pool = mp.get_context("spawn").Pool(jobs)
+    finally:
+        for v, x in saved.items():
+            if x is None:
+                os.environ.pop(v, None)
+            else:
+                os.environ[v] = x
+    with pool:
         yield from (pool.imap if ordered else pool.imap_unordered)(func, tasks)
