@@ -65,13 +65,76 @@ def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict
     return apply_overrides(scn, overrides or [])
 
 
+# Keys the world reads from its plain sections with a default (so a scenario file may leave them out), with their
+# kind: what ``--set`` may add there besides the keys the scenario already has. Sections read into dataclasses
+# (lighting, noise, motion, artifacts, optics, rf.pathloss, rf.toa, rf.channel) and [texture] (keyword arguments)
+# are checked by those when the world is built; the other papers' systems read their own sections, where an
+# override may only replace a key the scenario has.
+_NUM, _INT, _BOOL, _STR, _LIST, _TABLE = "a number", "an integer", "true or false", "a string", "a list", "a table"
+OPTIONAL_KEYS: dict[str, dict[str, str]] = {
+    "sequence": {"frames": _INT, "frame_rate_hz": _NUM, "duration_s": _NUM, "interval_s": _NUM},
+    "camera": {"model": _STR, "width": _INT, "height": _INT, "fov_deg": _NUM, "fx": _NUM, "fy": _NUM, "cx": _NUM,
+               "cy": _NUM, "k": _LIST},
+    "path": {"kind": _STR, "file": _STR, "length_m": _NUM, "abdomen_box_m": _LIST,
+             "min_self_distance_diameters": _NUM},
+    "tube": {"radius_m": _NUM, "radius_end_m": _NUM, "radius_variation_m": _NUM, "radius_wavelength_m": _NUM,
+             "contraction_frac": _NUM, "contraction_length_m": _NUM, "contraction_spacing_m": _NUM,
+             "radius_in_meta_m": _NUM, "sections": _INT, "ring_spacing_m": _NUM, "fold_depth_frac": _NUM,
+             "fold_spacing_m": _NUM, "fold_width_m": _NUM, "fold_coverage": _NUM, "lobes": _INT,
+             "lobe_depth_frac": _NUM, "lobe_twist_rad_per_m": _NUM},
+    "render": {"backend": _STR},
+    "rear_camera": {"enabled": _BOOL, "baseline_m": _NUM},
+    "output": {"depth": _BOOL},
+    "rf": {"enabled": _BOOL, "layout": _STR, "file": _STR, "n_side": _INT, "width_m": _NUM, "plane_y_m": _NUM,
+           "both_sides": _BOOL, "size_m": _LIST, "pathloss": _TABLE, "toa": _TABLE, "channel": _TABLE},
+}
+_CHECKED_ELSEWHERE = {"lighting", "noise", "motion", "artifacts", "optics", "texture", "rf.pathloss", "rf.toa",
+                      "rf.channel"}
+
+
+def _kind_of(value) -> str:
+    if isinstance(value, bool):
+        return _BOOL
+    if isinstance(value, int):
+        return _INT
+    if isinstance(value, float):
+        return _NUM
+    if isinstance(value, str):
+        return _STR
+    if isinstance(value, list):
+        return _LIST
+    if isinstance(value, dict):
+        return _TABLE
+    return type(value).__name__
+
+
+def _check_override(key: str, sec_name: str, name: str, value, old) -> None:
+    """Refuse an override whose key the scenario does not know or whose value is of the wrong kind."""
+    known = OPTIONAL_KEYS.get(sec_name, {})
+    if old is None and name not in known and sec_name not in _CHECKED_ELSEWHERE:
+        where = sorted(known)
+        raise ConfigError(f"--set {key}: unknown key {name!r} in [{sec_name}]"
+                          + (f" (known: {', '.join(where)})" if where else " (not in this scenario)"))
+    want = known.get(name) or (None if old is None else _kind_of(old))
+    if want is None:
+        return
+    got = _kind_of(value)
+    ok = got == want or (want == _NUM and got == _INT)
+    if not ok:
+        raise ConfigError(f"--set {key}: expected {want}, got {value!r}")
+
+
 def apply_overrides(scn: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """``section.key=value`` overrides (the value in TOML syntax; a bare word is a string), each checked: the key
+    must be one the scenario has or the world reads (:data:`OPTIONAL_KEYS`; dataclass sections are checked when the
+    world is built) and the value of the same kind (a number for a number)."""
     out = copy.deepcopy(scn)
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"--set expects section.key=value, got {item!r}")
         key, raw = item.split("=", 1)
-        parts = key.strip().split(".")
+        key = key.strip()
+        parts = key.split(".")
         if len(parts) < 2 or not all(parts):
             raise ConfigError(f"--set key must be section.key, got {key!r}")
         try:
@@ -83,6 +146,10 @@ def apply_overrides(scn: dict[str, Any], overrides: list[str]) -> dict[str, Any]
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"--set {key}: {part!r} is not a section")
+        old = node.get(parts[-1])
+        if isinstance(old, dict):
+            raise ConfigError(f"--set {key}: [{key}] is a section, not a value")
+        _check_override(key, ".".join(parts[:-1]), parts[-1], value, old)
         node[parts[-1]] = value
     return out
 

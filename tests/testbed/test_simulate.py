@@ -53,6 +53,13 @@ def test_same_seed_gives_identical_frames_for_any_job_count(tmp_path):
         (["simulate", "demo", "--seed", "1", "--out", "{d}/x", "--set", "motion.speed=3"], "unknown key"),
         (["simulate", "demo", "--seed", "1", "--out", "{d}/x", "--set", "camera.model='kaleidoscope'"],
          "unknown camera model"),
+        # --set is checked against what the scenario and the world know (issue 18): a misspelt key, a wrong kind
+        (["simulate", "demo", "--seed", "1", "--out", "{d}/x", "--set", "tube.raduis_m=0.01"],
+         "unknown key 'raduis_m' in [tube]"),
+        (["simulate", "demo", "--seed", "1", "--out", "{d}/x", "--set", "tube.radius_m=abc"],
+         "tube.radius_m: expected a number, got 'abc'"),
+        (["simulate", "demo", "--seed", "1", "--out", "{d}/x", "--set", "sequence.frames=12.5"], "expected an integer"),
+        (["simulate", "demo", "--seed", "1", "--out", "{d}/x", "--set", "rf.channel=3"], "expected a table, got 3"),
         (["simulate", "demo", "--seed", "1", "--out", "{d}/full"], "not empty"),
         (["contact-sheet", "{d}/nothing", "--out", "{d}/s.png"], "meta.json: file not found"),
     ],
