@@ -93,18 +93,9 @@ _CHECKED_ELSEWHERE = {"lighting", "noise", "motion", "artifacts", "optics", "tex
 
 
 def _kind_of(value) -> str:
-    if isinstance(value, bool):
-        return _BOOL
-    if isinstance(value, int):
-        return _INT
-    if isinstance(value, float):
-        return _NUM
-    if isinstance(value, str):
-        return _STR
-    if isinstance(value, list):
-        return _LIST
-    if isinstance(value, dict):
-        return _TABLE
+    for typ, kind in ((bool, _BOOL), (int, _INT), (float, _NUM), (str, _STR), (list, _LIST), (dict, _TABLE)):
+        if isinstance(value, typ):  # bool before int: True is an int to Python
+            return kind
     return type(value).__name__
 
 
