@@ -12,6 +12,7 @@ interrupted (Ctrl-C: finished outputs and checkpoints are kept, nothing half-wri
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 from bodyslam.choices import CAMERAS, ESTIMATORS, FUSION_MODES, MATCH_MODES, SCHEMES, TRACKERS, UNROLL_MODES
@@ -83,9 +84,10 @@ def _parser() -> argparse.ArgumentParser:
 
     def frame_opts(q):
         q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
-        q.add_argument("--mask", default=None,
-                       help="valid field of view: 'auto' (detect black border and burned-in text from the frames)"
-                            " or a PNG (non-zero = valid); default: the camera's image circle")
+        q.add_argument("--mask", default="auto",
+                       help="valid field of view: 'auto' (default: detected from the frames -- field stop, burned-in "
+                            "text -- or the camera's image circle where they agree), 'circle', or a PNG (non-zero = "
+                            "valid); the one used is written next to the output (*_mask.png, mask.png)")
         q.add_argument("--no-classify", action="store_true",
                        help="estimate every step; by default steps touching a facing-the-wall frame get no_lumen")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
@@ -97,6 +99,7 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("b")
     m.add_argument("--out", required=True)
     m.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
+    m.add_argument("--mask", default="auto", help="valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), 'circle', or a PNG")
     motion_opts(m, estimator=False)
     u = cmd("unroll")
     u.add_argument("frame")
@@ -118,6 +121,7 @@ def _parser() -> argparse.ArgumentParser:
     sg.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
     sg.add_argument("--q", type=float, default=16.0, help="SRM coarseness Q (dissertation: 16)")
     sg.add_argument("--full", action="store_true", help="segment at full resolution (slow) instead of 96 px")
+    sg.add_argument("--mask", default="auto", help="valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), 'circle', or a PNG")
     tc = cmd("train-classifier")
     tc.add_argument("seqdirs", nargs="+")
     tc.add_argument("--out", required=True, help="model file (.npz)")
@@ -130,6 +134,7 @@ def _parser() -> argparse.ArgumentParser:
     cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
     cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
     cl.add_argument("--jobs", type=int, default=None)
+    cl.add_argument("--mask", default="auto", help="valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), 'circle', or a PNG"[:-1] + "; written next to --out as *_mask.png\"")
     rl = cmd("rf-localize")
     rl.add_argument("--rf", required=True, help="rf.csv (t,sensor,rss_dbm)")
     rl.add_argument("--sensors", required=True, help="sensors.csv (sensor,x,y,z[,nx,ny,nz])")
@@ -238,13 +243,48 @@ def _frames_of(inp):
     return [p / name for _, name in frames], None
 
 
+def _read_or_none(path):
+    from bodyslam.errors import InputError
+    from bodyslam.io import read_image
+
+    try:
+        return read_image(path)
+    except InputError:
+        return None
+
+
+def _fov_of(images: list, cam, mask: str):
+    """The field of view for a command on a few frames (bool mask, never None): ``mask`` as ``--mask`` says
+    (:func:`bodyslam.vision.odometry.resolve_mask`'s rules)."""
+    import numpy as np
+
+    from bodyslam.io import read_image
+    from bodyslam.vision.matching import field_of_view
+
+    if mask == "circle":
+        return cam.fov_mask()
+    if mask == "auto":
+        if not images:
+            return cam.fov_mask()
+        m, how = field_of_view(images, cam.fov_mask())
+        logging.getLogger(__name__).info("field of view: %s", how)
+        return cam.fov_mask() if m is None else m
+    img = read_image(mask, unchanged=True)
+    img = img.max(axis=2) if img.ndim == 3 else img
+    if img.shape != (cam.height, cam.width):
+        from bodyslam.errors import InputError
+
+        raise InputError(f"{mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are {cam.width}x{cam.height}")
+    return np.asarray(img > 0)
+
+
 def _segment(args) -> int:
     from bodyslam.io import read_image, write_image
     from bodyslam.vision.segmentation import paint_regions, srm
 
     img = read_image(args.frame)
     cam = _camera_for(img, args.meta)
-    seg = srm(img, cam.fov_mask(), Q=args.q, work_px=None if args.full else 96)
+    seg = srm(img, _fov_of([img], cam, args.mask), Q=args.q, work_px=None if args.full else 96)
     write_image(args.out, paint_regions(seg, img.shape[:2]))
     print(f"{seg.n_regions} regions (Q = {args.q:g}); wrote {args.out}")
     return 0
@@ -281,7 +321,11 @@ def _train_classifier(args) -> int:
 def _classify(args) -> int:
     from collections import Counter
 
-    from bodyslam.io import check_writable, read_image, write_csv
+    from pathlib import Path
+
+    import numpy as np
+
+    from bodyslam.io import check_writable, read_image, write_csv, write_image
     from bodyslam.vision.classify import TunnelClassifier, features_of_frames
 
     check_writable(args.out)
@@ -289,7 +333,10 @@ def _classify(args) -> int:
     if cam is None:
         cam = _camera_for(read_image(paths[0]), args.meta)
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
-    res = features_of_frames(paths, cam.fov_mask(), jobs=args.jobs, progress=Progress("classify"))
+    sample = [paths[int(k)] for k in np.unique(np.linspace(0, len(paths) - 1, min(30, len(paths))).astype(int))]
+    fov = _fov_of([im for im in (_read_or_none(p) for p in sample) if im is not None and im.shape[:2] == (cam.height, cam.width)],
+                  cam, args.mask)
+    res = features_of_frames(paths, fov, jobs=args.jobs, progress=Progress("classify"))
     rows = []
     for p, (st, msg, f) in zip(paths, res):
         if st == "ok":
@@ -300,6 +347,8 @@ def _classify(args) -> int:
             if msg:
                 print(f"  {msg}")
     write_csv(args.out, ["frame", "label", "decision", "status"], rows)
+    out = Path(args.out)
+    write_image(out.with_name(out.stem + "_mask.png"), (fov * 255).astype(np.uint8))  # the field of view used
     c = Counter(r[1] or r[3] for r in rows)
     print(f"{args.out}: {len(rows)} frames: " + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
     # dark and saturated frames are answers (no lumen visible); unreadable or wrong-size files are problems
@@ -465,7 +514,10 @@ def _localize(args) -> int:
     loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
+        from bodyslam.vision.odometry import resolve_mask, write_mask
+
         write_motion_csv(out / "motion.csv", frames[1:], stamps[1:], steps)
+        write_mask(out / "mask.png", resolve_mask(seq.source, seq.camera, _motion_settings(args).mask), seq.camera)
     write_localization(out, loc)
     res = loc.smoothed
     sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
@@ -554,7 +606,7 @@ def _match(args) -> int:
 
     a, b = read_image(args.a), read_image(args.b)
     cam = _camera_for(a, args.meta)
-    matcher = Matcher(cam, args.mode)
+    matcher = Matcher(cam, args.mode, mask=_fov_of([a, b], cam, args.mask))
     m = matcher.match(a, b)
     un = Unroller(cam)
     left = a.copy()
@@ -599,8 +651,12 @@ def _motion_or_track(args) -> int:
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
     check_writable(args.out)
     problems: list = []
+    from pathlib import Path
+
+    out = Path(args.out)
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
-                            progress=Progress(args.cmd), camera=args.camera, problems=problems)
+                            progress=Progress(args.cmd), camera=args.camera, problems=problems,
+                            mask_out=out.with_name(out.stem + "_mask.png"))
     counts = Counter(str(s.status) for s in steps)
     stamps = np.arange(len(steps) + 1) / seq.frame_rate_hz
     if args.cmd == "motion":

@@ -74,7 +74,7 @@ from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
 from bodyslam.io import MOTION_COLUMNS, atomic_path, motion_row, read_json, step_from_row, write_csv, write_image, write_json
-from bodyslam.vision.odometry import MotionSettings, chunk_bounds
+from bodyslam.vision.odometry import MotionSettings, chunk_bounds, write_mask
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ class Exam:
     radius_m: float
     frames: list[tuple[int, str]] = field(default_factory=list, repr=False)
     n_frames: int = 0
-    mask: str | None = None  # None: camera image circle; "auto"; or a PNG path
+    mask: str | None = None  # None or "auto": detected (the image circle where it agrees); "circle"; or a PNG path
     rf: str | None = None
     sensors: str | None = None
     pathloss: dict | None = None
@@ -483,6 +483,7 @@ def _prepare_out(out: Path, plan: dict, force: bool) -> None:
 
 
 def _mask_for(exam: Exam) -> np.ndarray | None:
+    """The exam's field of view (None: the image circle): ``exam.mask`` None or "auto" detects it."""
     from bodyslam.vision.odometry import resolve_mask
 
     return resolve_mask(exam.frame_source(), camera_from_dict(exam.camera), exam.mask)
@@ -535,6 +536,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     for e in exams:
         (out / e.name / "chunks").mkdir(parents=True, exist_ok=True)
         masks[e.name] = mask = _mask_for(e)
+        write_mask(out / e.name / "mask.png", mask, camera_from_dict(e.camera))  # the field of view used
         src = e.frame_source()
         for i, (a, b) in enumerate(chunk_bounds(e.n_positions, settings.chunk_frames)):
             f = out / e.name / "chunks" / f"chunk_{i:06d}.json"

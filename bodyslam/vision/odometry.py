@@ -54,8 +54,9 @@ class MotionSettings:
     estimator: str = "tube"
     unroll_mode: str = "exact"  # for the thesis estimator: "exact" angles or the linear Eq. 3.11 ("thesis")
     min_matches: int = 20  # a 10-parameter fit on fewer verified matches fails on big jumps (measured)
-    mask: str | None = None  # valid field of view: None = the camera's image circle, "auto" = detected from the
-    #                          frames (black border, burned-in text), or a PNG path (non-zero = valid)
+    mask: str | None = None  # valid field of view: None or "auto" = detected from the frames (field stop, burned-in
+    #                          text; the image circle where they agree), "circle" = the camera's image circle, or a
+    #                          PNG path (non-zero = valid)
     classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
     model: str | None = None  # classifier model file (default: the shipped one)
     classify_px: int | None = None  # SRM working size for classification; None: 48 px in fast mode, else 96
@@ -314,12 +315,13 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
 
 # -- masks ------------------------------------------------------------------------------------------------------
 def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_sample: int = 30) -> np.ndarray | None:
-    """The valid field-of-view mask of a source (see :attr:`MotionSettings.mask`): None (the camera's image
-    circle), detected from ``n_sample`` frames spread over the exam (``"auto"``), or read from a PNG."""
-    if mask is None:
+    """The valid field-of-view mask of a source (see :attr:`MotionSettings.mask`): None means the camera's image
+    circle. ``None``/``"auto"``: detected from ``n_sample`` frames spread over the exam
+    (:func:`bodyslam.vision.matching.field_of_view`); ``"circle"``; or read from a PNG."""
+    if mask == "circle":
         return None
-    if mask == "auto":
-        from bodyslam.vision.matching import detect_fov_mask
+    if mask in (None, "auto"):
+        from bodyslam.vision.matching import field_of_view
 
         n = len(source)
         frames = []
@@ -328,11 +330,13 @@ def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_s
             if fr.image is not None and fr.image.shape[:2] == (camera.height, camera.width):
                 frames.append(fr.image)
             elif fr.notes:
-                log.warning("%s: %s (skipped for mask detection)", fr.path, fr.notes[-1][1])
+                log.warning("%s: %s (skipped for field-of-view detection)", fr.path, fr.notes[-1][1])
         if not frames:
-            raise InputError(f"{source.source}: no readable frame to detect the field of view from")
-        m = detect_fov_mask(frames)
-        log.info("detected field of view: %d of %d pixels", int(m.sum()), m.size)
+            if mask == "auto":
+                raise InputError(f"{source.source}: no readable frame to detect the field of view from")
+            return None
+        m, how = field_of_view(frames, camera.fov_mask())
+        log.info("field of view: %s", how)
         return m
     img = read_image(mask, unchanged=True)
     if img.ndim == 3:
@@ -340,6 +344,14 @@ def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_s
     if img.shape != (camera.height, camera.width):
         raise InputError(f"{mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are {camera.width}x{camera.height}")
     return img > 0
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray | None, camera: CameraModel) -> None:
+    """The field of view a run used, as a PNG (255 = valid): what ``--mask PNG`` reads back."""
+    from bodyslam.io import write_image
+
+    m = camera.fov_mask() if mask is None else mask
+    write_image(path, (np.asarray(m, bool) * 255).astype(np.uint8))
 
 
 # -- a sequence directory ---------------------------------------------------------------------------------------
@@ -409,10 +421,11 @@ def chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
 def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = MotionSettings(),
                     jobs: int | None = None, radius_m: float | None = None, chunk_frames: int = 50,
                     progress: Callable[[int, int], None] | None = None, camera: str = "front",
-                    problems: list | None = None) -> list[StepMotion]:
+                    problems: list | None = None, mask_out: str | os.PathLike | None = None) -> list[StepMotion]:
     """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order), gaps
     bridged. ``camera="rear"``: a dual-camera capsule's rear frames, reported as the body's motion.
-    ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame."""
+    ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame; ``mask_out``: where to
+    write the field of view used (:func:`write_mask`)."""
     from bodyslam.parallel import imap_tasks
 
     seq = Sequence.open(seq_dir, radius_m, camera)
@@ -420,6 +433,8 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     if n < 2:
         raise InputError(f"{seq_dir}: need at least 2 frames, meta.json says {n}")
     mask = resolve_mask(seq.source, seq.camera, settings.mask)
+    if mask_out is not None:
+        write_mask(mask_out, mask, seq.camera)
     base = seq.task_base(settings, mask)
     tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b) for a, b in chunk_bounds(n, chunk_frames)]
     steps: list[StepMotion] = []

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+
+import numpy as np
 import sys
 from pathlib import Path
 
@@ -45,14 +47,21 @@ def test_exit_codes_done_problems_unusable(tmp_path):
     assert p.returncode == 3 and "000020.png" in p.stdout
     p = run("motion", str(seq), "--out", str(tmp_path / "m.csv"), "--mode", "fast", "--jobs", "1")
     assert p.returncode == 3 and "000020.png" in p.stdout and (tmp_path / "m.csv").is_file()
+    # the field of view used is written beside the output: on the ideal testbed the image circle (detection agrees)
+    from bodyslam.io import read_image
+    from bodyslam.meta import read_meta
+
+    assert np.array_equal(read_image(tmp_path / "m_mask.png", unchanged=True) > 0,
+                          read_meta(seq).camera_model().fov_mask())
     shutil.copy(DEMO / "frames" / "000020.png", seq / "frames" / "000020.png")
     with (seq / "rf.csv").open("a") as f:
         f.write("oops,S1,-60\n")
     p = run("localize", str(seq), "--out", str(tmp_path / "loc"), "--mode", "fast", "--jobs", "1")
     assert p.returncode == 3 and "rf.csv" in p.stdout, p.stdout + p.stderr
-    assert (tmp_path / "loc" / "trajectory.tum").is_file()
+    assert (tmp_path / "loc" / "trajectory.tum").is_file() and (tmp_path / "loc" / "mask.png").is_file()
     p = run("batch", str(seq), "--out", str(tmp_path / "b"), "--jobs", "1")
     assert p.returncode == 3, p.stdout + p.stderr
+    assert (tmp_path / "b" / seq.name / "mask.png").is_file()
     # unusable input: 1, one line, and a failed run leaves no output directory behind
     (seq / "rf.csv").write_text("t,sensor,rss_dbm\n")
     p = run("localize", str(seq), "--out", str(tmp_path / "loc2"), "--motion", str(tmp_path / "loc" / "motion.csv"))

@@ -5,7 +5,7 @@ import pytest
 
 from bodyslam.camera import FisheyeCamera
 from bodyslam.errors import ConfigError
-from bodyslam.vision.matching import Matcher, detect_fov_mask
+from bodyslam.vision.matching import Matcher, detect_fov_mask, field_of_view
 
 
 def capsule_like_frames(n=12, size=200, seed=0):
@@ -31,6 +31,25 @@ def test_detected_mask_is_the_disc_without_the_burned_in_text():
     assert not m[text].any()
     assert not m[~disc].any()
     assert m[disc & ~text].mean() > 0.97  # all but the one-pixel rim ring the detector drops on purpose
+
+
+def test_the_field_of_view_is_the_image_circle_unless_the_frames_show_a_stop_or_overlay():
+    frames, disc = capsule_like_frames()
+    m, how = field_of_view(frames, disc)
+    assert m is not None and not m[150:162, 20:70].any() and "overlay" in how  # burned-in text: detected
+    plain = [f.copy() for f in frames]
+    for f in plain:
+        f[150:162, 20:70] = f[100:112, 100:150]  # no text: the detection agrees with the circle (IoU >= 0.98)
+    m, how = field_of_view(plain, disc)
+    assert m is None and "agrees" in how
+    octagon = disc.copy()
+    yy, xx = np.mgrid[:200, :200]
+    octagon &= (np.abs(xx - 99.5) + np.abs(yy - 99.5)) < 115  # corners cut off: a field stop
+    stopped = [np.where(octagon[..., None], f, 0).astype(np.uint8) for f in plain]
+    m, _ = field_of_view(stopped, disc)
+    assert m is not None and not m[~octagon].any()
+    m, how = field_of_view([np.zeros((200, 200, 3), np.uint8)] * 3, disc)  # nothing to see: the circle
+    assert m is None and "no field of view" in how
 
 
 def test_black_frames_give_a_clear_error():
