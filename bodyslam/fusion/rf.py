@@ -143,8 +143,8 @@ def read_rf(path: str | os.PathLike, sensor_names: tuple[str, ...]) -> tuple[np.
 def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
                     columns: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     """``rf.csv`` (long format: ``t,sensor,<columns>``) -> ``(stamps (T,), {column: (T, n)}, problems)``, NaN
-    where a sensor has no reading. Lines with a non-number or an unknown sensor are skipped and reported
-    (``file:line: reason``), never fatal."""
+    where a sensor has no reading. Lines with a non-number, a non-finite value (nan, inf) or an unknown sensor are
+    skipped and reported (``file:line: reason``), never fatal."""
     index = {n: j for j, n in enumerate(sensor_names)}
     problems: list[str] = []
     data: dict[float, dict[int, list[float]]] = {}
@@ -158,13 +158,17 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
             if row["sensor"] not in index:
                 problems.append(f"{path}:{lineno}: unknown sensor {row['sensor']!r}")
                 continue
+            bad = [f"{c}={x}" for c, x in zip(columns, v) if not math.isfinite(x)] + ([] if math.isfinite(t) else [f"t={t}"])
+            if bad:  # nan/inf parse as numbers: a reading that is not one is listed, not silently lost
+                problems.append(f"{path}:{lineno}: not a finite reading ({', '.join(bad)})")
+                continue
             data.setdefault(t, {})[index[row["sensor"]]] = v
     stamps = np.array(sorted(data))
     out = {c: np.full((len(stamps), len(sensor_names)), np.nan) for c in columns}
     for k, t in enumerate(stamps):
         for j, v in data[t].items():
             for c, x in zip(columns, v):
-                out[c][k, j] = x if math.isfinite(x) else np.nan
+                out[c][k, j] = x
     return stamps, out, problems
 
 

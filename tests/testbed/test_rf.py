@@ -88,6 +88,10 @@ def test_missing_sensors_and_bad_lines(tmp_path):
     names, pos, nrm = read_sensors(tmp_path / "sensors.csv")
     stamps, rss, problems = read_rf(tmp_path / "rf.csv", names)
     assert len(problems) == 2 and "rf.csv:" in problems[0] and "unknown sensor" in problems[1]
+    with (tmp_path / "rf.csv").open("a") as f:  # nan and inf parse as numbers: listed, not silently lost
+        f.write("1.5,F01,nan\n1.5,F02,-inf\n")
+    _, _, problems = read_rf(tmp_path / "rf.csv", names)
+    assert len(problems) == 4 and "rss_dbm=nan" in problems[2] and "rss_dbm=-inf" in problems[3], problems
     assert np.isnan(rss[1]).sum() == 28
     assert locate_ml(pos, nrm, rss[1], PL).status == "ok"
     assert locate_nls(pos, rss[2], PL).status == "too_few_sensors"
