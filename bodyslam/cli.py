@@ -193,6 +193,7 @@ def _parser() -> argparse.ArgumentParser:
     ss.add_argument("motion_csv")
     ss.add_argument("--out", required=True, help="output directory (speed_pdf.png, speed_cdf.png, speed_model.json)")
     ss.add_argument("--frame-rate", type=float, default=None, help="frames/s (default: from the t column)")
+    ss.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     return p
 
 
@@ -456,9 +457,10 @@ def _magnetic_localize(args) -> int:
 
     from bodyslam.io import prepare_output_dir
 
-    out = prepare_output_dir(args.out, args.force)
+    prepare_output_dir(args.out, args.force, create=False)  # refused now; created only once there is a result
     rec = load_recording(args.seqdir)
     t, states, cov = replay(rec)
+    out = prepare_output_dir(args.out, args.force)
     _write_position_track(out, t, states[:, :3], states[:, 3:] / np.linalg.norm(states[:, 3:], axis=1, keepdims=True),
                           cov)
     status = _print_problems(rec["problems"])
@@ -474,10 +476,11 @@ def _hybrid_localize(args) -> int:
 
     from bodyslam.io import prepare_output_dir
 
-    out = prepare_output_dir(args.out, args.force)
+    prepare_output_dir(args.out, args.force, create=False)  # refused now; created only once there is a result
     rec = load_recording(args.seqdir)
     est, cov = run_scheme(args.scheme, rec["x0"], rec["P0"], rec["y"], rec["snr"], rec["imu"], rec["arrays"],
                           rec["radio"], rec["sigma_acc"], rec["delta_s"], args.q_model)
+    out = prepare_output_dir(args.out, args.force)
     sd = _write_position_track(out, rec["t"], est, None, cov)
     status = _print_problems(rec["problems"])
     print(f"{out}/trajectory.tum: {len(est)} positions ({args.scheme}); median predicted 1-sigma "
@@ -565,9 +568,10 @@ def _speed_stats(args) -> int:
     import numpy as np
 
     from bodyslam.errors import InputError
-    from bodyslam.io import read_motion_csv
+    from bodyslam.io import prepare_output_dir, read_motion_csv
     from bodyslam.vision.speed import fit_speed_model, speed_statistics, summary_line, write_speed_report
 
+    prepare_output_dir(args.out, args.force, create=False)  # a non-empty directory is refused before the work
     rows = read_motion_csv(args.motion_csv)
     rate = args.frame_rate
     if rate is None:

@@ -89,3 +89,13 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
     for f in (tmp_path / "loc" / "uncertainty.csv", tmp_path / "b" / "demo_seed0" / "uncertainty.csv",
               tmp_path / "b2" / "frames" / "uncertainty.csv"):
         assert f.read_text().splitlines()[0].split(",") == UNCERTAINTY_COLUMNS, f
+
+
+def test_failed_localizers_leave_no_output_directory(tmp_path):
+    """magnetic-localize and hybrid-localize on a recording they cannot read: exit 1, one line, and nothing that
+    looks like a result (they used to create their output directory first)."""
+    (tmp_path / "rec").mkdir()
+    for cmd in ("magnetic-localize", "hybrid-localize"):
+        p = run(cmd, str(tmp_path / "rec"), "--out", str(tmp_path / cmd))
+        assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "meta.json" in p.stderr
+        assert not (tmp_path / cmd).exists()

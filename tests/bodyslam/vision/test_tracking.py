@@ -131,6 +131,10 @@ def test_speed_statistics_drive_the_testbed(tmp_path):
     assert abs(sum(model["motion"]["phase_probs"]) - 1) < 1e-9
     for png in ("speed_pdf.png", "speed_cdf.png"):
         assert read_image(tmp_path / "speed" / png).shape == (420, 640, 3)
+    # a second run into the same (now non-empty) directory is refused in one line, then allowed with --force
+    p = run("bodyslam.cli", "speed-stats", str(mcsv), "--out", str(tmp_path / "speed"))
+    assert p.returncode == 1 and "not empty" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert run("bodyslam.cli", "speed-stats", str(mcsv), "--out", str(tmp_path / "speed"), "--force").returncode == 0
     # the model drives a new sequence: its mean step, roll and tilt are the model's
     p = run("testbed.cli", "simulate", "demo", "--seed", "3", "--frames", "12", "--out", str(tmp_path / "sim"),
             "--speed-model", str(tmp_path / "speed" / "speed_model.json"))
