@@ -173,8 +173,13 @@ def read_calibration(path: str | os.PathLike, width: int | None = None, height: 
             raise InputError(f"{path}: calibration needs K (3x3), D (4) and width/height ({exc})") from None
         fov = d.get("fov_deg")
     else:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        if not fs.isOpened():
+        try:  # OpenCV's parser raises cv2.error or SystemError on text it cannot parse
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+            opened = fs.isOpened()
+        except (cv2.error, SystemError) as exc:
+            raise InputError(f"{path}: not a readable OpenCV calibration file (YAML/XML): "
+                             f"{str(exc).strip().splitlines()[-1][:120]}") from None
+        if not opened:
             raise InputError(f"{path}: not a readable OpenCV calibration file (YAML/XML)")
 
         def node(*names):
@@ -184,17 +189,25 @@ def read_calibration(path: str | os.PathLike, width: int | None = None, height: 
                     return v
             return None
 
-        kn, dn = node("K", "camera_matrix"), node("D", "distortion_coefficients")
-        if kn is None:
-            raise InputError(f"{path}: no K / camera_matrix in the calibration file")
-        K = np.asarray(kn.mat(), float).reshape(3, 3)
-        D = np.asarray(dn.mat(), float).reshape(-1) if dn is not None else np.zeros(4)
-        wn, hn = node("image_width", "width"), node("image_height", "height")
-        w = int(wn.real()) if wn is not None else int(width or 0)
-        h = int(hn.real()) if hn is not None else int(height or 0)
-        fn = node("fov_deg")
-        fov = fn.real() if fn is not None else None
-        fs.release()
+        def mat(n):  # a matrix node's values, or None (a scalar or a map is not one)
+            return np.asarray(n.mat(), float) if (n is not None and n.isMap() and n.mat() is not None) else None
+
+        try:
+            kn, dn = node("K", "camera_matrix"), node("D", "distortion_coefficients")
+            K, D = mat(kn), mat(dn)
+            if K is None or K.size != 9:
+                raise InputError(f"{path}: no K / camera_matrix (3x3 matrix) in the calibration file")
+            K = K.reshape(3, 3)
+            D = D.reshape(-1) if D is not None else np.zeros(4)
+            wn, hn = node("image_width", "width"), node("image_height", "height")
+            w = int(wn.real()) if wn is not None else int(width or 0)
+            h = int(hn.real()) if hn is not None else int(height or 0)
+            fn = node("fov_deg")
+            fov = fn.real() if fn is not None else None
+        except cv2.error as exc:
+            raise InputError(f"{path}: calibration file is not in the expected form ({str(exc).strip()[-80:]})") from None
+        finally:
+            fs.release()
     if w <= 0 or h <= 0:
         raise InputError(f"{path}: calibration gives no image size (width/height)")
     if len(D) != 4:

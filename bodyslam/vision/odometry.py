@@ -324,13 +324,18 @@ def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_s
         from bodyslam.vision.matching import field_of_view
 
         n = len(source)
-        frames = []
+        frames, other_sizes = [], set()
         for k in np.unique(np.linspace(0, n - 1, min(n_sample, n)).astype(int)):
             fr = source.read_one(int(k))
             if fr.image is not None and fr.image.shape[:2] == (camera.height, camera.width):
                 frames.append(fr.image)
+            elif fr.image is not None:
+                other_sizes.add(f"{fr.image.shape[1]}x{fr.image.shape[0]}")
             elif fr.notes:
                 log.warning("%s: %s (skipped for field-of-view detection)", fr.path, fr.notes[-1][1])
+        if not frames and other_sizes:  # one line up front, not one error per frame
+            raise InputError(f"{source.source}: frames are {', '.join(sorted(other_sizes))}, the camera "
+                             f"(calibration) is {camera.width}x{camera.height}")
         if not frames:
             if mask == "auto":
                 raise InputError(f"{source.source}: no readable frame to detect the field of view from")

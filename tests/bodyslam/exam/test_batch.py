@@ -172,6 +172,18 @@ def test_unusable_input_is_one_clear_line(tmp_path, capsys):
     (tmp_path / "clip.mp4").write_bytes(b"\x00" * 1000)
     assert cli_main(["batch", str(tmp_path / "clip.mp4"), "--out", str(tmp_path / "o")]) == 1
     assert "clip.mp4" in capsys.readouterr().err
+    # calibration files that are not what they claim, and one whose image size is not the frames': one line each
+    _plain_folder(tmp_path / "frames", 4)
+    (tmp_path / "junk.yaml").write_bytes(b"garbage \x00\x01 not yaml")
+    (tmp_path / "scalar.yaml").write_text("%YAML:1.0\nK: 3\n")
+    cam = json.loads(_calib_json(tmp_path).read_text())
+    (tmp_path / "small.json").write_text(json.dumps(dict(cam, width=100, height=100, cx=49.5, cy=49.5)))
+    for calib, message in (("junk.yaml", "not a readable OpenCV calibration"), ("scalar.yaml", "3x3 matrix"),
+                           ("small.json", "the camera (calibration) is 100x100")):
+        code = cli_main(["batch", str(tmp_path / "frames"), "--calib", str(tmp_path / calib), "--out",
+                         str(tmp_path / f"o_{calib}"), "--fps", "2"])
+        err = capsys.readouterr().err
+        assert code == 1 and message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
 def _write_video(path: Path, n: int) -> None:
