@@ -538,15 +538,18 @@ def _batch(args) -> int:
 
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
+    skipped: list = []  # exams of a study that cannot be opened: listed, the others go on
     exams = open_exams(args.inputs, calib=args.calib, fps=args.fps, radius_m=args.radius_m, mask=args.mask,
-                       rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks)
+                       rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks, problems=skipped)
+    for p in skipped:
+        print(f"  not processed: {p[0]}: {p[3]}")
     if args.mark_file:
         read_marks(args.mark_file, exams)
     settings = BatchSettings(_motion_settings(args), chunk_frames=args.chunk_frames, fusion=args.fusion)
     total_frames = sum(e.n_positions for e in exams)
     print(f"{len(exams)} exam(s), {total_frames} frames -> {args.out}", flush=True)
     rep = run_batch(exams, args.out, settings, jobs=args.jobs, scheduler=args.scheduler, force=args.force,
-                    progress=Progress("batch"))
+                    progress=Progress("batch"), problems=skipped)
     for s in rep.exams:
         steps = s["steps"]
         c = s["classes"]

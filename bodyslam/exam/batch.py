@@ -278,12 +278,16 @@ def _unique_name(name: str, taken: set[str]) -> str:
 def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = None,
                radius_m: float | None = None, mask: str | None = None, rf: str | None = None,
                sensors: str | None = None, marks: list[tuple[int, str]] | None = None,
-               landmarks: list[int] | None = None) -> list[Exam]:
+               landmarks: list[int] | None = None, problems: list | None = None) -> list[Exam]:
     """Exams from command-line inputs: frame folders, sequence directories, videos, manifests (CSV/JSON).
 
     A manifest lists one exam per row (CSV with a header) or object (JSON list): ``input`` and optionally
     ``name, calib, fps, radius_m, mask, rf, sensors, marks, landmarks`` (frame lists as ``"120;455"``);
     relative paths are relative to the manifest. Command-line options are defaults for every exam.
+
+    ``problems``: in a study (several inputs or manifest rows), an exam that cannot be opened is listed there as
+    ``[source, "", "error", reason]`` and the others go on (the study then exits 3); without it, or when no exam
+    of the study can be opened, the first such error is raised.
 
     Raises
     ------
@@ -292,6 +296,17 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
     """
     exams: list[Exam] = []
     taken: set[str] = set()
+    failed: list[InputError] = []
+
+    def add(make, source) -> None:
+        try:
+            exams.append(make())
+        except InputError as exc:
+            if problems is None:
+                raise
+            failed.append(exc)
+            problems.append([str(source), "", "error", f"exam not processed: {exc}"])
+
     base = {"calib": calib, "fps": fps, "radius_m": radius_m, "mask": mask, "rf": rf, "sensors": sensors,
             "marks": marks or [], "landmarks": landmarks or []}
     for inp in inputs:
@@ -313,9 +328,11 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
                 if row.get("landmarks"):
                     opts["landmarks"] = parse_frame_list(row["landmarks"])
                 src = (p.parent / row["input"]).resolve()
-                exams.append(_open_exam(src, row.get("name") or src.stem, taken, **opts))
+                add(lambda: _open_exam(src, row.get("name") or src.stem, taken, **opts), src)
         else:
-            exams.append(_open_exam(p, p.stem if p.is_file() else p.name, taken, **base))
+            add(lambda: _open_exam(p, p.stem if p.is_file() else p.name, taken, **base), p)
+    if failed and not exams:
+        raise failed[0]
     if not exams:
         raise InputError("no exams to process")
     return exams
@@ -534,8 +551,10 @@ def _run_tasks(func, tasks: list[dict], jobs: int | None, scheduler: str | None,
 
 def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings = BatchSettings(),
               jobs: int | None = None, scheduler: str | None = None, force: bool = False,
-              progress: Callable[[int, int], None] | None = None) -> BatchReport:
-    """Process every exam into ``out`` (module docstring): resumable, streaming, parallel."""
+              progress: Callable[[int, int], None] | None = None, problems: list | None = None) -> BatchReport:
+    """Process every exam into ``out`` (module docstring): resumable, streaming, parallel. ``problems``: the
+    study's own (exams that could not be opened, :func:`open_exams`), listed first in ``problems.csv``; an exam
+    whose field of view cannot be set up is listed there too and left out, the others go on."""
     out = Path(out)
     if settings.chunk_frames < 2:
         raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
@@ -546,9 +565,19 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     tasks, reused, total = [], 0, sum(e.n_positions for e in exams)
     done_frames = 0
     masks = {}
+    study_problems = [["", *p] for p in (problems or [])]
+    usable = []
     for e in exams:
+        try:
+            mask = _mask_for(e)
+        except InputError as exc:
+            if len(exams) == 1:
+                raise
+            study_problems.append([e.name, e.source, "", "error", f"exam not processed: {exc}"])
+            continue
+        usable.append(e)
+        masks[e.name] = mask
         (out / e.name / "chunks").mkdir(parents=True, exist_ok=True)
-        masks[e.name] = mask = _mask_for(e)
         write_mask(out / e.name / "mask.png", mask, camera_from_dict(e.camera))  # the field of view used
         src = e.frame_source()
         for i, (a, b) in enumerate(chunk_bounds(e.n_positions, settings.chunk_frames)):
@@ -559,6 +588,8 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                 continue
             tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "source": src.subset(a, b),
                           "camera": e.camera, "radius_m": e.radius_m, "settings": settings.motion, "mask": mask})
+    if not usable:
+        raise InputError(f"no exam of the study could be processed: {study_problems[-1][-1]}")
     if reused:
         log.info("%d chunk(s) reused from an earlier run", reused)
     if progress:
@@ -573,9 +604,10 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
         done_frames += task["last"] - task["first"] + (task["first"] == 0)
         if progress:
             progress(done_frames, total)
+    exams = usable
     for e in exams:
         _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
-    summaries, all_problems = [], []
+    summaries, all_problems = [], list(study_problems)
     for e in exams:
         s, probs = _finalize(e, out / e.name, settings)
         summaries.append(s)

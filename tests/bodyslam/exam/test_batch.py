@@ -273,3 +273,19 @@ def test_dask_local_cluster_gives_the_same_results(tmp_path):
                         scheduler=cluster.scheduler_address)
     assert rep.chunks_computed == 2
     _same_outputs(tmp_path / "local" / "exam", tmp_path / "dask" / "exam")
+
+
+def test_a_broken_exam_in_a_study_is_listed_and_the_others_finish(tmp_path, capsys):
+    _plain_folder(tmp_path / "good", 6)
+    (tmp_path / "broken.mp4").write_bytes(b"")  # zero bytes: cannot be opened
+    (tmp_path / "m.csv").write_text("input,name\ngood,good\nbroken.mp4,broken\n")
+    code = cli_main(["batch", str(tmp_path / "m.csv"), "--out", str(tmp_path / "o"), "--jobs", "1"])
+    out = capsys.readouterr().out
+    assert code == 3 and "not processed" in out and "broken.mp4" in out
+    assert (tmp_path / "o" / "good" / "trajectory.tum").is_file() and not (tmp_path / "o" / "broken").exists()
+    problems = (tmp_path / "o" / "problems.csv").read_text().splitlines()
+    assert any("broken.mp4" in ln and "error" in ln for ln in problems[1:])
+    # a study whose every exam is broken has nothing to do: one line, exit 1
+    (tmp_path / "m2.csv").write_text("input\nbroken.mp4\n")
+    assert cli_main(["batch", str(tmp_path / "m2.csv"), "--out", str(tmp_path / "o2")]) == 1
+    assert "broken.mp4" in capsys.readouterr().err
