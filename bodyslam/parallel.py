@@ -26,6 +26,14 @@ def available_cores() -> int:
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+def _ignore_ctrl_c() -> None:
+    """Pool workers leave Ctrl-C to the parent (the terminal sends it to the whole process group): the parent
+    stops the pool and says 'interrupted'; a worker's own KeyboardInterrupt traceback would only be noise."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None, ordered: bool = True) -> Iterator[T]:
     """``func(task)`` for every task, in order (or as they finish with ``ordered=False``); in this process when
     one job suffices, else in a spawned pool of ``jobs`` (default: one per available core) workers, closed when
@@ -40,7 +48,7 @@ def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None,
     for v in _THREAD_VARS:
         os.environ.setdefault(v, "1")
     try:
-        pool = mp.get_context("spawn").Pool(jobs)
+        pool = mp.get_context("spawn").Pool(jobs, initializer=_ignore_ctrl_c)
     finally:
         for v, x in saved.items():
             if x is None:

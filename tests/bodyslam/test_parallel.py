@@ -18,3 +18,43 @@ def test_pool_workers_keep_to_one_blas_thread_and_the_parent_is_untouched():
     assert got == [[1], [1]], got  # (this process: one per core)
     assert {v: os.environ.get(v) for v in before} == before
     assert list(imap_tasks(lambda x: x * 2, [1, 2, 3], jobs=1)) == [2, 4, 6]  # one job: in this process
+
+
+SCRIPT = '''
+import sys, time
+from bodyslam.cliutil import run_cli
+from bodyslam.parallel import imap_tasks
+
+
+def slow(x):
+    time.sleep(30)
+    return x
+
+
+def main(argv):
+    print("started", flush=True)
+    list(imap_tasks(slow, [1, 2], jobs=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main, None))
+'''
+
+
+def test_ctrl_c_stops_a_pool_cleanly(tmp_path):
+    """Ctrl-C reaches the whole process group: the workers must not print their own KeyboardInterrupt tracebacks;
+    the command says 'interrupted' and exits 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "job.py").write_text(SCRIPT)
+    p = subprocess.Popen([sys.executable, str(tmp_path / "job.py")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, start_new_session=True)
+    assert p.stdout.readline().strip() == "started"
+    time.sleep(3.0)  # the two workers are spawned and sleeping in their task
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
