@@ -46,7 +46,18 @@ def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
         "p90_distance_error_cm": float(np.percentile(e_d, 90) * 100),
         "p90_roll_error_deg": float(np.degrees(np.percentile(e_r, 90))),
         "p90_tilt_error_deg": float(np.degrees(np.percentile(e_t, 90))),
+        # is the stated per-step 1-sigma honest? the fraction of steps whose distance error is within it (0.683
+        # for an honest Gaussian 1-sigma), over the steps that state one
+        **_within_sigma(e_d, es["sigma_distance_m"][idx]),
     }
+
+
+def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
+    ok = np.isfinite(sigma) & (sigma > 0)
+    if not ok.any():
+        return {}
+    return {"distance_within_1sigma": float(np.mean(err[ok] <= sigma[ok])),
+            "distance_within_2sigma": float(np.mean(err[ok] <= 2 * sigma[ok]))}
 
 
 def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> dict:
@@ -61,6 +72,8 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
     keys = ("distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad")
     tr = {c: np.array([truth[k][c] for k in frames]) for c in keys}
     es = {c: np.array([est[k][c] if k in est else math.nan for k in frames]) for c in keys}
+    es["sigma_distance_m"] = np.array([est[k].get("sigma_distance_m", math.nan) if k in est else math.nan
+                                       for k in frames])
     status = np.array([est[k]["status"] if k in est else "missing" for k in frames])
     label = np.array([truth[k]["label"] for k in frames])
     has = (status == "ok") & np.isfinite(es["distance_m"]) & np.isfinite(es["roll_rad"])

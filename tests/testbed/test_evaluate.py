@@ -80,3 +80,13 @@ def test_frames_without_a_position_are_counted_not_averaged():
     s = _stats(e, np.full(4, 1e-4))
     assert s["mean_error_cm"] == 2.0 and s["frames_without_position"] == 1 and s["max_error_cm"] == 3.0
     assert "frames_without_position" not in _stats(e[[0, 2, 3]], np.full(3, 1e-4))
+
+
+def test_per_step_sigma_coverage():
+    import numpy as np
+
+    from testbed.score import _within_sigma
+
+    got = _within_sigma(np.array([0.1, 0.5, 2.0, 3.0]), np.array([1.0, 1.0, 1.0, np.nan]))
+    assert got == {"distance_within_1sigma": 2 / 3, "distance_within_2sigma": 1.0}  # the NaN-sigma step left out
+    assert _within_sigma(np.array([0.1]), np.array([np.nan])) == {}
