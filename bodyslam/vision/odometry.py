@@ -59,7 +59,7 @@ class MotionSettings:
     #                          PNG path (non-zero = valid)
     classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
     model: str | None = None  # classifier model file (default: the shipped one)
-    classify_px: int | None = None  # SRM working size for classification; None: 96 px (classify_work_px)
+    classify_px: int | None = None  # SRM working size for classification; None: classify_work_px (96, fast 64)
     bridge_gaps: int = 15  # runs of up to this many steps without an estimate are bridged by matching their
     #                        end frames directly (0: off); see README "gap bridging"
 
@@ -74,13 +74,13 @@ class MotionSettings:
 
 
 def classify_work_px(settings: MotionSettings) -> int:
-    """SRM working size of the classifier: 96 px in every mode unless the settings say. Chosen by accuracy on the
-    realistic testbed's appearance (tuning seeds 503-509, 700 frames: 0.909 at 48 px, 0.923 at 64, 0.957 at 96)
-    and on real PillCam frames (48 px calls four lumen-facing frames FL, 64 and 96 px FT); fast mode used 48 px
-    until session 7 (2.5 ms instead of 9.7 per frame, as accurate on the ideal testbed only)."""
+    """SRM working size of the classifier: 96 px, 64 px in fast mode, unless the settings say. Chosen by accuracy on
+    the realistic testbed's appearance (tuning seeds 503-509, 700 frames: 0.909 at 48 px, 0.923 at 64, 0.957 at 96)
+    and on real PillCam frames (48 px calls four lumen-facing frames FL, 64 and 96 px FT), against speed in fast
+    mode (a whole exam at 96 px: 49 frames/s instead of 78 at 48 px). Fast mode used 48 px until session 7."""
     if settings.classify_px:
         return int(settings.classify_px)
-    return 96
+    return 64 if settings.match_mode == "fast" else 96
 
 
 @dataclass
