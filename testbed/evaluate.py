@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from bodyslam.fusion.body_slam import fuse, kf_thesis, step_pose
-from bodyslam.io import read_motion_steps, read_tum, write_image, write_json
+from bodyslam.io import read_motion_steps, read_tum, write_image, write_json, write_tum
 from bodyslam.fusion.channel import inflate
 from bodyslam.fusion.localize import RfInput, localize, online_inflation
 from bodyslam.meta import read_meta
@@ -72,6 +72,7 @@ def evaluate_sequence(d: Path) -> dict:
         "ekf_rss_rts": loc.smoothed.positions_w_m,
     }
     with_cov = {"ekf_rss": ekf, "ekf_rss_causal": causal, "ekf_rss_rts": loc.smoothed}
+    _write_trajectories(d / "trajectories", np.arange(len(gt)) / meta.frame_rate_hz, est, with_cov)
     problems = rf.problems
     sig_t, sig_r = _measured_step_noise(steps, gt, grot)
     # prior of the bound: no information beyond the abdomen (10 cm, 45 deg); every RF reading counted once. The
@@ -90,6 +91,21 @@ def evaluate_sequence(d: Path) -> dict:
             "motion": score_motion(d, d / "motion.csv"),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": loc.channel.kappa, "online_last_frame": float(loc.kappa_online[-1])}}
+
+
+def _write_trajectories(out: Path, stamps_s: np.ndarray, est: dict, with_cov: dict) -> None:
+    """Every algorithm's trajectory as ``out/<algorithm>.tum`` (body frame; evo reads them beside
+    ``groundtruth.tum``). Frames without a position (an RF fix that failed) are left out; algorithms that estimate
+    no orientation carry the identity, and their header says so."""
+    from scipy.spatial.transform import Rotation
+
+    out.mkdir(parents=True, exist_ok=True)
+    for name, pos in est.items():
+        ok = np.isfinite(pos).all(axis=1)
+        res = with_cov.get(name)
+        rot = res.rotations_w_c[np.nonzero(ok)[0]] if res is not None else Rotation.identity(int(ok.sum()))
+        write_tum(out / f"{name}.tum", stamps_s[ok], pos[ok], rot,
+                  world="body frame" if res is not None else "body frame; orientation not estimated: identity")
 
 
 CHI2_3_683 = 3.527  # the 3-D region holding 68.3% of a Gaussian: what "inside 1-sigma" means for a position

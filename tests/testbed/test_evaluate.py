@@ -32,6 +32,13 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     for png in ("trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png", "error_histogram.png",
                 "error_cdf.png"):
         assert (out / png).stat().st_size > 1000
+    # every algorithm's trajectory as TUM beside the truth (evo reads them), orientation where it has one
+    from bodyslam.io import read_tum
+
+    tdir = out / "sequences" / "seed_0" / "trajectories"
+    t, p, _ = read_tum(tdir / "ekf_rss_rts.tum")
+    assert len(t) == 20 and sorted(f.stem for f in tdir.glob("*.tum")) == sorted(rep["algorithms"])
+    assert "orientation not estimated" in (tdir / "rf_ml.tum").read_text().splitlines()[0]
     # the kept frames survive a re-scoring that did not render them (it used to delete them)
     assert len(list((out / "sequences" / "seed_0" / "frames").iterdir())) == 20
 
