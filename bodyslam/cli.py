@@ -12,7 +12,6 @@ interrupted (Ctrl-C: finished outputs and checkpoints are kept, nothing half-wri
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
 from bodyslam.choices import CAMERAS, ESTIMATORS, FUSION_MODES, MATCH_MODES, SCHEMES, TRACKERS, UNROLL_MODES
@@ -55,6 +54,10 @@ COMMANDS = {
 }
 
 
+FOV_HELP = ("valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), "
+            "'circle', or a PNG (non-zero = valid)")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bodyslam", description="Body-SLAM capsule localization toolkit. Exit "
                                 "status: 0 done, 3 done with problems listed, 1 unusable input, 130 interrupted.")
@@ -85,9 +88,7 @@ def _parser() -> argparse.ArgumentParser:
     def frame_opts(q):
         q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
         q.add_argument("--mask", default="auto",
-                       help="valid field of view: 'auto' (default: detected from the frames -- field stop, burned-in "
-                            "text -- or the camera's image circle where they agree), 'circle', or a PNG (non-zero = "
-                            "valid); the one used is written next to the output (*_mask.png, mask.png)")
+                       help=FOV_HELP + "; the one used is written next to the output (*_mask.png, mask.png)")
         q.add_argument("--no-classify", action="store_true",
                        help="estimate every step; by default steps touching a facing-the-wall frame get no_lumen")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
@@ -99,7 +100,7 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("b")
     m.add_argument("--out", required=True)
     m.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
-    m.add_argument("--mask", default="auto", help="valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), 'circle', or a PNG")
+    m.add_argument("--mask", default="auto", help=FOV_HELP)
     motion_opts(m, estimator=False)
     u = cmd("unroll")
     u.add_argument("frame")
@@ -121,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
     sg.add_argument("--meta", default=None, help="meta.json (or its sequence directory) with the camera")
     sg.add_argument("--q", type=float, default=16.0, help="SRM coarseness Q (dissertation: 16)")
     sg.add_argument("--full", action="store_true", help="segment at full resolution (slow) instead of 96 px")
-    sg.add_argument("--mask", default="auto", help="valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), 'circle', or a PNG")
+    sg.add_argument("--mask", default="auto", help=FOV_HELP)
     tc = cmd("train-classifier")
     tc.add_argument("seqdirs", nargs="+")
     tc.add_argument("--out", required=True, help="model file (.npz)")
@@ -134,7 +135,7 @@ def _parser() -> argparse.ArgumentParser:
     cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
     cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
     cl.add_argument("--jobs", type=int, default=None)
-    cl.add_argument("--mask", default="auto", help="valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), 'circle', or a PNG"[:-1] + "; written next to --out as *_mask.png\"")
+    cl.add_argument("--mask", default="auto", help=FOV_HELP + "; written next to --out as *_mask.png")
     rl = cmd("rf-localize")
     rl.add_argument("--rf", required=True, help="rf.csv (t,sensor,rss_dbm)")
     rl.add_argument("--sensors", required=True, help="sensors.csv (sensor,x,y,z[,nx,ny,nz])")
@@ -244,39 +245,29 @@ def _frames_of(inp):
     return [p / name for _, name in frames], None
 
 
-def _read_or_none(path):
+def _fov_of(images: list, cam, mask: str):
+    """The field of view for a command on a few frames, as a bool mask (the image circle filled in):
+    :func:`bodyslam.vision.odometry.fov_from_frames`."""
+    from bodyslam.vision.odometry import fov_from_frames
+
+    m = fov_from_frames([im for im in images if im.shape[:2] == (cam.height, cam.width)], cam, mask)
+    return cam.fov_mask() if m is None else m
+
+
+def _sample_frames(paths: list, n: int = 30) -> list:
+    """Up to ``n`` readable frames spread over ``paths`` (for the field-of-view detection)."""
+    import numpy as np
+
     from bodyslam.errors import InputError
     from bodyslam.io import read_image
 
-    try:
-        return read_image(path)
-    except InputError:
-        return None
-
-
-def _fov_of(images: list, cam, mask: str):
-    """The field of view for a command on a few frames (bool mask, never None): ``mask`` as ``--mask`` says
-    (:func:`bodyslam.vision.odometry.resolve_mask`'s rules)."""
-    import numpy as np
-
-    from bodyslam.io import read_image
-    from bodyslam.vision.matching import field_of_view
-
-    if mask == "circle":
-        return cam.fov_mask()
-    if mask == "auto":
-        if not images:
-            return cam.fov_mask()
-        m, how = field_of_view(images, cam.fov_mask())
-        logging.getLogger(__name__).info("field of view: %s", how)
-        return cam.fov_mask() if m is None else m
-    img = read_image(mask, unchanged=True)
-    img = img.max(axis=2) if img.ndim == 3 else img
-    if img.shape != (cam.height, cam.width):
-        from bodyslam.errors import InputError
-
-        raise InputError(f"{mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are {cam.width}x{cam.height}")
-    return np.asarray(img > 0)
+    out = []
+    for k in np.unique(np.linspace(0, len(paths) - 1, min(n, len(paths))).astype(int)):
+        try:
+            out.append(read_image(paths[int(k)]))
+        except InputError:
+            pass  # unreadable frames are listed by the classification itself
+    return out
 
 
 def _segment(args) -> int:
@@ -334,9 +325,7 @@ def _classify(args) -> int:
     if cam is None:
         cam = _camera_for(read_image(paths[0]), args.meta)
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
-    sample = [paths[int(k)] for k in np.unique(np.linspace(0, len(paths) - 1, min(30, len(paths))).astype(int))]
-    fov = _fov_of([im for im in (_read_or_none(p) for p in sample) if im is not None and im.shape[:2] == (cam.height, cam.width)],
-                  cam, args.mask)
+    fov = _fov_of(_sample_frames(paths), cam, args.mask)
     res = features_of_frames(paths, fov, jobs=args.jobs, progress=Progress("classify"))
     rows = []
     for p, (st, msg, f) in zip(paths, res):
@@ -509,18 +498,19 @@ def _localize(args) -> int:
     frames = np.arange(n)
     stamps = frames / seq.frame_rate_hz
     problems: list = []
+    fov: list = []
     if args.motion:
         steps = read_motion_steps(args.motion, range(1, n))
     else:
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
-                                progress=Progress("motion"), problems=problems)
+                                progress=Progress("motion"), problems=problems, fov_used=fov)
     loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
-        from bodyslam.vision.odometry import resolve_mask, write_mask
+        from bodyslam.vision.odometry import write_mask
 
         write_motion_csv(out / "motion.csv", frames[1:], stamps[1:], steps)
-        write_mask(out / "mask.png", resolve_mask(seq.source, seq.camera, _motion_settings(args).mask), seq.camera)
+        write_mask(out / "mask.png", fov[0], seq.camera)  # the field of view the motion used
     write_localization(out, loc)
     res = loc.smoothed
     sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
@@ -650,20 +640,19 @@ def _motion_or_track(args) -> int:
 
     import numpy as np
 
+    from pathlib import Path
+
     from bodyslam.io import check_writable, write_motion_csv, write_tum
-    from bodyslam.vision.odometry import Sequence, sequence_motion
+    from bodyslam.vision.odometry import Sequence, sequence_motion, write_mask
     from bodyslam.vision.tracking import dead_reckon, path_travelled
 
     settings = _motion_settings(args)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
     check_writable(args.out)
     problems: list = []
-    from pathlib import Path
-
-    out = Path(args.out)
+    fov: list = []
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
-                            progress=Progress(args.cmd), camera=args.camera, problems=problems,
-                            mask_out=out.with_name(out.stem + "_mask.png"))
+                            progress=Progress(args.cmd), camera=args.camera, problems=problems, fov_used=fov)
     counts = Counter(str(s.status) for s in steps)
     stamps = np.arange(len(steps) + 1) / seq.frame_rate_hz
     if args.cmd == "motion":
@@ -671,6 +660,8 @@ def _motion_or_track(args) -> int:
     else:
         pos, rot = dead_reckon(steps)
         write_tum(args.out, stamps, pos, rot, world="first camera frame")
+    out = Path(args.out)
+    write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
     path, var = path_travelled(steps)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")

@@ -3,8 +3,9 @@
 Workers are *spawned*, never forked: a child forked from a process that already runs OpenCV's (or Embree's)
 thread pool can deadlock on a lock held at fork time. Results come back in task order, as they finish, so a
 caller can stream them (progress, bounded memory). A pool has one worker per core, so each worker keeps to one
-BLAS/OpenMP thread (``OMP/OPENBLAS/MKL_NUM_THREADS=1`` in the environment it is spawned with) and its chunk tasks to one OpenCV thread
-(:func:`bodyslam.vision.odometry.set_worker_threads`): more would only compete for the same cores.
+BLAS/OpenMP thread (``OMP/OPENBLAS/MKL_NUM_THREADS=1`` in the environment it is spawned with) and its chunk tasks
+to one OpenCV thread (:func:`bodyslam.vision.odometry.set_worker_threads`): more would only compete for the same
+cores. (The testbed's renderer runs its own pool: :mod:`testbed.simulate`.)
 """
 
 from __future__ import annotations

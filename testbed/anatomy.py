@@ -20,11 +20,12 @@ it is tuned on the data it is scored on; see ``benchmarks/bench_centerline.py``.
 Meshes that are not watertight (issue 15: real segmentations come in open pieces with holes of several cm): every
 boundary loop -- a hole in the wall or the open end of a piece -- is capped by a fan of triangles from the loop's
 centroid (:func:`cap_boundaries`), which closes the voxelised shell so the fill finds each piece's inside. Each
-piece's skeleton gives its own end-to-end path (the same spanning tree and loop repair); the paths are chained end
-to end (:func:`_chain_pieces`): from the longest, the next piece is the one whose end is nearest to the chain's
-end, a gap counted longer the more either end would have to turn to meet it, and gaps are bridged by a cubic
-Hermite curve along the two end tangents, its radius interpolated. Pieces shorter than ``min_piece_mm`` (debris)
-and gaps over ``max_gap_mm`` are left out, with a warning. A watertight mesh takes none of these steps: its figure
+piece is skeletonised on its own (pieces that touch must not merge) and gives its own end-to-end path (the same
+spanning tree and loop repair); the paths are chained end to end (:func:`_chain_pieces`: greedy matching of piece
+ends, the cheapest gap first, a gap counted longer the more either end would have to turn to meet it; the gap
+limit doubled for what is left), and gaps are bridged by a cubic Hermite curve along the two end tangents, its
+radius interpolated. Pieces shorter than ``min_piece_mm`` (debris) and pieces no chain reaches are left out, with
+a warning. A watertight mesh takes none of these steps: its figure
 is unchanged. Scored on the CT gut cut open (``benchmarks/bench_centerline.py --open``).
 
 Data form: returns a :class:`~testbed.centerline.Centerline` in metres (mesh frame scaled to mm, then to m).
@@ -139,7 +140,7 @@ def extract_centerline(
             p_mm, r_mm, _ = _piece_path(capped, pitch_mm, min_gain_mm)
         except InputError:
             continue  # encloses nothing at this pitch
-        if np.sum(np.linalg.norm(np.diff(p_mm, axis=0), axis=1)) >= min_piece_mm:
+        if _length_mm(p_mm) >= min_piece_mm:
             pieces.append((p_mm, r_mm))
     if not pieces:
         raise InputError(f"mesh is in {len(parts)} open piece(s), none enclosing a tube of {min_piece_mm:.0f} mm "
@@ -187,6 +188,11 @@ def _piece_path(mesh_mm, pitch_mm: float, min_gain_mm: float):
     return origin + idx[path] * pitch_mm, r[path], n_comp
 
 
+def _length_mm(p: np.ndarray) -> float:
+    """Length of a polyline (its units)."""
+    return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+
+
 def _end_tangent(p: np.ndarray, at_end: bool, reach_mm: float = 10.0) -> np.ndarray:
     """Unit direction in which a polyline leaves through one of its ends (over its last ``reach_mm``)."""
     q = p if at_end else p[::-1]
@@ -219,7 +225,7 @@ def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3):
         if len(chains) == 1:
             break
         limit *= 2.0
-    best = max(chains, key=lambda c: float(np.sum(np.linalg.norm(np.diff(c[0], axis=0), axis=1))))
+    best = max(chains, key=lambda c: _length_mm(c[0]))
     if best[2] < len(pieces):
         log.warning("%d skeleton piece(s) not joined to the longest chain (gaps over %.0f mm): left out",
                     len(pieces) - best[2], limit / 2.0)

@@ -103,9 +103,8 @@ def _check_override(key: str, sec_name: str, name: str, value, old) -> None:
     """Refuse an override whose key the scenario does not know or whose value is of the wrong kind."""
     known = OPTIONAL_KEYS.get(sec_name, {})
     if old is None and name not in known and sec_name not in _CHECKED_ELSEWHERE:
-        where = sorted(known)
         raise ConfigError(f"--set {key}: unknown key {name!r} in [{sec_name}]"
-                          + (f" (known: {', '.join(where)})" if where else " (not in this scenario)"))
+                          + (f" (known: {', '.join(sorted(known))})" if known else " (not in this scenario)"))
     want = known.get(name) or (None if old is None else _kind_of(old))
     if want is None:
         return

@@ -15,7 +15,7 @@ lag that is not significant (``rho_l < 2 / sqrt(pairs)``, or fewer than ``MIN_PA
 readings of frames ``0 .. k`` only, for the online filter's frame ``k``. :func:`inflate` scales a run's covariance
 by it. The positions are not changed: the inflation is what the stated 1-sigma must admit, not a re-weighting
 (measured on tuning seeds: re-running the filter with the readings down-weighted by ``kappa`` made it *less*
-accurate on the realistic testbed, 6.6 -> 9 cm, because its vision heading is the weaker half there).
+accurate on the realistic testbed's tuning seeds 500-502, 6.6 -> 9.6 cm online, because its vision heading is the weaker half there).
 
 What it does not see: error the residuals cannot show (the estimate follows part of the correlated error, so
 ``kappa`` is if anything low), and error from the vision's heading. On the ideal ``thesis`` channel ``kappa`` is 1.0.

@@ -45,7 +45,7 @@ from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "find_gaps",
-           "split_motion", "resolve_mask", "classify_work_px", "bridge_gaps"]
+           "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
 
 
 @dataclass(frozen=True)
@@ -315,32 +315,17 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
 
 
 # -- masks ------------------------------------------------------------------------------------------------------
-def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_sample: int = 30) -> np.ndarray | None:
-    """The valid field-of-view mask of a source (see :attr:`MotionSettings.mask`): None means the camera's image
-    circle. ``None``/``"auto"``: detected from ``n_sample`` frames spread over the exam
-    (:func:`bodyslam.vision.matching.field_of_view`); ``"circle"``; or read from a PNG."""
+def fov_from_frames(frames: list[np.ndarray], camera: CameraModel, mask: str | None) -> np.ndarray | None:
+    """The valid field of view by the ``--mask`` rule (:attr:`MotionSettings.mask`) for a few frames of the
+    camera's size: None means the camera's image circle. ``None``/``"auto"``: detected from ``frames``
+    (:func:`bodyslam.vision.matching.field_of_view`; none given: the circle); ``"circle"``; or read from a PNG."""
     if mask == "circle":
         return None
     if mask in (None, "auto"):
+        if not frames:
+            return None
         from bodyslam.vision.matching import field_of_view
 
-        n = len(source)
-        frames, other_sizes = [], set()
-        for k in np.unique(np.linspace(0, n - 1, min(n_sample, n)).astype(int)):
-            fr = source.read_one(int(k))
-            if fr.image is not None and fr.image.shape[:2] == (camera.height, camera.width):
-                frames.append(fr.image)
-            elif fr.image is not None:
-                other_sizes.add(f"{fr.image.shape[1]}x{fr.image.shape[0]}")
-            elif fr.notes:
-                log.warning("%s: %s (skipped for field-of-view detection)", fr.path, fr.notes[-1][1])
-        if not frames and other_sizes:  # one line up front, not one error per frame
-            raise InputError(f"{source.source}: frames are {', '.join(sorted(other_sizes))}, the camera "
-                             f"(calibration) is {camera.width}x{camera.height}")
-        if not frames:
-            if mask == "auto":
-                raise InputError(f"{source.source}: no readable frame to detect the field of view from")
-            return None
         m, how = field_of_view(frames, camera.fov_mask())
         log.info("field of view: %s", how)
         return m
@@ -350,6 +335,29 @@ def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_s
     if img.shape != (camera.height, camera.width):
         raise InputError(f"{mask}: mask is {img.shape[1]}x{img.shape[0]}, frames are {camera.width}x{camera.height}")
     return img > 0
+
+
+def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_sample: int = 30) -> np.ndarray | None:
+    """:func:`fov_from_frames` for a whole source: the detection (``None``/``"auto"``) looks at ``n_sample``
+    frames spread over the exam. Frames none of which is the camera's size are one error up front."""
+    if mask not in (None, "auto"):
+        return fov_from_frames([], camera, mask)
+    n = len(source)
+    frames, other_sizes = [], set()
+    for k in np.unique(np.linspace(0, n - 1, min(n_sample, n)).astype(int)):
+        fr = source.read_one(int(k))
+        if fr.image is not None and fr.image.shape[:2] == (camera.height, camera.width):
+            frames.append(fr.image)
+        elif fr.image is not None:
+            other_sizes.add(f"{fr.image.shape[1]}x{fr.image.shape[0]}")
+        elif fr.notes:
+            log.warning("%s: %s (skipped for field-of-view detection)", fr.path, fr.notes[-1][1])
+    if not frames and other_sizes:  # one line up front, not one error per frame
+        raise InputError(f"{source.source}: frames are {', '.join(sorted(other_sizes))}, the camera "
+                         f"(calibration) is {camera.width}x{camera.height}")
+    if not frames and mask == "auto":
+        raise InputError(f"{source.source}: no readable frame to detect the field of view from")
+    return fov_from_frames(frames, camera, mask)
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray | None, camera: CameraModel) -> None:
@@ -427,11 +435,11 @@ def chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
 def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = MotionSettings(),
                     jobs: int | None = None, radius_m: float | None = None, chunk_frames: int = 50,
                     progress: Callable[[int, int], None] | None = None, camera: str = "front",
-                    problems: list | None = None, mask_out: str | os.PathLike | None = None) -> list[StepMotion]:
+                    problems: list | None = None, fov_used: list | None = None) -> list[StepMotion]:
     """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order), gaps
     bridged. ``camera="rear"``: a dual-camera capsule's rear frames, reported as the body's motion.
-    ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame; ``mask_out``: where to
-    write the field of view used (:func:`write_mask`)."""
+    ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame; ``fov_used``: one that
+    receives the field-of-view mask the run used (None: the image circle; :func:`write_mask` writes it)."""
     from bodyslam.parallel import imap_tasks
 
     seq = Sequence.open(seq_dir, radius_m, camera)
@@ -439,8 +447,8 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     if n < 2:
         raise InputError(f"{seq_dir}: need at least 2 frames, meta.json says {n}")
     mask = resolve_mask(seq.source, seq.camera, settings.mask)
-    if mask_out is not None:
-        write_mask(mask_out, mask, seq.camera)
+    if fov_used is not None:
+        fov_used.append(mask)
     base = seq.task_base(settings, mask)
     tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b) for a, b in chunk_bounds(n, chunk_frames)]
     steps: list[StepMotion] = []
