@@ -504,7 +504,8 @@ def _localize(args) -> int:
     else:
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
                                 progress=Progress("motion"), problems=problems, fov_used=fov)
-    loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion)
+    loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion,
+                   radius_sd_rel=seq.radius_sd_m / seq.radius_m)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
         from bodyslam.vision.odometry import write_mask

@@ -52,6 +52,7 @@ class SequenceMeta:
     rear_camera: RearCamera | None = None
     raw: dict = field(default_factory=dict, repr=False, compare=False)
     path: Path | None = field(default=None, compare=False)  # the meta.json read, for messages
+    tube_radius_sd_m: float = 0.0  # 1-sigma of tube_radius_m (0: known exactly; a population prior's spread)
 
     def camera_model(self) -> CameraModel:
         return camera_from_dict(self.camera)
@@ -103,6 +104,10 @@ def meta_from_dict(d: Any, path: Path | None = None) -> SequenceMeta:
     except InputError as exc:
         raise InputError(f"{where}: camera: {exc}") from None
     radius = _number(d, "tube_radius_m", where, required=False)
+    radius_sd = _number(d, "tube_radius_sd_m", where, positive=False, required=False)
+    radius_sd = 0.0 if radius_sd is None else radius_sd
+    if radius_sd < 0 or (radius is not None and radius_sd >= radius):
+        raise InputError(f"{where}: tube_radius_sd_m must be >= 0 and below tube_radius_m, got {radius_sd!r}")
     frames = d.get("frames", {})
     if frames is None:
         frames = {}
@@ -138,7 +143,7 @@ def meta_from_dict(d: Any, path: Path | None = None) -> SequenceMeta:
         except (KeyError, TypeError, ValueError, AttributeError, InputError) as exc:
             raise InputError(f"{where}: malformed rear_camera ({exc})") from None
         rear = RearCamera(r["camera"], rdir, q, t)
-    return SequenceMeta(n, rate, cam, radius, frames.get("dir", "frames"), rf, rear, dict(d), path)
+    return SequenceMeta(n, rate, cam, radius, frames.get("dir", "frames"), rf, rear, dict(d), path, radius_sd)
 
 
 def read_meta(seq_dir: str | os.PathLike) -> SequenceMeta:

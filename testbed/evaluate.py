@@ -48,7 +48,9 @@ def evaluate_sequence(d: Path) -> dict:
     _, gt, grot = read_tum(d / "groundtruth.tum")
     steps = read_motion_steps(d / "motion.csv", range(1, len(gt)))
     # the pipeline's one localization chain (bodyslam.fusion.localize), on the frames' time stamps
-    loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss")
+    rel = meta.tube_radius_sd_m / meta.tube_radius_m if meta.tube_radius_m else 0.0  # the radius prior's spread
+    loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss",
+                   radius_sd_rel=rel)
     ekf, fixes = loc.filtered, loc.fixes
     pos, nrm, pl = rf.sensors_w_m, rf.normals_w, rf.pathloss
     rss = loc.rss_dbm
@@ -57,7 +59,7 @@ def evaluate_sequence(d: Path) -> dict:
     R_fit, p_fit = ekf.alignment  # dead reckoning's best rigid fit to the fixes of the first window
     dr = ekf.dead_reckoning  # in the first camera frame, steps without an estimate as no motion
     # strictly causal: frame k sees frames 0..k only (no alignment window; the start searched from frame 0)
-    causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True)
+    causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True, scale_sd_rel=rel)
     causal = inflate(causal, online_inflation(causal, rss, rf))  # the covariance localize states (step 5)
     est = {
         "rf_ml": np.array([f.position_w_m for f in fixes]),
@@ -66,7 +68,7 @@ def evaluate_sequence(d: Path) -> dict:
         "thesis_kf": kf_thesis(steps, nls, (R0, p0), resets=ekf.resets),
         # the same filter fed by the dissertation's other RF localizer (ML, Sec. 2.3.3.2) instead of Eq. 3.36's NLS
         "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0), resets=ekf.resets),
-        "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix").positions_w_m,
+        "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix", scale_sd_rel=rel).positions_w_m,
         "ekf_rss": ekf.positions_w_m,
         "ekf_rss_causal": causal.positions_w_m,
         "ekf_rss_rts": loc.smoothed.positions_w_m,

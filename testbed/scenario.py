@@ -79,7 +79,7 @@ OPTIONAL_KEYS: dict[str, dict[str, str]] = {
              "min_self_distance_diameters": _NUM},
     "tube": {"radius_m": _NUM, "radius_end_m": _NUM, "radius_variation_m": _NUM, "radius_wavelength_m": _NUM,
              "contraction_frac": _NUM, "contraction_length_m": _NUM, "contraction_spacing_m": _NUM,
-             "radius_in_meta_m": _NUM, "sections": _INT, "ring_spacing_m": _NUM, "fold_depth_frac": _NUM,
+             "radius_in_meta_m": _NUM, "radius_sd_in_meta_m": _NUM, "sections": _INT, "ring_spacing_m": _NUM, "fold_depth_frac": _NUM,
              "fold_spacing_m": _NUM, "fold_width_m": _NUM, "fold_coverage": _NUM, "lobes": _INT,
              "lobe_depth_frac": _NUM, "lobe_twist_rad_per_m": _NUM},
     "render": {"backend": _STR},
@@ -187,6 +187,7 @@ class World:
     # the lumen radius meta.json tells the pipeline: None = this tube's mean (the ideal world), else a population
     # prior ([tube] radius_in_meta_m; the realistic testbed hides the true radius)
     radius_in_meta_m: float | None = None
+    radius_sd_in_meta_m: float = 0.0  # ... and its stated 1-sigma (0: exact, the ideal world)
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -310,8 +311,11 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     told = tube_sec.get("radius_in_meta_m")
     if told is not None and not (isinstance(told, (int, float)) and 0.002 <= told <= 0.05):
         raise ConfigError(f"[tube] radius_in_meta_m must be a radius of 2-50 mm (in m), got {told!r}")
+    told_sd = tube_sec.get("radius_sd_in_meta_m", 0.0)
+    if not (isinstance(told_sd, (int, float)) and 0.0 <= told_sd <= 0.02) or (told_sd and told is None):
+        raise ConfigError(f"[tube] radius_sd_in_meta_m must be 0-20 mm (in m), with radius_in_meta_m, got {told_sd!r}")
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend, rear_baseline, bubbles, rf, optics, None if told is None else float(told))
+                 backend, rear_baseline, bubbles, rf, optics, None if told is None else float(told), float(told_sd))
 
 
 def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:

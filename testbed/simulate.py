@@ -193,6 +193,8 @@ def simulate(
         # the nominal lumen radius the pipeline is told (World.radius_in_meta_m)
         "tube_radius_m": float(np.mean(world.tube.centerline.radius_m) if world.radius_in_meta_m is None
                                else world.radius_in_meta_m),
+        # its 1-sigma: 0 where it is this tube's (the ideal world), else the population prior's spread
+        "tube_radius_sd_m": float(world.radius_sd_in_meta_m),
         "tube_radius_source": ("mean of this tube" if world.radius_in_meta_m is None
                                else "population prior (the true radius is hidden)"),
         "frames": {"dir": "frames", "pattern": "{index:06d}.png", "color": "RGB"},

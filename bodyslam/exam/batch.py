@@ -86,7 +86,11 @@ PROBLEM_COLUMNS = ["exam", "file", "frame", "severity", "reason"]
 PLAN_VERSION = 2
 DEFAULT_FOV_DEG = 156.0  # PillCam SB
 DEFAULT_RADIUS_M = 0.0125  # small intestine, 2.5 cm lumen diameter (the thesis's testbed: 1.5 cm radius)
+# its 1-sigma when assumed: small bowel lumen radius ~0.8-1.6 cm is the assumption +-1.5 sigma (stated choice); the
+# fusion carries it as a visual scale state and each step's 1-sigma includes it
+DEFAULT_RADIUS_SD_M = 0.0025
 DEFAULT_FPS = 2.0
+_SIGMA_D = MOTION_COLUMNS.index("sigma_distance_m")
 
 
 # -- exams ------------------------------------------------------------------------------------------------------
@@ -120,6 +124,7 @@ class Exam:
     landmarks: list[int] = field(default_factory=list)
     assumed: list[str] = field(default_factory=list)
     problems: list[list] = field(default_factory=list, repr=False)  # found while listing (gaps, non-images)
+    radius_sd_m: float = 0.0  # 1-sigma of radius_m: meta.json's, 0 when given, DEFAULT_RADIUS_SD_M when assumed
 
     def frame_source(self) -> FrameSource:
         # (while the exam is being opened its frame rate is not known yet: 1 frame/s for the size probe)
@@ -139,7 +144,8 @@ class Exam:
             st = os.stat(self.source)
             h.update(f"{st.st_size}".encode())
         return {"name": self.name, "kind": self.kind, "source": os.path.abspath(self.source), "camera": self.camera,
-                "frame_rate_hz": self.frame_rate_hz, "radius_m": self.radius_m, "n_frames": self.n_positions,
+                "frame_rate_hz": self.frame_rate_hz, "radius_m": self.radius_m, "radius_sd_m": self.radius_sd_m,
+                "n_frames": self.n_positions,
                 "mask": self.mask, "rf": self.rf, "sensors": self.sensors, "files_sha256": h.hexdigest()}
 
     @property
@@ -417,8 +423,14 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
     exam.frame_rate_hz = _given_or_assumed(src, "frame rate", fps, meta.frame_rate_hz if meta else None,
                                            DEFAULT_FPS, f"{DEFAULT_FPS:g} frames/s", assumed)
     exam.radius_m = _given_or_assumed(src, "lumen radius (m)", radius_m, meta.tube_radius_m if meta else None,
-                                      DEFAULT_RADIUS_M, f"{DEFAULT_RADIUS_M * 100:g} cm (distances scale with it)",
-                                      assumed)
+                                      DEFAULT_RADIUS_M, f"{DEFAULT_RADIUS_M * 100:g} +- {DEFAULT_RADIUS_SD_M * 100:g} "
+                                      f"cm (distances scale with it)", assumed)
+    if radius_m is not None:
+        exam.radius_sd_m = 0.0  # given: taken as known
+    elif meta is not None and meta.tube_radius_m is not None:
+        exam.radius_sd_m = meta.tube_radius_sd_m
+    else:
+        exam.radius_sd_m = DEFAULT_RADIUS_SD_M
     exam.mask = mask
     rf_meta = meta.rf if meta is not None else None
     if rf is None and sensors is None and src.is_dir() and rf_meta:
@@ -670,6 +682,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
+    from bodyslam.vision.odometry import with_radius_uncertainty
     from bodyslam.vision.tracking import path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
@@ -681,6 +694,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     dr = DeadReckoner()
     eof = None
     item = 0
+    rel = exam.radius_sd_m / exam.radius_m
     with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
             open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
         fw, mw = csv.writer(ff, lineterminator="\n"), csv.writer(mf, lineterminator="\n")
@@ -698,6 +712,10 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                     step = step[:2] + bridged[str(item)][2:]
                 item += 1
                 s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
+                if rel > 0 and s.has_estimate:  # the radius's uncertainty in the step's 1-sigma
+                    s = with_radius_uncertainty([s], rel)[0]
+                    step = list(step)
+                    step[_SIGMA_D] = s.sigma_distance_m
                 fw.writerow(_csv_cells(row))
                 mw.writerow(_csv_cells(step))
                 statuses[step[8]] = statuses.get(step[8], 0) + 1
@@ -783,7 +801,8 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
     try:
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
         steps = read_motion_steps(d / "motion.csv", frame_idx[1:])
-        loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion)
+        loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
+                       radius_sd_rel=exam.radius_sd_m / exam.radius_m)
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
         return None

@@ -63,6 +63,10 @@ class FusionSettings:
     # 1-sigma (dB) of the persistent part of each sensor's readings
     bias_corr_m: float = 0.0
     bias_sd_db: float = 4.0
+    # visual scale state (bodyslam.fusion.ekf): relative 1-sigma of the lumen radius the vision assumed (0: off)
+    # and the distance along the path over which the radius changes
+    scale_sd_rel: float = 0.0
+    scale_corr_m: float = 0.2
 
 
 @dataclass
@@ -193,7 +197,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         raise InputError(f"need one RF fix per frame for initialisation ({n}), got "
                          f"{0 if fixes is None else len(fixes)}")
     ekf = ErrorStateEkf(steps, fixes, rss, sensors_w_m, normals_w, pl, cfg.mode, cfg.max_rejections,
-                        cfg.bias_corr_m, cfg.bias_sd_db)
+                        cfg.bias_corr_m, cfg.bias_sd_db, cfg.scale_sd_rel, cfg.scale_corr_m)
     searcher = copy.copy(ekf)  # the same inputs, its own state: searches run while the committed run is open
     # dead reckoning in the first camera frame (steps without an estimate: no motion), for the initial alignment
     dr = np.zeros((n, 3))

@@ -25,10 +25,18 @@ RTS smoother (:func:`bodyslam.fusion.body_slam.rts_smooth`) needs.
   Gudmundson's exponential correlation); a reading is ``mean(p) + b_j + v`` with white ``v`` of the rest of the
   model's variance (at least 1 dB). The state becomes ``[dp, dtheta, b]`` (``6 + m``); without them it is 6 and
   every number is as before.
+- Optional visual scale state (``scale_sd_rel > 0``): ``s``, the relative error of the lumen radius the vision
+  assumed (its translations scale with it). The applied translation is ``(1 + s) t_s`` (``dp' = ... + R t_s ds``);
+  ``s`` is a first-order Gauss-Markov process in the distance travelled (correlation distance ``scale_corr_m``,
+  stationary 1-sigma ``scale_sd_rel``: the radius changes over centimetres, so neighbouring steps share their
+  error) that the RF readings observe through the path's length. It comes first after the pose:
+  ``[dp, dtheta, s, b]``. Measured on realistic tuning seeds 500-506 (radius prior 1.25 +- 0.25 cm, true radius
+  1.2 +- 0.3 cm with contractions): online filter 5.31 -> 5.10 cm, smoother 4.36 -> 4.31.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,23 +95,28 @@ def step_rotation_matrices(steps: list[StepMotion]) -> np.ndarray:
     return mats
 
 
-def step_noise(s: StepMotion, last_t: np.ndarray) -> tuple[np.ndarray, float, float]:
+def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0) -> tuple[np.ndarray, float, float]:
     """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
-    a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity)."""
+    a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity). With a scale state
+    (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
+    (:func:`bodyslam.vision.odometry.with_radius_uncertainty`) is taken out: the state carries it."""
     if s.has_estimate:
-        return (np.asarray(s.t_c1_c2_m, float), max(s.sigma_t_m, SIGMA_T_FLOOR_M),
-                max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD))
+        t = np.asarray(s.t_c1_c2_m, float)
+        sig = s.sigma_t_m
+        if scale_sd_rel > 0:
+            sig = math.sqrt(max(sig**2 - (scale_sd_rel * float(np.linalg.norm(t))) ** 2, 0.0))
+        return t, max(sig, SIGMA_T_FLOOR_M), max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD)
     return last_t, max(float(np.linalg.norm(last_t)), MISSING_SIGMA_T_MIN_M), MISSING_SIGMA_R_RAD
 
 
-def process_noise(steps: list[StepMotion]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per step: the translation the filter applies (:func:`step_noise`) and its 1-sigmas (m, rad)."""
     t_out = np.zeros((len(steps), 3))
     sig_t = np.zeros(len(steps))
     sig_r = np.zeros(len(steps))
     last_t = np.zeros(3)
     for k, s in enumerate(steps):
-        t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t)
+        t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t, scale_sd_rel)
         if s.has_estimate:
             last_t = t_out[k]
     return t_out, sig_t, sig_r
@@ -147,20 +160,27 @@ class ErrorStateEkf:
 
     def __init__(self, steps: list[StepMotion], fixes: list[Fix] | None, rss: np.ndarray | None,
                  sensors_w_m: np.ndarray | None, normals_w: np.ndarray | None, pl: PathLossModel | None,
-                 mode: str = "rss", max_rejections: int = 5, bias_corr_m: float = 0.0, bias_sd_db: float = 4.0):
+                 mode: str = "rss", max_rejections: int = 5, bias_corr_m: float = 0.0, bias_sd_db: float = 4.0,
+                 scale_sd_rel: float = 0.0, scale_corr_m: float = 0.2):
         if mode not in FUSION_MODES:
             raise InputError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
         if mode == "rss" and (rss is None or sensors_w_m is None or pl is None):
             raise InputError("RSS fusion needs the readings, the sensor positions and the path-loss model")
         self.fixes, self.rss, self.pos, self.nrm, self.pl = fixes, rss, sensors_w_m, normals_w, pl
         self.mode, self.max_rejections = mode, max_rejections
-        self.t_applied, self.sig_t, self.sig_r = process_noise(steps)
+        self.t_applied, self.sig_t, self.sig_r = process_noise(steps, scale_sd_rel)
         self.R_steps = step_rotation_matrices(steps)
         self.m_bias = len(sensors_w_m) if (mode == "rss" and bias_corr_m > 0) else 0
-        self.D = 6 + self.m_bias
+        self.n_scale = 1 if scale_sd_rel > 0 else 0
+        self.m_extra = self.n_scale + self.m_bias  # the states after the pose: [scale], [biases]
+        self.D = 6 + self.m_extra
         self.bias_sd_db = float(bias_sd_db)
+        self.scale_sd_rel = float(scale_sd_rel)
+        step_len = np.linalg.norm(self.t_applied, axis=1)
         if self.m_bias:
-            self.rho = np.exp(-np.linalg.norm(self.t_applied, axis=1) / bias_corr_m)
+            self.rho = np.exp(-step_len / bias_corr_m)
+        if self.n_scale:
+            self.rho_s = np.exp(-step_len / scale_corr_m)
 
     # -- the state --------------------------------------------------------------------------------------------
     def start(self, p: np.ndarray, R: np.ndarray, P: np.ndarray, b: np.ndarray | None = None) -> None:
@@ -177,28 +197,44 @@ class ErrorStateEkf:
         if P.shape[-1] != self.D:
             full = np.zeros((len(P), self.D, self.D))
             full[:, :6, :6] = P[:, :6, :6]
-            full[:, 6:, 6:] = np.eye(self.m_bias) * self.bias_sd_db**2
+            full[:, 6:, 6:] = np.diag(self._extra_var())
             P = full
         self.P = np.broadcast_to(P, (C, self.D, self.D)).copy() if len(P) == 1 and C > 1 else P
-        self.b = np.zeros((C, self.m_bias)) if b is None else np.array(b, float).reshape(C, self.m_bias)
+        self.b = np.zeros((C, self.m_extra)) if b is None else np.array(b, float).reshape(C, self.m_extra)
         self.nll = np.zeros(C)
         self.streak = np.zeros(C, int)
         self.n_rejected = np.zeros(C, int)
         self.n_updates = np.zeros(C, int)
 
+    def _extra_var(self) -> np.ndarray:
+        """Stationary variances of the states after the pose: the scale's, then each bias's."""
+        return np.r_[[self.scale_sd_rel**2] * self.n_scale, [self.bias_sd_db**2] * self.m_bias]
+
     def predict(self, k: int) -> np.ndarray:
         """Into frame ``k`` with step ``k - 1``; returns ``F (C, D, D)``."""
         ts, Rs = self.t_applied[k - 1], self.R_steps[k - 1]
+        C = len(self.p)
+        # the translation applied: the step's, scaled by (1 + s) with the scale state (one per candidate)
+        ts_c = np.repeat(ts[None], C, axis=0) * (1.0 + self.b[:, :1]) if self.n_scale else ts
         F, Q = process_model(self.R, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
-        if self.m_bias:  # the bias states' Gauss-Markov step, block-diagonal to the pose's
-            C, D, rho = len(F), self.D, self.rho[k - 1]
+        if self.n_scale:
+            F[:, :3, 3:] = -self.R @ np.array([_skew(t) for t in ts_c])
+        if self.m_extra:  # Gauss-Markov steps of the scale and the biases, driven by the distance travelled
+            D = self.D
+            rho = np.r_[self.rho_s[k - 1:k] if self.n_scale else [],
+                        np.repeat(self.rho[k - 1], self.m_bias) if self.m_bias else []]
             F6, Q6 = F, Q
             F, Q = np.zeros((C, D, D)), np.zeros((C, D, D))
             F[:, :6, :6], Q[:, :6, :6] = F6, Q6
-            F[:, 6:, 6:] = np.eye(self.m_bias) * rho
-            Q[:, 6:, 6:] = np.eye(self.m_bias) * (1.0 - rho**2) * self.bias_sd_db**2
+            F[:, 6:, 6:] = np.diag(rho)
+            Q[:, 6:, 6:] = np.diag((1.0 - rho**2) * self._extra_var())
+            if self.n_scale:
+                F[:, :3, 6] = self.R @ ts  # dp' / ds
             self.b = self.b * rho
-        self.p = self.p + self.R @ ts
+        if self.n_scale:
+            self.p = self.p + np.einsum("cij,cj->ci", self.R, ts_c)
+        else:
+            self.p = self.p + self.R @ ts
         self.R = self.R @ Rs
         self.P = F @ self.P @ F.transpose(0, 2, 1) + Q
         return F
@@ -239,12 +275,12 @@ class ErrorStateEkf:
             Hp = (10.0 * alpha / np.log(10.0))[..., None] * diff / (d**2)[..., None]
             y = r[ok][None] - self.pl.mean_rss_dbm(d, depth)
             H = np.concatenate([Hp, np.zeros_like(Hp)], axis=2)  # (C, m, 6)
+            if self.m_extra:
+                H = np.concatenate([H, np.zeros((C, H.shape[1], self.m_extra))], axis=2)
             if self.m_bias:  # reading j = mean(p) + b_j + white noise of the model's remaining variance
                 idx = np.nonzero(ok)[0]
-                Hb = np.zeros((C, len(idx), self.m_bias))
-                Hb[:, np.arange(len(idx)), idx] = 1.0
-                H = np.concatenate([H, Hb], axis=2)
-                y = y - self.b[:, idx]
+                H[:, np.arange(len(idx)), 6 + self.n_scale + idx] = 1.0
+                y = y - self.b[:, self.n_scale + idx]
                 sigma = np.sqrt(np.maximum(sigma**2 - self.bias_sd_db**2, 1.0))
             S = H @ P @ H.transpose(0, 2, 1) + sigma[:, :, None] ** 2 * np.eye(len(y[0]))[None]
             dS = np.diagonal(S, axis1=1, axis2=2)
@@ -271,7 +307,7 @@ class ErrorStateEkf:
         IKH = np.eye(self.D)[None] - K @ H
         P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
         R_new = R @ Rotation.from_rotvec(dx[:, 3:6]).as_matrix()
-        if self.m_bias:
+        if self.m_extra:
             self.b = np.where(do[:, None], self.b + dx[:, 6:], self.b)
         self.p = np.where(do[:, None], p + dx[:, :3], p)
         self.R = np.where(do[:, None, None], R_new, R)
@@ -303,7 +339,7 @@ class ErrorStateEkf:
         if keep:
             prior_p, prior_R, prior_P = np.zeros((f, 3)), np.zeros((f, 3, 3)), np.zeros((f, D, D))
             Fs = np.zeros((max(f - 1, 0), D, D))
-            prior_b, post_b, post_P = np.zeros((f, self.m_bias)), np.zeros((f, self.m_bias)), np.zeros((f, D, D))
+            prior_b, post_b, post_P = np.zeros((f, self.m_extra)), np.zeros((f, self.m_extra)), np.zeros((f, D, D))
         for k in range(k0, k1):
             i = k - k0
             if k > k0:

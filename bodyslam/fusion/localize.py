@@ -81,9 +81,13 @@ class Localization:
 
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
-             frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True) -> Localization:
+             frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True,
+             radius_sd_rel: float = 0.0) -> Localization:
     """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring). ``honest_cov``:
     scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
+    ``radius_sd_rel``: relative 1-sigma of the lumen radius the steps assumed; above 0 the fusion estimates the
+    visual scale as a state (:mod:`bodyslam.fusion.ekf`), and the steps' 1-sigma is expected to include it
+    (:func:`bodyslam.vision.odometry.with_radius_uncertainty`).
 
     Raises
     ------
@@ -98,7 +102,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     if sum(f.status == "ok" for f in fixes) < 3:
         raise InputError(f"RF not usable: {sum(f.status == 'ok' for f in fixes)} frame(s) with an RF fix, "
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")
-    ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode)
+    ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel)
     smoothed = rts_smooth(ekf)
     channel = kappa_online = None
     if honest_cov:

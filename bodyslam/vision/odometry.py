@@ -27,7 +27,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -44,7 +44,8 @@ from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "find_gaps",
+__all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_radius_uncertainty",
+           "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
 
 
@@ -382,6 +383,7 @@ class Sequence:
     source: FrameSource
     camera_name: str = "front"
     T_body_cam: tuple | None = None  # (q_xyzw, t_m) of a non-front camera in the body (front camera) frame
+    radius_sd_m: float = 0.0  # 1-sigma of radius_m (meta.json; 0 when the radius was given on the command line)
 
     @classmethod
     def open(cls, seq_dir: str | os.PathLike, radius_m: float | None = None, camera: str = "front") -> "Sequence":
@@ -407,7 +409,7 @@ class Sequence:
             raise InputError(f"{frames_dir}: frames directory not found")
         src = FrameSource.sequence(frames_dir, meta.n_frames, meta.frame_rate_hz)
         return cls(seq, camera_from_dict(cam_d), cam_d, meta.n_frames, meta.frame_rate_hz, float(r), src, camera,
-                   extr)
+                   extr, meta.tube_radius_sd_m if radius_m is None else 0.0)
 
     def frame(self, k: int) -> np.ndarray:
         """Frame ``k`` as RGB; raises :class:`InputError` when unreadable or of the wrong size."""
@@ -463,4 +465,21 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             progress(len(steps), n - 1)
     for i, s in bridge_gaps(steps, settings, base, jobs).items():
         steps[i] = s
-    return steps
+    return with_radius_uncertainty(steps, seq.radius_sd_m / seq.radius_m)
+
+
+def with_radius_uncertainty(steps: list[StepMotion], radius_sd_rel: float) -> list[StepMotion]:
+    """The steps with the lumen radius's uncertainty in their 1-sigma distance: the tube estimator's translation
+    scales with the radius it assumes, so a relative 1-sigma ``radius_sd_rel`` of the radius adds
+    ``radius_sd_rel * |d|`` (in quadrature) to the fit's own 1-sigma. The error is the same for neighbouring
+    steps (the radius changes over centimetres): the fusion carries it as one scale state and takes this part back
+    out of each step (:func:`bodyslam.fusion.ekf.process_noise`). Steps without an estimate are unchanged."""
+    if not radius_sd_rel > 0:
+        return steps
+    out = []
+    for s in steps:
+        if s.has_estimate and math.isfinite(s.distance_m):
+            fit = s.sigma_distance_m if math.isfinite(s.sigma_distance_m) else 0.0
+            s = replace(s, sigma_distance_m=math.hypot(fit, radius_sd_rel * abs(s.distance_m)))
+        out.append(s)
+    return out

@@ -39,7 +39,8 @@ def _seq(tmp_path: Path, n: int = 4, **changes) -> Path:
 
 
 @pytest.mark.parametrize("field,value", [("frame_rate_hz", "two"), ("frame_rate_hz", None), ("frame_rate_hz", -2),
-                                         ("tube_radius_m", -0.01), ("tube_radius_m", "wide"), ("n_frames", "forty"),
+                                         ("tube_radius_m", -0.01), ("tube_radius_m", "wide"), ("tube_radius_sd_m", -0.001),
+                                         ("tube_radius_sd_m", 0.5), ("n_frames", "forty"),
                                          ("n_frames", 0), ("camera", {"model": "equidistant", "width": 320}),
                                          ("frames", {"dir": 7}), ("rf", {"pathloss": {"pt_dbm": "loud"}})])
 def test_check_and_every_reader_refuse_the_same_bad_field(tmp_path, field, value):

@@ -378,3 +378,55 @@ def test_rss_bias_states_find_a_sensor_offset():
     plain = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss")
     assert np.array_equal(plain.positions_w_m, fuse(steps, fixes, rss, pos, nrm, pl, mode="rss",
                                                     bias_corr_m=0.0).positions_w_m)
+
+
+def _scaled(steps, factor):
+    """The steps as a vision that assumed a radius ``factor`` times too large would give them."""
+    from dataclasses import replace
+
+    return [replace(s, t_c1_c2_m=s.t_c1_c2_m * factor, distance_m=s.distance_m * factor) if s.has_estimate else s
+            for s in steps]
+
+
+def test_the_scale_state_finds_a_wrong_radius():
+    """The vision assumed a radius 30% too large, so every step is 30% long (the true scale error s = 1/1.3 - 1 =
+    -0.23). With the scale state (the radius prior's 25%, a correlation distance longer than the run: one radius)
+    the filter ends near s = -0.23 and its positions beat the filter without it; bias and scale states together
+    keep both working (the bias states sit after the scale in the state)."""
+    from bodyslam.fusion.ekf import ErrorStateEkf
+
+    *data, gt = synthetic_run(7, n=160)
+    steps, fixes, rss, pos, nrm, pl = data
+    steps = _scaled(steps, 1.3)
+    P0 = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
+    R0 = Rotation.from_rotvec([0.4, -0.3, 0.2])  # synthetic_run's true start
+    out = {}
+    for name, kw in {"plain": {}, "scale": {"scale_sd_rel": 0.25, "scale_corr_m": 10.0},
+                     "both": {"scale_sd_rel": 0.25, "scale_corr_m": 10.0, "bias_corr_m": 10.0, "bias_sd_db": 3.0}}.items():
+        ekf = ErrorStateEkf(steps, fixes, rss, pos, nrm, pl, "rss", 5, **kw)
+        p, *_ = ekf.run(gt[0][None], R0.as_matrix()[None], P0[None], 0, len(gt))
+        out[name] = (np.linalg.norm(p[0] - gt, axis=1).mean(), ekf.b[0])
+    # 64 cm of path against the RSS of 24 sensors: the length to ~10% (measured: s = -0.22 alone, -0.23 with the biases)
+    assert abs(out["scale"][1][0] + 0.23) < 0.08, out["scale"][1]
+    assert abs(out["both"][1][0] + 0.23) < 0.10, out["both"][1][:1]
+    # measured: 3.5 cm without, 0.7 cm with it, 1.2 cm with the biases too
+    assert out["scale"][0] < 0.4 * out["plain"][0], (out["scale"][0], out["plain"][0])
+    assert out["both"][0] < 0.6 * out["plain"][0]
+
+
+def test_steps_carry_the_radius_uncertainty_and_the_filter_takes_it_back_out():
+    """``with_radius_uncertainty`` adds ``rel * |d|`` in quadrature to an estimated step's 1-sigma (a 4 mm step
+    with a 0.1 mm fit and a 20% radius prior: hypot(0.1, 0.8) mm) and leaves steps without an estimate alone; the
+    filter with a scale state of the same prior applies the fit's part only."""
+    from bodyslam.fusion.ekf import step_noise
+    from bodyslam.vision.odometry import with_radius_uncertainty
+
+    s = motion_from_transform(Rotation.identity(), [0.0, 0.0, 0.004], 50, 1e-4, np.radians(0.5))
+    miss = StepMotion.failed(StepStatus.TOO_FEW_MATCHES)
+    a, b = with_radius_uncertainty([s, miss], 0.2)
+    assert a.sigma_distance_m == pytest.approx(np.hypot(1e-4, 8e-4), rel=1e-9) and b is miss
+    assert with_radius_uncertainty([s], 0.0)[0] is s
+    _, sig_t, _ = step_noise(a, np.zeros(3), 0.2)
+    assert sig_t == pytest.approx(3e-4)  # the fit's 0.1 mm, raised to the filter's 0.3 mm floor
+    _, sig_t, _ = step_noise(a, np.zeros(3), 0.0)
+    assert sig_t == pytest.approx(np.hypot(1e-4, 8e-4))
