@@ -663,7 +663,7 @@ def _motion_or_track(args) -> int:
         write_tum(args.out, stamps, pos, rot, world="first camera frame")
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
-    path, var = path_travelled(steps)
+    path, var = path_travelled(steps, seq.radius_sd_m / seq.radius_m)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
     return _print_problems(problems)

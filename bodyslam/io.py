@@ -35,6 +35,7 @@ __all__ = [
     "write_text_atomic",
     "write_json",
     "read_json",
+    "read_text",
     "write_tum",
     "read_tum",
     "write_image",
@@ -106,8 +107,17 @@ def prepare_output_dir(out_dir: str | os.PathLike, force: bool, create: bool = T
     probe = out_dir if out_dir.exists() else next((p for p in out_dir.parents if p.exists()), Path("."))
     if not os.access(probe, os.W_OK | os.X_OK):
         raise InputError(f"{probe}: not writable (output directory {out_dir})")
-    if create:
+    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]
+    try:
         out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{out_dir}: cannot create the output directory ({exc.strerror or exc})") from None
+    if not create:  # only a check: leave nothing behind
+        for p in made:
+            try:
+                p.rmdir()
+            except OSError:
+                break
     return out_dir
 
 
@@ -143,8 +153,10 @@ def read_json(path: str | os.PathLike) -> Any:
         return json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise InputError(f"{path}: not valid JSON ({_decode_reason(exc)})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
 
 
 def read_meta(seq_dir: str | os.PathLike) -> dict[str, Any]:
@@ -186,10 +198,7 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Rotation]
         Missing file, or a line that is not 8 numbers or has a non-unit quaternion (file and line are named).
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
+    text = read_text(path)
     rows = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
@@ -321,12 +330,47 @@ def csv_rows(path: str | os.PathLike, required: Sequence[str]) -> Iterator[Itera
         f = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
+    except OSError as exc:  # a directory, no permission ...
+        raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     with f:
         r = csv.DictReader(f)
-        missing = [c for c in required if c not in (r.fieldnames or [])]
+        try:
+            fields = r.fieldnames
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise InputError(f"{path}: not a CSV text file ({_decode_reason(exc)})") from None
+        missing = [c for c in required if c not in (fields or [])]
         if missing:
-            raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {r.fieldnames}")
-        yield enumerate(r, start=2)
+            raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {fields}")
+        yield _checked_rows(path, r)
+
+
+def _decode_reason(exc: Exception) -> str:
+    if isinstance(exc, UnicodeDecodeError):
+        return f"not UTF-8 at byte {exc.start}"
+    return str(exc)
+
+
+def _checked_rows(path: Path, r: csv.DictReader) -> Iterator[tuple[int, dict]]:
+    """``(line number, row)`` of a CSV; a file that stops being text is an error naming the line."""
+    k = 1
+    try:
+        for k, row in enumerate(r, start=2):
+            yield k, row
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}:{k + 1}: not CSV text ({_decode_reason(exc)})") from None
+
+
+def read_text(path: str | os.PathLike) -> str:
+    """A whole UTF-8 text file; every way it cannot be read is an :class:`InputError` naming it."""
+    path = Path(path)
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text file ({_decode_reason(exc)})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
 
 
 def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:
@@ -342,7 +386,10 @@ def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]
                     vals["pitch_rad"], vals["yaw_rad"])
             except (TypeError, ValueError):
                 raise InputError(f"{path}:{lineno}: not a number in {row}") from None
-            vals["t"] = float(row["t"]) if row.get("t") not in ("", None) else math.nan
+            try:
+                vals["t"] = float(row["t"]) if row.get("t") not in ("", None) else math.nan
+            except ValueError:
+                raise InputError(f"{path}:{lineno}: t {row['t']!r} is not a number") from None
             for c in ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"):
                 if row.get(c) not in (None, ""):
                     try:
@@ -356,7 +403,7 @@ def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]
                                  f"{', '.join(map(str, StepStatus))})") from None
             try:
                 vals["n_matches"] = int(float(row["n_matches"])) if row.get("n_matches") not in (None, "") else 0
-            except ValueError:
+            except (ValueError, OverflowError):
                 raise InputError(f"{path}:{lineno}: n_matches {row['n_matches']!r} is not a number") from None
             vals["label"] = row.get("label") or ""
             rows[k] = vals

@@ -1,113 +1,246 @@
-"""Small, dependency-free plots (OpenCV drawing): the declared stack has no plotting library.
+"""Plots, drawn with matplotlib (its object API and the Agg canvas: no display, no global state).
 
-Each function returns an RGB ``uint8`` image; write it with :func:`bodyslam.io.write_image`. Axes carry their
-units in the labels (SPEC.md: human-readable outputs say cm, deg ...).
+Each figure returns an RGB ``uint8`` image; write it with :func:`bodyslam.io.write_image`. Axes carry human labels
+with their units (SPEC.md: human-readable outputs say cm, deg ...), and plots of positions have equal axes.
+
+- :class:`Figure`: one axes of lines, step lines, bars, bands, points and 1-sigma ellipses (every report's
+  2-D plots).
+- :func:`trajectory_figure`: a trajectory in the body frame as a 3-D view and its three anatomical projections
+  (coronal, axial, sagittal), with the truth where it exists, the 1-sigma as ellipses along the path, start and end,
+  and each marked frame (a lesion) with its own 1-sigma ellipse.
+- :func:`path_figure`: how far along the gut -- the path travelled against time with its 1-sigma band and the
+  marked frames.
+- :data:`BODY_AXES`: what the body frame's axes mean (SPEC.md), for labels.
 """
 
 from __future__ import annotations
 
-import math
-
-import cv2
 import numpy as np
 
-__all__ = ["Figure"]
+__all__ = ["Figure", "trajectory_figure", "path_figure", "BODY_AXES", "Path3D", "Mark"]
 
+# SPEC.md: x toward the patient's left, y anterior, z cranial
+BODY_AXES = ("x, toward the patient's left (cm)", "y, anterior (cm)", "z, cranial (cm)")
 _COLOURS = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189), (140, 86, 75)]
 
 
-def _nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
-    if not np.isfinite(lo) or not np.isfinite(hi) or hi <= lo:
-        hi = lo + 1.0
-    raw = (hi - lo) / n
-    mag = 10 ** math.floor(math.log10(raw))
-    step = min((m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=10 * mag)
-    return np.arange(math.ceil(lo / step) * step, hi + 1e-9 * step, step)
+def _rgb(c) -> tuple[float, float, float]:
+    """An RGB 0-255 tuple (this module's colours) as matplotlib's 0-1."""
+    return tuple(float(v) / 255.0 for v in c)
+
+
+def _canvas(w_px: int, h_px: int):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure as MplFigure
+
+    fig = MplFigure(figsize=(w_px / 100.0, h_px / 100.0), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _to_rgb(fig) -> np.ndarray:
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def _ellipse_xy(centre, cov2, n_sigma: float = 1.0, n: int = 48) -> np.ndarray:
+    """Points of the ``n_sigma`` ellipse of a 2-D Gaussian (``(n, 2)``); NaN for a covariance that is not finite."""
+    cov2 = np.asarray(cov2, float)
+    if not np.isfinite(cov2).all():
+        return np.full((n, 2), np.nan)
+    w, v = np.linalg.eigh((cov2 + cov2.T) / 2)
+    a = np.linspace(0, 2 * np.pi, n)
+    circle = np.stack([np.cos(a), np.sin(a)], axis=1) * np.sqrt(np.maximum(w, 0.0)) * n_sigma
+    return np.asarray(centre, float) + circle @ v.T
 
 
 class Figure:
-    """One axes: lines, step lines and bars in data coordinates, then :meth:`image`."""
+    """One axes: lines, step lines, bars, bands, points and ellipses in data coordinates, then :meth:`image`.
+    ``equal``: one unit is as long on both axes (positions); ``log_y``: a logarithmic y axis."""
 
-    def __init__(self, title: str, xlabel: str, ylabel: str, size=(640, 420), log_y: bool = False):
+    def __init__(self, title: str, xlabel: str, ylabel: str, size=(640, 420), log_y: bool = False,
+                 equal: bool = False):
         self.title, self.xlabel, self.ylabel = title, xlabel, ylabel
-        self.log_y = log_y  # y drawn as log10, ticks labelled with the values
-        self.w, self.h = size
+        self.size, self.log_y, self.equal = size, log_y, equal
         self.items: list = []
-        self.legend: list[tuple[str, tuple]] = []
 
-    def line(self, x, y, label: str | None = None, colour=None, step: bool = False, width: int = 2,
-             marker: bool = False):
-        c = colour or _COLOURS[len(self.items) % len(_COLOURS)]
-        x, y = np.asarray(x, float), np.asarray(y, float)
-        if self.log_y:
-            y = np.log10(np.where(y > 0, y, np.nan))
-        if step:
-            x = np.repeat(x, 2)[1:]
-            y = np.repeat(y, 2)[:-1]
-        self.items.append(("line", x, y, c, width, marker))
-        if label:
-            self.legend.append((label, c))
+    def _colour(self, colour):
+        return _rgb(colour or _COLOURS[len(self.items) % len(_COLOURS)])
+
+    def line(self, x, y, label: str | None = None, colour=None, step: bool = False, width: float = 2,
+             marker: bool = False, dashed: bool = False):
+        self.items.append(("line", np.asarray(x, float), np.asarray(y, float), self._colour(colour), label,
+                           dict(step=step, width=width, marker=marker, dashed=dashed)))
         return self
 
     def bars(self, edges, heights, label: str | None = None, colour=None):
-        c = colour or _COLOURS[len(self.items) % len(_COLOURS)]
-        self.items.append(("bars", np.asarray(edges, float), np.asarray(heights, float), c, 0, False))
-        if label:
-            self.legend.append((label, c))
+        self.items.append(("bars", np.asarray(edges, float), np.asarray(heights, float), self._colour(colour), label,
+                           {}))
         return self
 
+    def band(self, x, lo, hi, label: str | None = None, colour=None, alpha: float = 0.25):
+        """A shaded band between ``lo`` and ``hi`` (an uncertainty)."""
+        self.items.append(("band", np.asarray(x, float), (np.asarray(lo, float), np.asarray(hi, float)),
+                           self._colour(colour), label, dict(alpha=alpha)))
+        return self
+
+    def points(self, x, y, label: str | None = None, colour=None, marker: str = "o", size: float = 60,
+               texts: list[str] | None = None):
+        """Markers, each optionally annotated."""
+        self.items.append(("points", np.atleast_1d(np.asarray(x, float)), np.atleast_1d(np.asarray(y, float)),
+                           self._colour(colour), label, dict(marker=marker, size=size, texts=texts)))
+        return self
+
+    def ellipse(self, centre, cov2, label: str | None = None, colour=None, width: float = 1.0):
+        """The 1-sigma ellipse of a 2-D position (``cov2``: 2x2, same units as the axes squared)."""
+        xy = _ellipse_xy(centre, cov2)
+        self.items.append(("line", xy[:, 0], xy[:, 1], self._colour(colour), label,
+                           dict(step=False, width=width, marker=False)))
+        return self
+
+    def vline(self, x: float, label: str | None = None, colour=None):
+        self.items.append(("vline", float(x), None, self._colour(colour), label, {}))
+        return self
+
+    def draw(self, ax, legend: bool = True) -> None:
+        """Draw onto a matplotlib axes (:func:`trajectory_figure` composes several)."""
+        for kind, a, b, c, label, kw in self.items:
+            if kind == "line":
+                ls = "--" if kw.get("dashed") else "-"
+                if kw["step"]:
+                    ax.step(a, b, where="post", color=c, lw=kw["width"], ls=ls, label=label)
+                else:
+                    ax.plot(a, b, color=c, lw=kw["width"], ls=ls, label=label, marker="o" if kw["marker"] else None,
+                            ms=4)
+            elif kind == "bars":
+                ax.bar(a[:-1], b, width=np.diff(a), align="edge", color=c, label=label)
+            elif kind == "band":
+                ax.fill_between(a, b[0], b[1], color=c, alpha=kw["alpha"], lw=0, label=label)
+            elif kind == "points":
+                ax.scatter(a, b, color=c, marker=kw["marker"], s=kw["size"], label=label, zorder=5,
+                           edgecolors="black", linewidths=0.6)
+                for x, y, t in zip(a, b, kw["texts"] or []):
+                    ax.annotate(t, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
+            elif kind == "vline":
+                ax.axvline(a, color=c, lw=1, ls="--", label=label)
+        if self.log_y:
+            ax.set_yscale("log")
+        if self.equal:
+            ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(self.title, fontsize=10)
+        ax.set_xlabel(self.xlabel)
+        ax.set_ylabel(self.ylabel)
+        ax.grid(True, alpha=0.3)
+        if legend and any(it[4] for it in self.items):
+            ax.legend(fontsize=8, loc="best")
+
     def image(self) -> np.ndarray:
-        img = np.full((self.h, self.w, 3), 255, np.uint8)
-        L, R, T, B = 70, 20, 36, 50
-        xs = np.concatenate([it[1] for it in self.items]) if self.items else np.array([0.0, 1.0])
-        zero = [] if self.log_y else [np.array([0.0])]
-        ys = np.concatenate([it[2] for it in self.items] + zero) if self.items else np.array([0.0, 1.0])
-        xs, ys = xs[np.isfinite(xs)], ys[np.isfinite(ys)]
-        x0, x1 = (xs.min(), xs.max()) if len(xs) else (0.0, 1.0)
-        y0, y1 = (ys.min(), ys.max()) if len(ys) else (0.0, 1.0)
-        if x1 <= x0:
-            x1 = x0 + 1.0
-        if y1 <= y0:
-            y1 = y0 + 1.0
-        y1 += 0.05 * (y1 - y0)
+        fig = _canvas(*self.size)
+        self.draw(fig.add_subplot())
+        return _to_rgb(fig)
 
-        def px(x, y):
-            return (L + (np.asarray(x) - x0) / (x1 - x0) * (self.w - L - R),
-                    self.h - B - (np.asarray(y) - y0) / (y1 - y0) * (self.h - T - B))
 
-        font = cv2.FONT_HERSHEY_SIMPLEX
-        for t in _nice_ticks(x0, x1):
-            u, _ = px(t, y0)
-            cv2.line(img, (int(u), self.h - B), (int(u), self.h - B + 5), (0, 0, 0), 1)
-            cv2.putText(img, f"{t:g}", (int(u) - 12, self.h - B + 20), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        for t in _nice_ticks(y0, y1):
-            _, v = px(x0, t)
-            cv2.line(img, (L - 5, int(v)), (L, int(v)), (0, 0, 0), 1)
-            cv2.line(img, (L, int(v)), (self.w - R, int(v)), (230, 230, 230), 1)
-            lab = f"{10 ** t:.3g}" if self.log_y else f"{t:g}"
-            cv2.putText(img, lab, (4, int(v) + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        for kind, a, b, c, width, marker in self.items:
-            if kind == "bars":
-                for i in range(len(b)):
-                    (ua, vb), (ub, _) = px(a[i], 0.0), px(a[i + 1], 0.0)
-                    _, vt = px(a[i], b[i])
-                    cv2.rectangle(img, (int(ua), int(vt)), (max(int(ub) - 1, int(ua)), int(vb)), c, -1)
-            else:
-                ok = np.isfinite(a) & np.isfinite(b)
-                u, v = px(a[ok], b[ok])
-                pts = np.stack([u, v], axis=1).round().astype(np.int32)
-                if len(pts) > 1:
-                    cv2.polylines(img, [pts], False, c, width, cv2.LINE_AA)
-                if marker:
-                    for q in pts:
-                        cv2.circle(img, (int(q[0]), int(q[1])), 3, c, -1, cv2.LINE_AA)
-        cv2.rectangle(img, (L, T), (self.w - R, self.h - B), (0, 0, 0), 1)
-        cv2.putText(img, self.title, (L, 24), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.putText(img, self.xlabel, (L + (self.w - L - R) // 2 - 60, self.h - 12), font, 0.45, (0, 0, 0), 1,
-                    cv2.LINE_AA)
-        cv2.putText(img, self.ylabel, (4, T - 8), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        for i, (lab, c) in enumerate(self.legend):
-            y = T + 18 + 18 * i
-            cv2.line(img, (self.w - R - 170, y - 4), (self.w - R - 150, y - 4), c, 3)
-            cv2.putText(img, lab, (self.w - R - 145, y), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-        return img
+class Path3D:
+    """One trajectory to draw: positions ``(n, 3)`` in metres (NaN rows skipped), an optional ``(n, 3, 3)``
+    covariance (m^2) drawn as 1-sigma ellipses, a label, an RGB colour and a line width."""
+
+    def __init__(self, label: str, positions_m, colour=(31, 119, 180), width: float = 1.8, cov_m2=None):
+        self.label, self.p, self.colour, self.width = label, np.asarray(positions_m, float), colour, width
+        self.cov = None if cov_m2 is None else np.asarray(cov_m2, float)
+
+
+class Mark:
+    """A marked frame (a lesion): its label, position (m) and 3x3 covariance (m^2)."""
+
+    def __init__(self, label: str, position_m, cov_m2=None):
+        self.label, self.p = label, np.asarray(position_m, float)
+        self.cov = None if cov_m2 is None else np.asarray(cov_m2, float)
+
+
+def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n_ellipses: int = 12,
+                      size=(1200, 1000), body_frame: bool = True, max_points: int = 4000) -> np.ndarray:
+    """A 3-D view and the coronal (x-z), axial (x-y) and sagittal (y-z) projections of ``paths`` (body frame, cm,
+    equal axes). The first path with a covariance gets ``n_ellipses`` 1-sigma ellipses along it; the first path
+    gets start (triangle) and end (square) markers; each mark is a star with its 1-sigma ellipse. ``body_frame``
+    False: the axes are the first camera frame's (dead reckoning), named as such. Paths are thinned to
+    ``max_points`` (a plot needs no more points than pixels)."""
+    paths = [Path3D(p.label, p.p[:: max(1, len(p.p) // max_points)], p.colour, p.width,
+                    None if p.cov is None else p.cov[:: max(1, len(p.p) // max_points)]) for p in paths]
+    axes = BODY_AXES if body_frame else ("x, first camera frame (cm)", "y, first camera frame (cm)",
+                                         "z, first camera frame (cm)")
+    views = (((0, 2, "coronal (front) view"), (0, 1, "axial (from the feet) view"), (1, 2, "sagittal (from the left) view"))
+             if body_frame else ((0, 2, "x-z"), (0, 1, "x-y"), (1, 2, "y-z")))
+    fig = _canvas(*size)
+    fig.suptitle(title, fontsize=12)
+    main = paths[0] if paths else None
+    with_cov = next((p for p in paths if p.cov is not None), None)
+    ax3 = fig.add_subplot(2, 2, 1, projection="3d")
+    allp = np.concatenate([p.p for p in paths] + [m.p[None] for m in marks]) * 100 if paths or marks else np.zeros((1, 3))
+    allp = allp[np.isfinite(allp).all(axis=1)]
+    for p in paths:
+        q = p.p * 100
+        ax3.plot(q[:, 0], q[:, 1], q[:, 2], color=_rgb(p.colour), lw=p.width, label=p.label)
+    if main is not None and np.isfinite(main.p).all(axis=1).any():
+        ok = np.nonzero(np.isfinite(main.p).all(axis=1))[0]
+        s, e = main.p[ok[0]] * 100, main.p[ok[-1]] * 100
+        ax3.scatter(*s, color="green", marker="^", s=70, edgecolors="black", label="start")
+        ax3.scatter(*e, color="red", marker="s", s=60, edgecolors="black", label="end")
+    for m in marks:
+        ax3.scatter(*(m.p * 100), color="gold", marker="*", s=220, edgecolors="black")
+        ax3.text(*(m.p * 100), f"  {m.label}", fontsize=8)
+    if len(allp):
+        lo, hi = allp.min(axis=0), allp.max(axis=0)
+        mid, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 0.5) * 1.05
+        ax3.set_xlim(mid[0] - half, mid[0] + half)
+        ax3.set_ylim(mid[1] - half, mid[1] + half)
+        ax3.set_zlim(mid[2] - half, mid[2] + half)
+    ax3.set_box_aspect((1, 1, 1))
+    short = ("x, left (cm)", "y, anterior (cm)", "z, cranial (cm)") if body_frame else ("x (cm)", "y (cm)", "z (cm)")
+    ax3.set_xlabel(short[0], fontsize=8)
+    ax3.set_ylabel(short[1], fontsize=8)
+    ax3.set_zlabel(short[2], fontsize=8)
+    ax3.set_title("3-D view", fontsize=10)
+    for slot, (a, b, name) in zip((2, 3, 4), views):
+        f = Figure(name, axes[a], axes[b], equal=True)
+        for p in paths:
+            q = p.p * 100
+            f.line(q[:, a], q[:, b], label=p.label, colour=p.colour, width=p.width)
+        if with_cov is not None:
+            ok = np.nonzero(np.isfinite(with_cov.p).all(axis=1) & np.isfinite(with_cov.cov).all(axis=(1, 2)))[0]
+            for j, k in enumerate(ok[np.linspace(0, len(ok) - 1, min(n_ellipses, len(ok))).astype(int)]
+                                  if len(ok) else []):
+                f.ellipse(with_cov.p[k, [a, b]] * 100, with_cov.cov[k][np.ix_([a, b], [a, b])] * 1e4,
+                          label=f"1-sigma ({with_cov.label})" if j == 0 else None, colour=with_cov.colour)
+        if main is not None and np.isfinite(main.p).all(axis=1).any():
+            ok = np.nonzero(np.isfinite(main.p).all(axis=1))[0]
+            f.points(main.p[ok[0], a] * 100, main.p[ok[0], b] * 100, "start", (44, 160, 44), "^")
+            f.points(main.p[ok[-1], a] * 100, main.p[ok[-1], b] * 100, "end", (214, 39, 40), "s")
+        for j, m in enumerate(marks):
+            f.points(m.p[a] * 100, m.p[b] * 100, "marked frame" if j == 0 else None, (255, 200, 0), "*", 220,
+                     [m.label])
+            if m.cov is not None:
+                f.ellipse(m.p[[a, b]] * 100, m.cov[np.ix_([a, b], [a, b])] * 1e4, colour=(200, 150, 0), width=1.5)
+        f.draw(fig.add_subplot(2, 2, slot), legend=slot == 2)  # one legend: the coronal view's
+    return _to_rgb(fig)
+
+
+def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tuple[float, str]] = (),
+                size=(900, 420)) -> np.ndarray:
+    """The path travelled from the first frame against time (minutes when the exam is longer than 10 minutes),
+    with its 1-sigma band and a dashed line at each marked frame ``(time s, label)``."""
+    t = np.asarray(stamps_s, float)
+    minutes = len(t) > 1 and t[-1] - t[0] > 600
+    tt = t / 60.0 if minutes else t
+    pm = np.asarray(path_m, float) * 100
+    f = Figure(title, "time (min)" if minutes else "time (s)", "path travelled from the first frame (cm)", size)
+    if path_var_m2 is not None:
+        sd = np.sqrt(np.maximum(np.asarray(path_var_m2, float), 0.0)) * 100
+        f.band(tt, pm - sd, pm + sd, "1-sigma", (31, 119, 180))
+    f.line(tt, pm, "path travelled", (31, 119, 180))
+    for j, (ts, label) in enumerate(marks):
+        x = ts / 60.0 if minutes else ts
+        f.vline(x, None, (200, 150, 0))
+        k = int(np.clip(np.searchsorted(t, ts), 0, len(pm) - 1)) if len(pm) else 0
+        f.points(x, pm[k] if len(pm) else 0.0, "marked frame" if j == 0 else None, (255, 200, 0), "*", 200,
+                 [f"{label}: {pm[k]:.0f} cm" if len(pm) else label])
+    return f.image()

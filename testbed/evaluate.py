@@ -86,7 +86,8 @@ def evaluate_sequence(d: Path) -> dict:
     return {"estimates": est, "errors": errors, "pcrb_m2": pcrb, "pcrb_mean_error_m": efficient_mean_error(bounds),
             "smoothing_bound_m2": np.trace(smooth, axis1=1, axis2=2),
             "smoothing_bound_mean_error_m": efficient_mean_error(smooth),
-            "truth": gt, "rf_problems": len(problems),
+            "truth": gt, "rf_problems": len(problems), "stamps_s": np.arange(len(gt)) / meta.frame_rate_hz,
+            "cov_m2": {k: r.cov[:, :3, :3] for k, r in with_cov.items()},  # for the plots' 1-sigma
             "consistency": {k: consistency(r.positions_w_m, r.cov[:, :3, :3], gt) for k, r in with_cov.items()},
             "orientation_error_deg": {k: np.degrees((r.rotations_w_c.inv() * grot).magnitude())
                                       for k, r in with_cov.items()},
@@ -279,9 +280,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                     if scenario.get("rf", {}).get("channel") else ""),
     }
     write_json(out / "report.json", report)
-    _plots(out, first, np.concatenate(errs["ekf_rss_rts"]), np.concatenate(errs["rf_ml"]),
-           np.concatenate(errs["dead_reckoning"]))
-    _html(out, report)
+    _plots(out, first, errs)
+    _html(out, report, _view(first))
     return report
 
 
@@ -290,9 +290,13 @@ LABELS = {"rf_ml": "RF only (ML)", "rf_nls": "RF only (NLS, Eq. 3.36)", "dead_re
           "ekf_fixes": "EKF on RF fixes",
           "ekf_rss": "EKF on RSS (online; start aligned on the first 40-80 frames' fixes)",
           "ekf_rss_causal": "EKF on RSS (strictly causal: frame k sees frames 0..k)", "ekf_rss_rts": "EKF on RSS + RTS smoother (offline)"}
+# the plots' legends
+SHORT = {"rf_ml": "RF only", "rf_nls": "RF only (NLS)", "dead_reckoning": "vision only (dead reckoning)",
+         "ekf_fixes": "EKF on RF fixes", "ekf_rss": "Body-SLAM online", "ekf_rss_causal": "Body-SLAM strictly causal",
+         "ekf_rss_rts": "Body-SLAM smoothed", "thesis_kf": "dissertation's KF", "thesis_kf_ml": "dissertation's KF (ML)"}
 
 
-def _html(out: Path, report: dict) -> None:
+def _html(out: Path, report: dict, view_html: str = "") -> None:
     """``report.html``: the tables and the plots, one self-contained page next to report.json."""
     from testbed.htmlpage import table, write_report_page
 
@@ -311,14 +315,15 @@ def _html(out: Path, report: dict) -> None:
             + "<h2>Per-step motion (Table 4.1)</h2>"
             + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
             + "<h2>Plots (Fig. 4.20-4.24)</h2>")
+    body = body.replace("<h2>Plots", view_html + "<h2>Plots") if view_html else body
+    view_html = ""  # placed above the plots
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "
                       f"sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm; mean error of a causal filter that attains "
                       f"the bound: {report['pcrb_mean_error_cm']:.2f} cm; the smoothing bound: sqrt(mean) "
                       f"{report['smoothing_bound']['sqrt_mean_cm']:.2f} cm, a smoother at it "
                       f"{report['smoothing_bound']['mean_error_cm']:.2f} cm mean. {report['notes']}.", body,
-                      ["trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png", "error_histogram.png",
-                       "error_cdf.png"])
+                      PLOT_FILES, view_html)
 
 
 def _seed_text(seeds: list[int]) -> str:
@@ -327,35 +332,64 @@ def _seed_text(seeds: list[int]) -> str:
     return ", ".join(map(str, seeds))
 
 
-def _plots(out: Path, first: dict, e_fused: np.ndarray, e_rf: np.ndarray, e_dr: np.ndarray) -> None:
-    gt, est = first["truth"], first["estimates"]
-    for a, b in ((0, 2), (0, 1)):
-        f = Figure(f"Trajectories, first seed ({'xyz'[a]}-{'xyz'[b]})", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)",
-                   size=(640, 520))
-        f.line(est["rf_ml"][:, a] * 100, est["rf_ml"][:, b] * 100, label="RF only", colour=(200, 200, 200))
-        f.line(est["dead_reckoning"][:, a] * 100, est["dead_reckoning"][:, b] * 100, label="dead reckoning",
-               colour=(44, 160, 44))
-        f.line(gt[:, a] * 100, gt[:, b] * 100, label="truth", colour=(0, 0, 0))
-        f.line(est["ekf_rss_rts"][:, a] * 100, est["ekf_rss_rts"][:, b] * 100, label="Body-SLAM (RTS)",
-               colour=(214, 39, 40))
-        write_image(out / f"trajectories_{'xyz'[a]}{'xyz'[b]}.png", f.image())
-    k = np.arange(len(first["errors"]["rf_ml"]))
-    f = Figure("Error against step (first seed)", "step", "error (cm)")
-    for name, col in (("rf_ml", (200, 200, 200)), ("dead_reckoning", (44, 160, 44)), ("ekf_rss_rts", (214, 39, 40))):
-        f.line(k, first["errors"][name] * 100, label=name, colour=col)
-    f.line(k, np.sqrt(first["pcrb_m2"]) * 100, label="sqrt(PCRB)", colour=(31, 119, 180))
-    write_image(out / "error_vs_step.png", f.image())
-    e_rf = e_rf[np.isfinite(e_rf)]  # frames without an RF fix have no RF error
-    edges = np.linspace(0, max(np.percentile(e_rf * 100, 99) if len(e_rf) else 0.0, 1.0), 31)
-    h, _ = np.histogram(np.clip(e_fused * 100, 0, edges[-1]), bins=edges, density=True)
-    write_image(out / "error_histogram.png",
-                Figure("Body-SLAM error histogram (all seeds)", "error (cm)", "density").bars(edges, h).image())
-    f = Figure("Error CDF (all seeds)", "error (cm)", "fraction of frames")
-    for name, e, col in (("RF only", e_rf, (200, 200, 200)), ("dead reckoning", e_dr, (44, 160, 44)),
-                         ("Body-SLAM (RTS)", e_fused, (214, 39, 40))):
-        x = np.sort(e * 100)
-        f.line(x, np.arange(1, len(x) + 1) / len(x), label=name, colour=col, step=True)
+PLOT_FILES = ["trajectory.png", "error_vs_time.png", "error_cdf.png", "error_histogram.png"]
+# the plots' colours per algorithm (RGB)
+_COLOURS = {"rf_ml": (170, 170, 170), "dead_reckoning": (44, 160, 44), "ekf_rss": (31, 119, 180),
+            "ekf_rss_causal": (148, 103, 189), "ekf_rss_rts": (214, 39, 40), "truth": (0, 0, 0)}
+
+
+def _plots(out: Path, first: dict, errs: dict) -> None:
+    """The evaluation's PNGs (:data:`PLOT_FILES`): the first seed's trajectories in 3-D and three projections
+    against the truth with the smoother's 1-sigma; its error against time beside the matching bound (the online
+    filter against the PCRB of causal filtering, the smoother against the smoothing bound); the error CDF and the
+    smoother's error histogram over all seeds."""
+    from bodyslam.plots import Path3D, trajectory_figure
+
+    gt, est, t = first["truth"], first["estimates"], first["stamps_s"]
+    img = trajectory_figure(
+        f"Seed {first['seed']}: where the capsule was, estimated and true (body frame)",
+        [Path3D(SHORT["ekf_rss_rts"], est["ekf_rss_rts"], _COLOURS["ekf_rss_rts"], 1.8, first["cov_m2"]["ekf_rss_rts"]),
+         Path3D("truth", gt, _COLOURS["truth"], 1.2),
+         Path3D(SHORT["ekf_rss"], est["ekf_rss"], _COLOURS["ekf_rss"], 1.0),
+         Path3D(SHORT["rf_ml"], est["rf_ml"], _COLOURS["rf_ml"], 0.8)])
+    write_image(out / "trajectory.png", img)
+    f = Figure(f"Seed {first['seed']}: position error against time, with the matching bound", "time (s)",
+               "position error (cm)", size=(900, 460))
+    f.line(t, first["errors"]["rf_ml"] * 100, SHORT["rf_ml"], _COLOURS["rf_ml"], width=1)
+    f.line(t, first["errors"]["ekf_rss"] * 100, SHORT["ekf_rss"], _COLOURS["ekf_rss"], width=1.6)
+    f.line(t, np.sqrt(first["pcrb_m2"]) * 100, "bound of online filtering (sqrt PCRB)", _COLOURS["ekf_rss"], width=1,
+           dashed=True)
+    f.line(t, first["errors"]["ekf_rss_rts"] * 100, SHORT["ekf_rss_rts"], _COLOURS["ekf_rss_rts"], width=1.6)
+    f.line(t, np.sqrt(first["smoothing_bound_m2"]) * 100, "bound of smoothing", _COLOURS["ekf_rss_rts"], width=1,
+           dashed=True)
+    write_image(out / "error_vs_time.png", f.image())
+    f = Figure("Position error CDF, all seeds and frames", "position error (cm)", "fraction of frames at or below",
+               size=(760, 460))
+    for name in ("rf_ml", "dead_reckoning", "ekf_rss_causal", "ekf_rss", "ekf_rss_rts"):
+        e = np.concatenate(errs[name])
+        x = np.sort(e[np.isfinite(e)] * 100)  # frames without an RF fix have no RF error
+        f.line(x, np.arange(1, len(x) + 1) / max(len(x), 1), SHORT[name], _COLOURS[name], step=True, width=1.6)
     write_image(out / "error_cdf.png", f.image())
+    e_fused = np.concatenate(errs["ekf_rss_rts"]) * 100
+    edges = np.linspace(0, max(float(np.percentile(e_fused, 99)), 1.0), 31)
+    h, _ = np.histogram(np.clip(e_fused, 0, edges[-1]), bins=edges, density=True)
+    write_image(out / "error_histogram.png",
+                Figure(f"{SHORT['ekf_rss_rts']}: position error histogram, all seeds", "position error (cm)",
+                       "density (1/cm)", size=(640, 420)).bars(edges, h, colour=_COLOURS["ekf_rss_rts"]).image())
+
+
+def _view(first: dict) -> str:
+    """The first seed's 3-D view for the page (:func:`bodyslam.report.view_3d`)."""
+    from bodyslam.plots import Path3D
+    from bodyslam.report import view_3d
+
+    est = first["estimates"]
+    return (f"<h2>Seed {first['seed']} in 3-D</h2>"
+            + view_3d([Path3D(SHORT["ekf_rss_rts"], est["ekf_rss_rts"], _COLOURS["ekf_rss_rts"], 1.8,
+                              first["cov_m2"]["ekf_rss_rts"]),
+                       Path3D("truth", first["truth"], _COLOURS["truth"], 1.2),
+                       Path3D(SHORT["ekf_rss"], est["ekf_rss"], _COLOURS["ekf_rss"], 1.0),
+                       Path3D(SHORT["rf_ml"], est["rf_ml"], _COLOURS["rf_ml"], 0.8)], stamps_s=first["stamps_s"]))
 
 
 def main_report_line(report: dict) -> str:

@@ -370,7 +370,7 @@ def _plots(out: Path, main: dict, report: dict, algs: list[str]) -> None:
                step=True)
     write_image(out / "error_cdf.png", f.image())
     pos = main["truth"]["pos"] * 100
-    f = Figure(f"Tract and run {report['seeds'][0]} (x-z, cm)", "x (cm)", "z (cm)", size=(640, 640))
+    f = Figure(f"Tract and run {report['seeds'][0]} (x-z, cm)", "x (cm)", "z (cm)", size=(640, 640), equal=True)
     for a in algs:
         est = main["estimates"][a][0] * 100
         f.line(est[:, 0], est[:, 2], label=SHORT.get(a, a), colour=_COLOURS.get(a, (0, 0, 0)))

@@ -300,7 +300,7 @@ def _plots(out: Path, runs: list[dict], algs: list[str]) -> None:
         f.line(x, np.arange(1, len(x) + 1) / len(x), label=a, colour=c, step=True)
     write_image(out / "error_cdf.png", f.image())
     r0 = runs[0]
-    f = Figure(f"Trajectories, seed {r0['seed']} (x-z)", "x (cm)", "z (cm)", size=(640, 520))
+    f = Figure(f"Trajectories, seed {r0['seed']} (x-z)", "x (cm)", "z (cm)", size=(640, 520), equal=True)
     for a, c in zip(algs, cols):
         f.line(r0["estimates"][a][:, 0] * 100, r0["estimates"][a][:, 2] * 100, label=a, colour=c)
     f.line(r0["truth"][:, 0] * 100, r0["truth"][:, 2] * 100, label="truth", colour=(0, 0, 0))

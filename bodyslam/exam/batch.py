@@ -12,7 +12,7 @@ folder of image files), or a video file. For each exam the run writes, under ``O
   first camera frame is the world frame), and ``uncertainty.csv`` (:data:`bodyslam.fusion.localize.UNCERTAINTY_COLUMNS`);
 - ``marks.csv`` for marked frames (``--mark``): position, 1-sigma, path travelled from the first frame and from
   each landmark frame, with 1-sigma;
-- ``summary.json`` and plots. ``OUT/problems.csv`` lists every problem of every exam
+- ``summary.json``, ``trajectory.png``, ``path.png`` and ``report.html`` (:func:`_report`). ``OUT/problems.csv`` lists every problem of every exam
   (``exam,file,frame,severity,reason``); ``OUT/summary.json`` gathers the exams.
 
 Frames and time
@@ -73,7 +73,7 @@ import numpy as np
 from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
-from bodyslam.io import MOTION_COLUMNS, atomic_path, motion_row, read_json, step_from_row, write_csv, write_image, write_json
+from bodyslam.io import MOTION_COLUMNS, atomic_path, csv_rows, motion_row, read_json, step_from_row, write_csv, write_image, write_json
 from bodyslam.vision.odometry import MotionSettings, chunk_bounds, write_mask
 
 log = logging.getLogger(__name__)
@@ -90,6 +90,7 @@ DEFAULT_RADIUS_M = 0.0125  # small intestine, 2.5 cm lumen diameter (the thesis'
 # fusion carries it as a visual scale state and each step's 1-sigma includes it
 DEFAULT_RADIUS_SD_M = 0.0025
 DEFAULT_FPS = 2.0
+MAX_FRAME_RANGE = 10_000_000  # a frame range (``--mark 100-200``) longer than any exam is a typing error
 _SIGMA_D = MOTION_COLUMNS.index("sigma_distance_m")
 
 
@@ -160,8 +161,23 @@ def read_calibration(path: str | os.PathLike, width: int | None = None, height: 
     ``{"K": 3x3, "D": [k1..k4], "width", "height"[, "fov_deg"]}``; OpenCV FileStorage YAML/XML with ``K`` (or
     ``camera_matrix``), ``D`` (or ``distortion_coefficients``), ``image_width``, ``image_height``. Without
     ``fov_deg`` the field of view is the largest circle about the principal point inside the image.
+
+    Raises
+    ------
+    InputError
+        Anything wrong with the file, in one line that names it.
     """
     path = Path(path)
+    try:
+        return _read_calibration(path, width, height)
+    except InputError as exc:
+        msg = str(exc)
+        raise InputError(msg if str(path) in msg else f"{path}: {msg}") from None
+    except (ValueError, TypeError, OverflowError, ZeroDivisionError, cv2.error) as exc:  # numbers that make no camera
+        raise InputError(f"{path}: not a usable calibration ({str(exc).strip().splitlines()[-1][:120]})") from None
+
+
+def _read_calibration(path: Path, width: int | None, height: int | None) -> dict:
     if not path.is_file():
         raise InputError(f"{path}: calibration file not found")
     if path.suffix.lower() == ".json":
@@ -240,6 +256,8 @@ def parse_frame_list(text: str) -> list[int]:
         try:
             if "-" in part[1:]:
                 a, b = part.split("-", 1)
+                if not 0 <= int(b) - int(a) < MAX_FRAME_RANGE:
+                    raise InputError(f"frame range {part!r} is empty or longer than {MAX_FRAME_RANGE} frames")
                 out.extend(range(int(a), int(b) + 1))
             else:
                 out.append(int(part))
@@ -256,7 +274,6 @@ def read_marks(path: str | os.PathLike, exams: list[Exam]) -> None:
     InputError
         A malformed line or an unknown exam (file and line are named).
     """
-    from bodyslam.io import csv_rows
 
     by_name = {e.name: e for e in exams}
     with csv_rows(path, ("frame",)) as lines:
@@ -318,23 +335,8 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
     for inp in inputs:
         p = Path(inp)
         if p.is_file() and p.suffix.lower() in (".csv", ".json") and p.name not in SIDECARS:
-            for row in _read_manifest(p):
-                opts = dict(base)
-                for k in ("calib", "mask", "rf", "sensors"):
-                    if row.get(k):
-                        opts[k] = str((p.parent / row[k]).resolve()) if row[k] != "auto" else "auto"
-                for k in ("fps", "radius_m"):
-                    if row.get(k) not in (None, ""):
-                        try:
-                            opts[k] = float(row[k])
-                        except ValueError:
-                            raise InputError(f"{p}: {k} {row[k]!r} is not a number") from None
-                if row.get("marks"):
-                    opts["marks"] = [(f, "") for f in parse_frame_list(row["marks"])]
-                if row.get("landmarks"):
-                    opts["landmarks"] = parse_frame_list(row["landmarks"])
-                src = (p.parent / row["input"]).resolve()
-                add(lambda: _open_exam(src, row.get("name") or src.stem, taken, **opts), src)
+            for loc, row in _read_manifest(p):
+                add(lambda: _manifest_exam(p, loc, row, base, taken), f"{p}:{loc}")
         else:
             add(lambda: _open_exam(p, p.stem if p.is_file() else p.name, taken, **base), p)
     if failed and not exams:
@@ -344,20 +346,54 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
     return exams
 
 
-def _read_manifest(path: Path) -> list[dict]:
+def _manifest_exam(p: Path, loc: str, row: dict, base: dict, taken: set[str]) -> Exam:
+    """The exam of one manifest row; any error names the manifest and the row (``p:loc``) on one line."""
+    try:
+        if "\x00" in "".join(str(v) for v in row.values()):
+            raise InputError("a field holds a NUL byte")
+        opts = dict(base)
+        for k in ("calib", "mask", "rf", "sensors"):
+            if row.get(k):
+                opts[k] = str((p.parent / row[k]).resolve()) if row[k] != "auto" else "auto"
+        for k in ("fps", "radius_m"):
+            if row.get(k) not in (None, ""):
+                try:
+                    opts[k] = float(row[k])
+                except ValueError:
+                    raise InputError(f"{k} {row[k]!r} is not a number") from None
+        if row.get("marks"):
+            opts["marks"] = [(f, "") for f in parse_frame_list(row["marks"])]
+        if row.get("landmarks"):
+            opts["landmarks"] = parse_frame_list(row["landmarks"])
+        src = (p.parent / row["input"]).resolve()
+        return _open_exam(src, row.get("name") or src.stem, taken, **opts)
+    except InputError as exc:
+        msg = str(exc).replace("\n", "\\n").replace("\r", "\\r")
+        raise InputError(f"{p}:{loc}: {msg}") from None
+
+
+def _read_manifest(path: Path) -> list[tuple[str, dict]]:
+    """``(where, row)``: ``where`` is the CSV line (or JSON item) for messages."""
     if path.suffix.lower() == ".json":
         rows = read_json(path)
-        if not isinstance(rows, list) or not all(isinstance(r, dict) and "input" in r for r in rows):
-            raise InputError(f"{path}: a JSON manifest is a list of objects with an 'input' each")
-        return [{k: ("" if v is None else (";".join(map(str, v)) if isinstance(v, list) else str(v)))
-                 for k, v in r.items()} for r in rows]
-    with path.open(newline="", encoding="utf-8") as f:
-        r = csv.DictReader(f)
-        if "input" not in (r.fieldnames or []):
-            raise InputError(f"{path}: not a manifest (no 'input' column; header is {r.fieldnames})")
-        rows = [row for row in r if row.get("input")]
+        if not isinstance(rows, list) or not all(isinstance(r, dict) and isinstance(r.get("input"), str)
+                                                 for r in rows):
+            raise InputError(f"{path}: a JSON manifest is a list of objects with an 'input' path each")
+        return [(f"item {i}", {str(k): ("" if v is None else (";".join(map(str, v)) if isinstance(v, list) else str(v)))
+                               for k, v in r.items()}) for i, r in enumerate(rows, start=1)]
+    with csv_rows(path, ()) as lines:
+        rows = []
+        for lineno, row in lines:
+            if None in row:  # more fields than the header has
+                raise InputError(f"{path}:{lineno}: {len(row) - 1 + len(row[None])} fields, the header has "
+                                 f"{len(row) - 1}")
+            rows.append((f"line {lineno}", row))
+        fields = list(rows[0][1]) if rows else []
+    if rows and "input" not in fields:
+        raise InputError(f"{path}: not a manifest (no 'input' column; header is {fields})")
+    rows = [(loc, r) for loc, r in rows if r.get("input")]
     if not rows:
-        raise InputError(f"{path}: manifest lists no exams")
+        raise InputError(f"{path}: manifest lists no exams (an 'input' column, one exam per row)")
     return rows
 
 
@@ -520,8 +556,11 @@ def _prepare_out(out: Path, plan: dict, force: bool) -> None:
                 shutil.rmtree(child)
             else:
                 child.unlink()
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(plan_file, {"plan": plan, "format": "bodyslam-batch/1"})
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(plan_file, {"plan": plan, "format": "bodyslam-batch/1"})
+    except OSError as exc:
+        raise InputError(f"{out}: cannot create the output directory ({exc.strerror or exc})") from None
 
 
 def _mask_for(exam: Exam) -> np.ndarray | None:
@@ -727,7 +766,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     n = acc.n
     t, P, Q = acc.t[:n], acc.pos[:n], acc.quat[:n]
     frame_idx = acc.frame[:n].tolist()
-    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n])
+    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
     fused = None
     if exam.rf and n >= 2:
@@ -741,7 +780,6 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
               world="body frame" if fused is not None else "first camera frame")
     write_uncertainty(d / "uncertainty.csv", frame_idx, t, cov, sd_head, path_m, path_var)
     marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems)
-    _plots(exam, d, t, P, path_m, fused is not None)
     classified = settings.motion.classify
     summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
                "frames_expected": n_expected, "video_ended_at": eof,
@@ -754,8 +792,9 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors
                "rss_error_correlation": (fused.channel.as_dict() if fused is not None and fused.channel else None),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
-               "camera": exam.camera, "radius_m": exam.radius_m}
+               "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m}
     write_json(d / "summary.json", summary)
+    _report(exam, d, summary, t, P, cov, frame_idx, path_m, path_var, marks, fused is not None)
     return summary, problems
 
 
@@ -812,6 +851,8 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
 
 
 def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var, problems) -> list[list]:
+    from bodyslam.vision.tracking import segment_variance
+
     if not exam.marks:
         return []
     where = {f: k for k, f in enumerate(frame_idx)}
@@ -832,24 +873,53 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
         row = [f, label, t[k], *P[k], sd[k], path_m[k], math.sqrt(path_var[k])]
         for lm in lms:
             j = where[lm]
-            row += [path_m[k] - path_m[j], math.sqrt(abs(path_var[k] - path_var[j]))]
+            row += [path_m[k] - path_m[j],
+                    math.sqrt(segment_variance(path_m, path_var, j, k, exam.radius_sd_m / exam.radius_m))]
         rows.append(row)
     write_csv(d / "marks.csv", header, rows)
     return rows
 
 
-def _plots(exam: Exam, d: Path, t, P, path_m, fused: bool) -> None:
-    from bodyslam.plots import Figure
+def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, path_var, marks: list[list],
+            fused: bool) -> None:
+    """The exam's plots (``trajectory.png``: 3-D and three projections with the 1-sigma and the marked frames;
+    ``path.png``: how far along the gut, with its 1-sigma) and ``report.html`` (the summary, the marked frames, a
+    3-D view to turn, the plots)."""
+    from bodyslam.plots import Mark, Path3D, path_figure, trajectory_figure
+    from bodyslam.report import table, view_3d, write_page
 
     if len(t) < 2:
         return
-    step = max(1, len(t) // 4000)  # plots need no more points than pixels
-    tt, PP, pm = t[::step], P[::step], path_m[::step]
-    fig = Figure(f"{exam.name}: path travelled", "time (min)", "path (cm)", size=(640, 400))
-    fig.line(tt / 60.0, pm * 100)
-    write_image(d / "path.png", fig.image())
-    for a, b in ((0, 2), (0, 1)):
-        what = "fused trajectory" if fused else "dead reckoning (first camera frame)"
-        fig = Figure(f"{exam.name}: {what}", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)", size=(640, 520))
-        fig.line(PP[:, a] * 100, PP[:, b] * 100)
-        write_image(d / f"trajectory_{'xyz'[a]}{'xyz'[b]}.png", fig.image())
+    where = {f: k for k, f in enumerate(frame_idx)}
+    name = "Body-SLAM (RF + vision, smoothed)" if fused else "dead reckoning (vision only)"
+    paths = [Path3D(name, P, (214, 39, 40), 1.8, cov)]
+    mk = [Mark(f"frame {r[0]}" + (f" {r[1]}" if r[1] else ""), P[where[r[0]]], cov[where[r[0]]]) for r in marks]
+    frame_txt = "body frame" if fused else "first camera frame: no RF, so no body frame"
+    write_image(d / "trajectory.png", trajectory_figure(f"{exam.name}: where the capsule was ({frame_txt})", paths,
+                                                        mk, body_frame=fused))
+    write_image(d / "path.png", path_figure(f"{exam.name}: how far along the gut", t, path_m, path_var,
+                                            [(r[2], f"frame {r[0]}") for r in marks]))
+    sm = summary
+    cls = sm["classes"]
+    rows = [["source", f"{sm['source']} ({sm['kind']})"],
+            ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"
+             + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
+            ["duration", f"{sm['duration_s'] / 60:.1f} min at {sm['frame_rate_hz']:g} frames/s"],
+            ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"],
+            ["steps", ", ".join(f"{v} {k}" for k, v in sm["steps"].items())],
+            ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
+            ["trajectory", sm["trajectory"]],
+            ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
+            ["assumed", "; ".join(sm["assumed"]) or "nothing"],
+            ["problems", f"{sm['problems']} (problems.csv)"]]
+    body = table(["", ""], rows)
+    if marks:
+        body += "<h2>Marked frames</h2>" + table(
+            ["frame", "label", "t (s)", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)",
+             "1-sigma (cm)"], [[r[0], r[1], f"{r[2]:.1f}", *(f"{v * 100:.1f}" for v in r[3:9])] for r in marks])
+    body += "<h2>3-D view</h2>" + view_3d(paths, mk, t, np.asarray(frame_idx), body_frame=fused) + "<h2>Plots</h2>"
+    write_page(d / "report.html", f"Exam {exam.name}", f"{name}; positions in the {frame_txt}"
+               + ("" if not fused else " (x toward the patient's left, y anterior, z cranial)")
+               + ". The 1-sigma is the filter's, scaled by the RF readings' measured correlation; the path travelled "
+                 "is the sum of the visual steps (its 1-sigma includes the assumed lumen radius's).", body,
+               ["trajectory.png", "path.png"], with_3d=True)

@@ -15,7 +15,8 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 
 :func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
 (online filter), ``uncertainty.csv`` (:data:`UNCERTAINTY_COLUMNS`, also written by dead reckoning and the other
-papers' localizers), ``rf_fixes.csv`` and two plots.
+papers' localizers), ``rf_fixes.csv``, ``trajectory.png`` (3-D view and three projections with the 1-sigma and
+the marked frames), ``path.png`` (path travelled with its 1-sigma) and ``report.html`` (a 3-D view to turn).
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
         channel = residual_correlation(normalised_residuals(rss, smoothed.positions_w_m, rf.sensors_w_m,
                                                             rf.normals_w, rf.pathloss))
         ekf, smoothed = inflate(ekf, kappa_online), inflate(smoothed, channel.kappa)
-    path, var = path_travelled(steps)
+    path, var = path_travelled(steps, radius_sd_rel)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
                         kappa_online)
@@ -144,9 +145,12 @@ def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2
                 cell(head[k]), cell(pm[k]), cell(psd[k])] for k in range(n)])
 
 
-def write_localization(out: str | os.PathLike, loc: Localization, title: str = "Body-SLAM") -> None:
-    """The output set of a localization run (module docstring) into the directory ``out``."""
-    from bodyslam.plots import Figure
+def write_localization(out: str | os.PathLike, loc: Localization, title: str = "Body-SLAM",
+                       marks: list[tuple[int, str]] | None = None) -> None:
+    """The output set of a localization run (module docstring) into the directory ``out``; ``marks``: ``(row,
+    label)`` of marked frames (lesions), drawn with their 1-sigma."""
+    from bodyslam.plots import Mark, Path3D, path_figure, trajectory_figure
+    from bodyslam.report import table, view_3d, write_page
 
     out = Path(out)
     res, ekf = loc.smoothed, loc.filtered
@@ -158,9 +162,31 @@ def write_localization(out: str | os.PathLike, loc: Localization, title: str = "
     fx = np.array([f.position_w_m for f in loc.fixes])
     write_csv(out / "rf_fixes.csv", ["frame", "t", "x_m", "y_m", "z_m", "status"],
               [[int(loc.frames[k]), t, *fx[k], loc.fixes[k].status] for k, t in enumerate(loc.stamps_s)])
-    step = max(1, len(fx) // 4000)  # plots need no more points than pixels
-    for a, b, name in ((0, 2, "x-z (coronal)"), (0, 1, "x-y (axial)")):
-        fig = Figure(f"{title} trajectory, {name} view", f"{'xyz'[a]} (cm)", f"{'xyz'[b]} (cm)", size=(640, 520))
-        fig.line(fx[::step, a] * 100, fx[::step, b] * 100, label="RF fixes (ML)", colour=(200, 200, 200))
-        fig.line(res.positions_w_m[::step, a] * 100, res.positions_w_m[::step, b] * 100, label="fused (smoothed)")
-        write_image(out / f"trajectory_{'xyz'[a]}{'xyz'[b]}.png", fig.image())
+    fixes_ok = np.where(np.array([f.status == "ok" for f in loc.fixes])[:, None], fx, np.nan)
+    paths = [Path3D(f"{title} (smoothed)", res.positions_w_m, (214, 39, 40), 1.8, res.cov[:, :3, :3]),
+             Path3D(f"{title} (online filter)", ekf.positions_w_m, (31, 119, 180), 1.0),
+             Path3D("RF fixes (ML)", fixes_ok, (170, 170, 170), 0.8)]
+    marks = [Mark(label, res.positions_w_m[k], res.cov[k, :3, :3]) for k, label in (marks or [])]
+    write_image(out / "trajectory.png", trajectory_figure(f"{title}: where the capsule was (body frame)", paths,
+                                                          marks))
+    write_image(out / "path.png", path_figure(f"{title}: how far along the gut", loc.stamps_s, loc.path_m,
+                                              loc.path_var_m2, [(loc.stamps_s[k], label) for k, label in
+                                                                (marks or [])]))
+    sd = np.sqrt(np.trace(c[:, :3, :3], axis1=1, axis2=2))
+    rows = [["frames", len(loc.frames)], ["duration (s)", f"{loc.stamps_s[-1] - loc.stamps_s[0]:.1f}"],
+            ["path travelled (cm)", f"{loc.path_m[-1] * 100:.1f} +- {math.sqrt(max(loc.path_var_m2[-1], 0)) * 100:.1f}"],
+            ["position 1-sigma, median / max (cm)", f"{np.median(sd) * 100:.2f} / {sd.max() * 100:.2f}"],
+            ["RF readings' correlation factor kappa",
+             f"{loc.channel.kappa:.2f}" if loc.channel is not None else "not measured"],
+            ["RF updates / readings rejected", f"{ekf.n_updates} / {ekf.n_rejected}"]]
+    body = table(["", ""], rows)
+    if marks:
+        body += "<h2>Marked frames</h2>" + table(
+            ["frame", "label", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)"],
+            [[int(loc.frames[k]), label, *(f"{v * 100:.1f}" for v in res.positions_w_m[k]), f"{sd[k] * 100:.1f}",
+              f"{loc.path_m[k] * 100:.1f}"] for k, label in marks])
+    body += "<h2>3-D view</h2>" + view_3d(paths[:2], marks, loc.stamps_s, loc.frames) + "<h2>Plots</h2>"
+    write_page(out / "report.html", f"{title} localization", "Positions in the body frame (x toward the patient's "
+               "left, y anterior, z cranial), from the visual steps fused with the RF readings; 1-sigma as stated by "
+               "the smoother, scaled by the readings' measured correlation.", body, ["trajectory.png", "path.png"],
+               with_3d=True)

@@ -118,9 +118,13 @@ def read_sensors(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray, 
         for i, r in lines:
             try:
                 p = [float(r["x"]), float(r["y"]), float(r["z"])]
-                n = [float(r[k]) for k in ("nx", "ny", "nz")] if r.get("nx") not in (None, "") else None
+                n = [float(r.get(k)) for k in ("nx", "ny", "nz")] if r.get("nx") not in (None, "") else None
             except (TypeError, ValueError):
                 raise InputError(f"{path}:{i}: not a number in {r}") from None
+            if not all(map(math.isfinite, p + (n or []))):
+                raise InputError(f"{path}:{i}: position and normal must be finite numbers, got {r}")
+            if n is not None and np.linalg.norm(n) < 1e-9:
+                raise InputError(f"{path}:{i}: the normal (nx, ny, nz) is zero")
             if r["sensor"] in names:
                 raise InputError(f"{path}:{i}: sensor {r['sensor']!r} listed twice")
             names.append(r["sensor"])

@@ -411,7 +411,7 @@ def load_recording(seq_dir) -> dict:
     from pathlib import Path
 
     from bodyslam.errors import InputError
-    from bodyslam.io import read_json
+    from bodyslam.io import read_json, read_text
 
     d = Path(seq_dir)
     meta = read_json(d / "meta.json")
@@ -424,22 +424,23 @@ def load_recording(seq_dir) -> dict:
                                                                                                     float)),
                     "body_sd_rad": tuple(fl["body_sd_rad"]) if fl.get("body_sd_rad") else None}
         dt = 1.0 / float(fl["rate_hz"])
-    except (KeyError, TypeError, ValueError) as exc:
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError("rate_hz must be a positive number")
+    except (KeyError, TypeError, ValueError, AttributeError, ZeroDivisionError, OverflowError) as exc:
         raise InputError(f"{d / 'meta.json'}: not a magnetic-capsule recording ({exc!r} missing or malformed)") from None
     problems = []
 
     def table(name, n_cols):
         rows = {}
         path = d / name
-        try:
-            lines = path.read_text(encoding="utf-8").splitlines()
-        except FileNotFoundError:
-            raise InputError(f"{path}: file not found") from None
+        lines = read_text(path).splitlines()
         for ln, line in enumerate(lines[1:], start=2):
             try:
                 v = [float(x) for x in line.split(",")]
                 if len(v) != n_cols + 1:
                     raise ValueError(f"{len(v)} fields, expected {n_cols + 1}")
+                if not (math.isfinite(v[0]) and 0.0 <= v[0] <= 1e6):  # (a pose not yet commanded is NaN)
+                    raise ValueError(f"time {v[0]:g} s outside 0-1e6 s")
             except ValueError as exc:
                 problems.append((name, ln, f"malformed line ({exc})"))
                 continue

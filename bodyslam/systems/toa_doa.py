@@ -403,6 +403,9 @@ def scheme_pcrb(name: str, truth_m: np.ndarray, arrays: list[Ura], radio: Radio,
                 imu=name not in ("rf_only", "rf_only_cv"), draws=draws, snr=snr)
 
 
+MAX_RECORDING_S = 1e6  # readings stamped later than this (11 days) are malformed lines
+
+
 def load_recording(seq_dir) -> dict:
     """A recording in the testbed's file layout (``meta.json`` with the arrays, radio, IMU noise and initial
     state; ``rf.csv``; ``imu.csv``) as the arrays :func:`run_scheme` takes. Malformed lines and unknown sensors
@@ -423,7 +426,9 @@ def load_recording(seq_dir) -> dict:
         init = meta["initial_state"]
         x0 = np.concatenate([np.asarray(init["position_m"], float), np.asarray(init["velocity_mps"], float)])
         P0 = np.asarray(init["covariance"], float).reshape(6, 6)
-    except (KeyError, TypeError, ValueError) as exc:
+        if not (math.isfinite(delta) and delta > 0 and math.isfinite(sigma) and sigma >= 0):
+            raise ValueError("interval_s must be positive and imu.sigma_acc_mps2 >= 0")
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(f"{d / 'meta.json'}: not a TOA/DOA + IMU recording ({exc!r} missing or malformed)") from None
     names = {a.name: i for i, a in enumerate(arrays)}
     rows, problems = [], []
@@ -433,6 +438,10 @@ def load_recording(seq_dir) -> dict:
                 vals = [float(r[c]) for c in ("t", "toa_s", "azimuth_rad", "elevation_rad", "snr_db")]
                 if not all(math.isfinite(v) for v in vals):
                     raise ValueError("non-finite value")
+                if not 0.0 <= vals[0] <= MAX_RECORDING_S:
+                    raise ValueError(f"time {vals[0]:g} s outside 0-{MAX_RECORDING_S:g} s")
+                if not -100.0 <= vals[4] <= 200.0:
+                    raise ValueError(f"snr_db {vals[4]:g} outside -100-200 dB")
             except (TypeError, ValueError) as exc:
                 problems.append(("rf.csv", ln, f"malformed line ({exc})"))
                 continue
@@ -444,7 +453,12 @@ def load_recording(seq_dir) -> dict:
     with csv_rows(d / "imu.csv", ["t", "ax_mps2", "ay_mps2", "az_mps2"]) as lines:
         for ln, r in lines:
             try:
-                imu_rows.append([float(r[c]) for c in ("t", "ax_mps2", "ay_mps2", "az_mps2")])
+                v = [float(r[c]) for c in ("t", "ax_mps2", "ay_mps2", "az_mps2")]
+                if not all(math.isfinite(x) for x in v):
+                    raise ValueError("non-finite value")
+                if not 0.0 <= v[0] <= MAX_RECORDING_S:
+                    raise ValueError(f"time {v[0]:g} s outside 0-{MAX_RECORDING_S:g} s")
+                imu_rows.append(v)
             except (TypeError, ValueError) as exc:
                 problems.append(("imu.csv", ln, f"malformed line ({exc})"))
     t_end = max([r[0] for r in rows] + [r[0] + delta for r in imu_rows] + [0.0])

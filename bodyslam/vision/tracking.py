@@ -22,7 +22,12 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.steps import StepMotion
 
-__all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length"]
+__all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length", "scale_path_variance",
+           "segment_variance", "SCALE_CORR_M"]
+
+# the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
+# the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
+SCALE_CORR_M = 0.2
 
 
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
@@ -60,7 +65,25 @@ def step_length(s: StepMotion) -> tuple[float, float]:
     return math.nan, 0.0
 
 
-def path_travelled(steps: list[StepMotion]) -> tuple[np.ndarray, np.ndarray]:
+def scale_path_variance(length_m, scale_sd_rel: float, corr_m: float = SCALE_CORR_M):
+    """Variance (m^2) that a relative scale error adds to a path of length ``length_m`` when the error is a
+    Gauss-Markov process along the path (1-sigma ``scale_sd_rel``, correlation distance ``corr_m``): the integral
+    of its covariance, ``2 sd^2 l^2 (L/l - 1 + exp(-L/l))`` -- ``(sd L)^2`` for a path much shorter than ``l`` (one
+    scale for all of it), ``2 sd^2 l L`` for a much longer one (independent stretches of ``l``)."""
+    L = np.abs(np.asarray(length_m, float)) / corr_m
+    return 2.0 * scale_sd_rel**2 * corr_m**2 * (L - 1.0 + np.exp(-L))
+
+
+def segment_variance(path_m: np.ndarray, var_m2: np.ndarray, j: int, k: int, scale_sd_rel: float = 0.0,
+                     corr_m: float = SCALE_CORR_M) -> float:
+    """Variance of the path travelled between frames ``j`` and ``k`` (:func:`path_travelled`'s outputs): the
+    steps' own variances between them, and the scale's over that stretch's length."""
+    sv = (lambda L: float(scale_path_variance(L, scale_sd_rel, corr_m))) if scale_sd_rel > 0 else (lambda L: 0.0)
+    own = abs((var_m2[k] - sv(path_m[k])) - (var_m2[j] - sv(path_m[j])))
+    return own + sv(path_m[k] - path_m[j])
+
+
+def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Path travelled from the first frame to each frame, and its variance: ``(path_m (n+1,), var_m2 (n+1,))``.
 
     The length of an estimated step is :func:`step_length`, with its own 1-sigma. A run of steps without an
@@ -71,14 +94,21 @@ def path_travelled(steps: list[StepMotion]) -> tuple[np.ndarray, np.ndarray]:
     path is zero, with zero variance (nothing is known).
     """
     lv = np.array([step_length(s) for s in steps], float).reshape(-1, 2)
-    return path_from_lengths(lv[:, 0], lv[:, 1])
+    return path_from_lengths(lv[:, 0], lv[:, 1], scale_sd_rel)
 
 
-def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
+                      corr_m: float = SCALE_CORR_M) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
-    only these two numbers per step)."""
+    only these two numbers per step). ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
+    assumed (:func:`bodyslam.vision.odometry.with_radius_uncertainty` put its share into each step's variance):
+    that share is taken out of the steps and added back as one error correlated along the path
+    (:func:`scale_path_variance`), which neighbouring steps share instead of averaging it out."""
     length = np.array(length_m, float)
     var = np.array(var_m2, float)
+    if scale_sd_rel > 0:
+        ok = np.isfinite(length)
+        var[ok] = np.maximum(var[ok] - (scale_sd_rel * length[ok]) ** 2, 0.0)
     n = len(length)
     est = np.isfinite(length)
     if not est.any():
@@ -95,4 +125,7 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray) -> tuple[np.ndar
         length[i:j] = fill
         var[i:j] = fill ** 2
         i = j
-    return np.r_[0.0, np.cumsum(length)], np.r_[0.0, np.cumsum(var)]
+    path, cum = np.r_[0.0, np.cumsum(length)], np.r_[0.0, np.cumsum(var)]
+    if scale_sd_rel > 0:
+        cum = cum + scale_path_variance(path, scale_sd_rel, corr_m)
+    return path, cum

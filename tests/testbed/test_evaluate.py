@@ -29,8 +29,7 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     assert p.returncode == 0, p.stderr
     again = json.loads((out / "report.json").read_text())
     assert again["algorithms"] == rep["algorithms"] and again["seconds"]["render_total"] < 1.0
-    for png in ("trajectories_xz.png", "trajectories_xy.png", "error_vs_step.png", "error_histogram.png",
-                "error_cdf.png"):
+    for png in ("trajectory.png", "error_vs_time.png", "error_histogram.png", "error_cdf.png"):
         assert (out / png).stat().st_size > 1000
     # every algorithm's trajectory as TUM beside the truth (evo reads them), orientation where it has one
     from bodyslam.io import read_tum
@@ -53,6 +52,9 @@ def test_seeds_in_parallel_give_the_same_report_and_an_html_page(tmp_path):
         reps[jobs] = json.loads((out / "report.json").read_text())
         page = (out / "report.html").read_text()
         assert "RMSE / sqrt(PCRB)" in page and 'src="error_cdf.png"' in page and "seeds 3-4" in page
+        assert 'class="view3d"' in page and "orientation error mean (deg)" in page
+        assert "Plotly.newPlot" in page and page.index("plotly.js v") < page.index('class="view3d"')  # its script
+        assert all((out / f).stat().st_size > 10000 for f in ("trajectory.png", "error_vs_time.png", "error_cdf.png"))
     assert reps["2"]["seconds"]["jobs"] == 2 and reps["1"]["seeds"] == reps["2"]["seeds"] == [3, 4]
     assert not (tmp_path / "eval_1" / "sequences" / "seed_3" / "frames").exists()  # not kept by default
     # each seed is computed the same way whatever the parallelism: identical figures

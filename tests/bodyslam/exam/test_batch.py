@@ -65,6 +65,10 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     assert rep.exams[0]["path_travelled_m"] == pytest.approx(np.abs(truth).sum(), rel=0.25)
     assert rep.exams[0]["trajectory"].startswith("fused")  # the sequence's rf.csv + sensors.csv are used
     assert rep.n_problems == 0 and (tmp_path / "out" / "problems.csv").read_text().startswith("exam,file,frame")
+    # what a person looks at: the page with the marked frames in its table and its 3-D view, and the plots
+    page = (d / "report.html").read_text()
+    assert "polyp" in page and 'class="view3d"' in page and 'src="trajectory.png"' in page
+    assert (d / "trajectory.png").stat().st_size > 10000 and (d / "path.png").stat().st_size > 10000
 
 
 def test_chunking_and_workers_do_not_change_results(tmp_path):

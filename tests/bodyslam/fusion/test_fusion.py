@@ -92,7 +92,7 @@ def test_localize_cli_on_the_demo(tmp_path):
                        capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     for f in ("trajectory.tum", "trajectory_filter.tum", "uncertainty.csv", "rf_fixes.csv", "motion.csv",
-              "trajectory_xz.png", "trajectory_xy.png"):
+              "trajectory.png", "path.png", "report.html"):
         assert (out / f).exists(), f
     _, est, _ = read_tum(out / "trajectory.tum")
     _, gt, _ = read_tum(DEMO / "groundtruth.tum")

@@ -167,3 +167,30 @@ def test_gaps_are_found_between_estimated_steps_and_split_exactly():
     assert np.allclose(pos[-1], total.t_c1_c2_m, atol=1e-12)
     assert np.allclose(rot[-1].as_matrix(), total.R_c1_c2, atol=1e-12)
     assert parts[0].sigma_distance_m == pytest.approx(2e-4)  # 4e-4 / sqrt(4): four independent shares
+
+
+def test_the_radius_error_adds_up_along_the_path_as_a_correlated_error():
+    """Monte Carlo: 500 steps of 4 mm whose scale error is a Gauss-Markov process along the path (20% 1-sigma,
+    0.2 m correlation distance). The variance of the path's length error matches ``scale_path_variance`` (within
+    the 4000 draws' 5% sampling error, margin 10%) and is ~10x the sum of the steps' own shares, which
+    ``path_from_lengths`` therefore replaces; a stretch between two frames gets the stretch's own scale term."""
+    from bodyslam.vision.tracking import path_from_lengths, scale_path_variance, segment_variance
+
+    rng = np.random.default_rng(0)
+    n, d, sd, corr = 500, 0.004, 0.2, 0.2
+    rho = np.exp(-d / corr)
+    s = np.zeros((4000, n))
+    s[:, 0] = rng.normal(0, sd, 4000)
+    for k in range(1, n):
+        s[:, k] = rho * s[:, k - 1] + rng.normal(0, sd * np.sqrt(1 - rho**2), 4000)
+    err = (s * d).sum(axis=1)
+    L = n * d
+    assert err.var() == pytest.approx(scale_path_variance(L, sd, corr), rel=0.10)
+    assert scale_path_variance(L, sd, corr) > 9 * n * (sd * d) ** 2
+    fit = (1e-4) ** 2
+    path, var = path_from_lengths(np.full(n, d), np.full(n, fit + (sd * d) ** 2), sd, corr)
+    assert path[-1] == pytest.approx(L) and var[-1] == pytest.approx(n * fit + scale_path_variance(L, sd, corr))
+    j, k = 100, 300
+    assert segment_variance(path, var, j, k, sd, corr) == pytest.approx(
+        (k - j) * fit + scale_path_variance((k - j) * d, sd, corr))
+    assert np.array_equal(path_from_lengths(np.full(n, d), np.full(n, fit))[1], np.r_[0, np.cumsum(np.full(n, fit))])

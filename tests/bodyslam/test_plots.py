@@ -1,0 +1,44 @@
+"""The plots (bodyslam.plots, matplotlib): what they draw can be seen in the pixels, and positions get equal axes."""
+
+import numpy as np
+
+from bodyslam.plots import Figure, Mark, Path3D, path_figure, trajectory_figure
+
+
+def _count(img: np.ndarray, rgb, tol: int = 40) -> int:
+    return int((np.abs(img.astype(int) - np.array(rgb)).max(axis=2) <= tol).sum())
+
+
+def test_figure_draws_its_items_and_positions_get_equal_axes():
+    from matplotlib.figure import Figure as MplFigure
+
+    f = Figure("t", "x (cm)", "y (cm)", size=(400, 300), equal=True)
+    f.line([0, 10], [0, 1], "a line", (214, 39, 40)).band([0, 10], [0, 0], [1, 1], "a band", (31, 119, 180))
+    img = f.image()
+    assert img.shape == (300, 400, 3) and img.dtype == np.uint8
+    assert _count(img, (214, 39, 40)) > 100  # the red line is there (and the legend's sample)
+    ax = MplFigure().add_subplot()
+    f.draw(ax)
+    assert ax.get_aspect() == 1.0 and ax.get_xlabel() == "x (cm)"
+    assert Figure("t", "x", "y").line([0, 1], [0, 1]).image().std() > 0  # not a blank image
+
+
+def test_trajectory_figure_shows_start_end_marks_and_the_1sigma():
+    """A 10 cm arc with a 1 cm 1-sigma and a marked frame: the start's green, the end's red, the mark's gold and
+    the path's colour are all in the image; without the covariance the ellipses' extra pixels are gone."""
+    t = np.linspace(0, np.pi, 100)
+    p = np.stack([0.05 * np.cos(t), 0.05 * np.sin(t), 0.01 * t], axis=1)
+    cov = np.repeat((np.eye(3) * 0.01**2)[None], 100, axis=0)
+    blue = (31, 119, 180)
+    with_cov = trajectory_figure("arc", [Path3D("est", p, blue, 1.8, cov)], [Mark("lesion", p[50], cov[50])])
+    without = trajectory_figure("arc", [Path3D("est", p, blue, 1.8)], [Mark("lesion", p[50], cov[50])])
+    assert with_cov.shape == (1000, 1200, 3)
+    for rgb in ((44, 160, 44), (214, 39, 40), (255, 200, 0)):
+        assert _count(with_cov, rgb, 30) > 20, rgb
+    assert _count(with_cov, blue, 30) > 1.3 * _count(without, blue, 30)
+
+
+def test_path_figure_of_a_long_exam_is_in_minutes_with_the_mark():
+    t = np.arange(0, 3600, 0.5)
+    img = path_figure("exam", t, t * 1e-4, (t * 1e-5) ** 2, [(1800.0, "polyp")])
+    assert img.shape == (420, 900, 3) and _count(img, (255, 200, 0), 30) > 20
