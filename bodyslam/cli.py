@@ -184,7 +184,9 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--mark", default=None, help="frames to locate, e.g. 120,455,1000-1002")
     ba.add_argument("--mark-file", default=None, help="CSV of marked frames: frame[,label][,exam]")
     ba.add_argument("--landmark", default=None, help="landmark frames (e.g. 310 = pylorus): path from each")
-    ba.add_argument("--chunk-frames", type=int, default=100, help="frames per checkpointed chunk")
+    ba.add_argument("--chunk-frames", type=int, default=None,
+                    help="frames per checkpointed chunk (default: from the study's length and the workers, each "
+                         "worker >= 4 chunks of 20-500 frames; recorded in batch.json; results do not depend on it)")
     ba.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler (tcp://host:8786)")
     ba.add_argument("--fusion", default="rss", choices=FUSION_MODES, help="with RF: EKF on RSS (default) or fixes")
     ba.add_argument("--force", action="store_true", help="overwrite an output directory holding another run")

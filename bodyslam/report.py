@@ -27,11 +27,12 @@ text-align:left}figure{display:inline-block;margin:8px;vertical-align:top}img{ma
 .view3d{border:1px solid #ccc;margin:1em 0}.note{color:#555;font-size:0.9em}"""
 
 
-def table(headers: list[str], rows: list[list]) -> str:
-    """An HTML table; cells are escaped, floats shown as given (format them before)."""
-    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in headers)
+def table(headers: list[str] | None, rows: list[list]) -> str:
+    """An HTML table (``headers`` None: rows only); cells are escaped, floats shown as given (format them
+    before)."""
+    head = "<tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in headers) + "</tr>" if headers else ""
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return f"<table>{head}{body}</table>"
 
 
 def _hex(c) -> str:

@@ -25,7 +25,8 @@ rate is the container's unless given.
 
 Chunks, checkpoints, resuming
 -----------------------------
-An exam's frames are cut into chunks of ``chunk_frames`` that overlap by one frame (chunk ``i`` computes the
+An exam's frames are cut into chunks of ``chunk_frames`` (by default :func:`auto_chunk_frames`: each worker gets at
+least 4 chunks, so all stay busy to the end) that overlap by one frame (chunk ``i`` computes the
 steps into its frames, so every step belongs to exactly one chunk). A chunk's result is a small JSON file in
 ``OUT/<exam>/chunks/``, written atomically; its computation depends only on its own frames, so results do not
 depend on the order, the number of workers or where they ran. ``OUT/batch.json`` holds the plan (inputs, a
@@ -63,7 +64,7 @@ import os
 import re
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -101,8 +102,19 @@ class BatchSettings:
     batch's own: frames per checkpointed chunk and the fusion mode with RF."""
 
     motion: MotionSettings = MotionSettings(match_mode="fast")
-    chunk_frames: int = 100
+    chunk_frames: int | None = None  # None: chosen from the study's length and the workers (auto_chunk_frames)
     fusion: str = "rss"
+
+
+CHUNKS_PER_WORKER = 4  # the last round leaves at most ~1/4 of a worker's share idle
+CHUNK_FRAMES_RANGE = (20, 500)  # fewer frames is mostly start-up; more loses more work to an interruption
+
+
+def auto_chunk_frames(n_frames: int, workers: int) -> int:
+    """Frames per chunk so that each of ``workers`` gets at least :data:`CHUNKS_PER_WORKER` chunks of a study of
+    ``n_frames`` (all its exams), within :data:`CHUNK_FRAMES_RANGE`. Results do not depend on it (tested)."""
+    lo, hi = CHUNK_FRAMES_RANGE
+    return int(min(hi, max(lo, n_frames // (CHUNKS_PER_WORKER * max(workers, 1)))))
 
 
 @dataclass
@@ -607,8 +619,11 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     study's own (exams that could not be opened, :func:`open_exams`), listed first in ``problems.csv``; an exam
     whose field of view cannot be set up is listed there too and left out, the others go on."""
     out = Path(out)
+    if settings.chunk_frames is None:
+        settings = replace(settings, chunk_frames=_chunk_frames_for(out, settings, exams, jobs))
     if settings.chunk_frames < 2:
         raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
+    # the plan records the chunk size used (resolved when it was chosen automatically)
     plan = {"version": PLAN_VERSION, "code": code_fingerprint(), "settings": asdict(settings),
             "exams": [e.describe() for e in exams]}
     _prepare_out(out, plan, force)
@@ -658,6 +673,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     exams = usable
     for e in exams:
         _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
+        _consistency_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
     summaries, all_problems = [], list(study_problems)
     for e in exams:
         s, probs = _finalize(e, out / e.name, settings)
@@ -670,6 +686,25 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                                       "chunks_computed": len(tasks), "chunks_reused": reused,
                                       "seconds": round(elapsed, 3)})
     return BatchReport(out, summaries, len(all_problems), n_err, len(tasks), reused)
+
+
+def _chunk_frames_for(out: Path, settings: BatchSettings, exams: list[Exam], jobs: int | None) -> int:
+    """The automatic chunk size: the one of the run already in ``out`` when everything else matches (a resumed run
+    keeps its chunks whatever ``--jobs`` it is resumed with), else :func:`auto_chunk_frames` for this study and
+    the workers (``jobs``, default one per core)."""
+    from bodyslam.parallel import available_cores
+
+    try:
+        old = read_json(out / "batch.json")["plan"]
+        ours = json.loads(json.dumps({"version": PLAN_VERSION, "code": code_fingerprint(),
+                                      "settings": asdict(replace(settings, chunk_frames=0)),
+                                      "exams": [e.describe() for e in exams]}))
+        size = old["settings"]["chunk_frames"]
+        if dict(old, settings=dict(old["settings"], chunk_frames=0)) == ours and isinstance(size, int) and size >= 2:
+            return size
+    except (InputError, KeyError, TypeError, AttributeError):
+        pass
+    return auto_chunk_frames(sum(e.n_positions for e in exams), jobs or available_cores())
 
 
 def _valid_chunk(path: Path, i: int) -> bool:
@@ -712,6 +747,36 @@ def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, sched
     with atomic_path(f) as tmp:
         tmp.write_text(json.dumps({"bridged": {str(i): motion_row(0, 0.0, s) for i, s in sorted(shares.items())}}),
                        encoding="utf-8")
+
+
+def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
+    """The k-step check of the per-step 1-sigma (:func:`bodyslam.vision.odometry.step_consistency`: up to 30
+    three-frame pairs spread over the exam, each estimated straight and against its single steps); a checkpoint
+    (``consistency.json``) that ``summary.json`` reports as ``step_consistency``."""
+    from bodyslam.vision.odometry import consistency_pairs, step_consistency
+
+    f = d / "consistency.json"
+    if f.is_file():
+        try:
+            json.loads(f.read_text(encoding="utf-8"))["step_consistency"]
+            return
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    rows = []
+    for ch in _iter_chunks(d):
+        rows.extend(ch["steps"])
+        if ch["eof"] is not None:
+            break
+    pairs = consistency_pairs([row[8] for row in rows])
+    keep = {i for a, b in pairs for i in range(a, b)}
+    steps = [step_from_row(dict(zip(MOTION_COLUMNS, row))) if i in keep else None for i, row in enumerate(rows)]
+    del rows
+    base = {"source": exam.frame_source(), "camera": exam.camera, "settings": settings.motion,
+            "radius_m": exam.radius_m, "mask": mask}
+    res = step_consistency(steps, settings.motion, base, jobs=jobs, pairs=pairs,
+                           run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
+    with atomic_path(f) as tmp:
+        tmp.write_text(json.dumps({"step_consistency": res}), encoding="utf-8")
 
 
 def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[list]]:
@@ -792,10 +857,27 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors
                "rss_error_correlation": (fused.channel.as_dict() if fused is not None and fused.channel else None),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
-               "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m}
+               "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
+               # does the per-step 1-sigma hold? (k-frame motions against their single steps)
+               "step_consistency": _read_consistency(d)}
     write_json(d / "summary.json", summary)
     _report(exam, d, summary, t, P, cov, frame_idx, path_m, path_var, marks, fused is not None)
     return summary, problems
+
+
+def _consistency_text(c: dict | None) -> str:
+    if not c or not c.get("pairs_estimated"):
+        return "not measured (no run of 3 estimated steps, or the thesis estimator)"
+    return (f"{c['pairs_estimated']} three-frame motions against their single steps: {c['within_1sigma']:.0%} "
+            f"within 1-sigma, {c['within_2sigma']:.0%} within 2 (68% / 95% if it holds); distance ratio "
+            f"{c['median_distance_ratio_pair_over_singles']:.2f}")
+
+
+def _read_consistency(d: Path) -> dict | None:
+    try:
+        return json.loads((d / "consistency.json").read_text(encoding="utf-8"))["step_consistency"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def _csv_cells(row: list) -> list:
@@ -910,16 +992,18 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
+            ["per-step 1-sigma check", _consistency_text(sm.get("step_consistency"))],
             ["assumed", "; ".join(sm["assumed"]) or "nothing"],
             ["problems", f"{sm['problems']} (problems.csv)"]]
-    body = table(["", ""], rows)
+    body = table(None, rows)
     if marks:
         body += "<h2>Marked frames</h2>" + table(
             ["frame", "label", "t (s)", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)",
              "1-sigma (cm)"], [[r[0], r[1], f"{r[2]:.1f}", *(f"{v * 100:.1f}" for v in r[3:9])] for r in marks])
     body += "<h2>3-D view</h2>" + view_3d(paths, mk, t, np.asarray(frame_idx), body_frame=fused) + "<h2>Plots</h2>"
     write_page(d / "report.html", f"Exam {exam.name}", f"{name}; positions in the {frame_txt}"
-               + ("" if not fused else " (x toward the patient's left, y anterior, z cranial)")
-               + ". The 1-sigma is the filter's, scaled by the RF readings' measured correlation; the path travelled "
-                 "is the sum of the visual steps (its 1-sigma includes the assumed lumen radius's).", body,
+               + (". The 1-sigma is dead reckoning's: it grows with every step" if not fused else
+                  " (x toward the patient's left, y anterior, z cranial). The 1-sigma is the filter's, scaled by the "
+                  "RF readings' measured correlation")
+               + "; the path travelled is the sum of the visual steps (its 1-sigma includes the lumen radius's).", body,
                ["trajectory.png", "path.png"], with_3d=True)

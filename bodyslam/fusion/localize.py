@@ -179,7 +179,7 @@ def write_localization(out: str | os.PathLike, loc: Localization, title: str = "
             ["RF readings' correlation factor kappa",
              f"{loc.channel.kappa:.2f}" if loc.channel is not None else "not measured"],
             ["RF updates / readings rejected", f"{ekf.n_updates} / {ekf.n_rejected}"]]
-    body = table(["", ""], rows)
+    body = table(None, rows)
     if marks:
         body += "<h2>Marked frames</h2>" + table(
             ["frame", "label", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)"],

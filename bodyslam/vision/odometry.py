@@ -45,6 +45,7 @@ from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_radius_uncertainty",
+           "consistency_pairs", "consistency_diagnostic", "step_consistency",
            "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
 
@@ -313,6 +314,75 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
             for i, s in zip(range(a, b), split_motion(total, b - a)):
                 out[i] = s
     return out
+
+
+# -- does the per-step 1-sigma hold? ---------------------------------------------------------------------------
+def consistency_pairs(statuses: list, k: int = 3, max_pairs: int = 30) -> list[tuple[int, int]]:
+    """Position pairs ``(a, a + k)`` whose ``k`` single steps were all estimated from their own matches, spread
+    evenly over the exam and not overlapping (at most ``max_pairs``)."""
+    st = [getattr(s, "status", s) for s in statuses]
+    cand, a = [], 0
+    while a + k <= len(st):
+        if all(x == StepStatus.OK for x in st[a:a + k]):
+            cand.append(a)
+            a += k
+        else:
+            a += 1
+    if len(cand) > max_pairs:
+        cand = [cand[i] for i in np.linspace(0, len(cand) - 1, max_pairs).round().astype(int)]
+    return [(a, a + k) for a in cand]
+
+
+def consistency_diagnostic(singles: list[list[StepMotion]], totals: list[StepMotion | None], k: int = 3) -> dict:
+    """The k-step check of the per-step uncertainty: for each pair, the distance of the motion estimated
+    straight from frame ``a`` to ``a + k`` against the distance of its ``k`` single steps composed, and their
+    difference over the combined 1-sigma (``z``; the radius's share is left out: it is common to both). If the
+    stated 1-sigma holds, ~68% of ``|z|`` are <= 1 and ~95% <= 2; the median ratio says whether single steps
+    and longer baselines agree in scale."""
+    z, ratio = [], []
+    for ks, tot in zip(singles, totals):
+        if tot is None or not tot.has_estimate or not all(s.has_estimate for s in ks):
+            continue
+        R, t, var = np.eye(3), np.zeros(3), 0.0
+        for s in ks:
+            t = t + R @ np.asarray(s.t_c1_c2_m, float)
+            R = R @ np.asarray(s.R_c1_c2, float)
+            var += s.sigma_t_m**2
+        d_single, d_pair = float(np.linalg.norm(t)), float(np.linalg.norm(tot.t_c1_c2_m))
+        sig = math.sqrt(var + tot.sigma_t_m**2)
+        z.append((d_pair - d_single) / sig if sig > 0 else math.inf)
+        if d_single > 0:
+            ratio.append(d_pair / d_single)
+    z_abs = np.abs(np.array(z))
+    return {"k": k, "pairs_tried": len(totals), "pairs_estimated": len(z),
+            "median_distance_ratio_pair_over_singles": float(np.median(ratio)) if ratio else None,
+            "within_1sigma": float(np.mean(z_abs <= 1)) if z else None,
+            "within_2sigma": float(np.mean(z_abs <= 2)) if z else None,
+            "honest_if": "within_1sigma ~0.68 and within_2sigma ~0.95; a ratio far from 1 means the single steps "
+                         "and the k-frame baseline disagree in scale"}
+
+
+def step_consistency(steps: list, settings: MotionSettings, task_base: dict, k: int = 3,
+                     max_pairs: int = 30, jobs: int | None = None, run_tasks=None,
+                     pairs: list[tuple[int, int]] | None = None) -> dict | None:
+    """:func:`consistency_diagnostic` of ``steps`` (the fit's own 1-sigma, before
+    :func:`with_radius_uncertainty`), the k-frame motions estimated with the gap bridge's rule; None for an
+    estimator without a full pose (``thesis``). ``pairs``: already chosen (:func:`consistency_pairs`; then only
+    their steps need to be in ``steps``)."""
+    if settings.estimator != "tube":
+        return None
+    pairs = consistency_pairs(steps, k, max_pairs) if pairs is None else pairs
+    if run_tasks is None:
+        from bodyslam.parallel import imap_tasks
+
+        def run_tasks(func, tasks):
+            return imap_tasks(func, tasks, jobs)
+
+    src: FrameSource = task_base["source"]
+    tasks = [dict(task_base, source=None, a=a, b=b, source_a=src.subset(a, a), source_b=src.subset(b, b))
+             for a, b in pairs]
+    totals = list(run_tasks(bridge_task, tasks)) if tasks else []
+    return consistency_diagnostic([steps[a:b] for a, b in pairs], totals, k)
 
 
 # -- masks ------------------------------------------------------------------------------------------------------

@@ -69,6 +69,9 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     page = (d / "report.html").read_text()
     assert "polyp" in page and 'class="view3d"' in page and 'src="trajectory.png"' in page
     assert (d / "trajectory.png").stat().st_size > 10000 and (d / "path.png").stat().st_size > 10000
+    # the k-step check of the per-step 1-sigma is reported (the demo has runs of 3 estimated steps)
+    c = rep.exams[0]["step_consistency"]
+    assert c["k"] == 3 and c["pairs_estimated"] >= 3 and 0.8 < c["median_distance_ratio_pair_over_singles"] < 1.25
 
 
 def test_chunking_and_workers_do_not_change_results(tmp_path):
@@ -293,3 +296,21 @@ def test_a_broken_exam_in_a_study_is_listed_and_the_others_finish(tmp_path, caps
     (tmp_path / "m2.csv").write_text("input\nbroken.mp4\n")
     assert cli_main(["batch", str(tmp_path / "m2.csv"), "--out", str(tmp_path / "o2")]) == 1
     assert "broken.mp4" in capsys.readouterr().err
+
+
+def test_the_automatic_chunk_size_keeps_every_worker_busy_and_a_resume_keeps_its_chunks(tmp_path):
+    """Each worker gets >= 4 chunks within 20-500 frames; the plan (batch.json) records the size used; resuming the same run
+    with another --jobs keeps the chunks it has (their size came from the first run's workers)."""
+    from bodyslam.exam.batch import auto_chunk_frames
+
+    assert auto_chunk_frames(55_000, 2) == 500 and auto_chunk_frames(10_000, 16) == 156
+    assert auto_chunk_frames(40, 2) == 20 and auto_chunk_frames(2000, 16) == 31
+    for n, w in ((55_000, 2), (10_000, 16), (2000, 16), (600, 2)):
+        size = auto_chunk_frames(n, w)
+        assert -(-n // size) >= 4 * w or size == 20
+    out = tmp_path / "run"
+    rep = run_batch(open_exams([str(DEMO)]), out, BatchSettings(), jobs=2)
+    plan = json.loads((out / "batch.json").read_text())["plan"]
+    assert plan["settings"]["chunk_frames"] == 20 and rep.chunks_computed == 2  # 40 frames: 20 (the floor)
+    again = run_batch(open_exams([str(DEMO)]), out, BatchSettings(), jobs=1)  # 1 job alone would still give 20
+    assert again.chunks_reused == 2 and again.chunks_computed == 0

@@ -99,3 +99,37 @@ def test_a_clip_played_backwards_travels_the_same_path(tmp_path):
     (a, sa), (b, sb) = paths
     assert abs(a - b) <= np.hypot(sa, sb), paths
     assert 0.10 < a < 0.25  # the demo capsule travels 16 cm in 40 frames (truth.json); the tube fit scales it
+
+
+def test_the_k_step_check_tells_an_honest_1sigma_from_an_optimistic_one():
+    """Pairs: non-overlapping runs of 3 estimated steps, spread over the exam. Diagnostic: 2000 synthetic pairs
+    whose straight 3-frame distance differs from the composed single steps by noise of the stated size give ~68%
+    within 1-sigma and ~95% within 2 (the 2000 draws' sampling error is ~1%: margins 4%); the same errors stated
+    4x too small give ~20%."""
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
+    from bodyslam.vision.odometry import consistency_diagnostic, consistency_pairs
+
+    ok, bad = StepStatus.OK, StepStatus.TOO_FEW_MATCHES
+    assert consistency_pairs([ok, ok, ok, ok, bad, ok, ok, ok, ok, ok, ok]) == [(0, 3), (5, 8), (8, 11)]
+    assert len(consistency_pairs([ok] * 3000, max_pairs=30)) == 30
+    rng = np.random.default_rng(1)
+
+    def run(stated_scale):
+        singles, totals = [], []
+        for _ in range(2000):
+            ks = [motion_from_transform(Rotation.identity(), [0, 0, 0.003], 50, 2e-4 * stated_scale, 0.01)
+                  for _ in range(3)]
+            true_sigma = np.sqrt(4 * (2e-4) ** 2)  # three singles and the pair, each 0.2 mm
+            d = 0.009 + rng.normal(0, true_sigma)
+            totals.append(motion_from_transform(Rotation.identity(), [0, 0, d], 50, 2e-4 * stated_scale, 0.01))
+            singles.append(ks)
+        return consistency_diagnostic(singles, totals)
+
+    honest, optimistic = run(1.0), run(0.25)
+    assert honest["pairs_estimated"] == 2000 and honest["k"] == 3
+    assert abs(honest["within_1sigma"] - 0.683) < 0.04 and abs(honest["within_2sigma"] - 0.954) < 0.03
+    assert optimistic["within_1sigma"] < 0.3
+    assert honest["median_distance_ratio_pair_over_singles"] == pytest.approx(1.0, abs=0.01)
+    assert consistency_diagnostic([[StepMotion.failed(bad)] * 3], [None])["pairs_estimated"] == 0
