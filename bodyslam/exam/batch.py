@@ -722,6 +722,20 @@ def _iter_chunks(exam_dir: Path) -> Iterator[dict]:
         yield json.loads(f.read_text(encoding="utf-8"))
 
 
+def _step_rows(d: Path) -> Iterator[list]:
+    """The exam's step rows (``motion_row``s) from its chunk files, in order, up to the end of a video."""
+    for ch in _iter_chunks(d):
+        yield from ch["steps"]
+        if ch["eof"] is not None:
+            break
+
+
+def _engine_base(exam: Exam, settings: BatchSettings, mask) -> dict:
+    """The visual engine's task fields for the exam (what a worker needs besides positions)."""
+    return {"source": exam.frame_source(), "camera": exam.camera, "settings": settings.motion,
+            "radius_m": exam.radius_m, "mask": mask}
+
+
 def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
     """Bridge the exam's gaps (:func:`bodyslam.vision.odometry.bridge_gaps`, the rule ``bodyslam motion`` follows)
     once all its chunks are done; the result is a checkpoint too (``bridges.json``: ``{step item: row}``)."""
@@ -735,14 +749,8 @@ def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, sched
             return
         except (OSError, ValueError, KeyError, TypeError):
             pass
-    statuses = []
-    for ch in _iter_chunks(d):
-        statuses.extend(StepStatus(row[8]) for row in ch["steps"])
-        if ch["eof"] is not None:
-            break
-    base = {"source": exam.frame_source(), "camera": exam.camera, "settings": settings.motion,
-            "radius_m": exam.radius_m, "mask": mask}
-    shares = bridge_gaps(statuses, settings.motion, base, jobs,
+    statuses = [StepStatus(row[8]) for row in _step_rows(d)]
+    shares = bridge_gaps(statuses, settings.motion, _engine_base(exam, settings, mask), jobs,
                          run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
     with atomic_path(f) as tmp:
         tmp.write_text(json.dumps({"bridged": {str(i): motion_row(0, 0.0, s) for i, s in sorted(shares.items())}}),
@@ -762,18 +770,11 @@ def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, 
             return
         except (OSError, ValueError, KeyError, TypeError):
             pass
-    rows = []
-    for ch in _iter_chunks(d):
-        rows.extend(ch["steps"])
-        if ch["eof"] is not None:
-            break
-    pairs = consistency_pairs([row[8] for row in rows])
+    pairs = consistency_pairs([row[8] for row in _step_rows(d)])
     keep = {i for a, b in pairs for i in range(a, b)}
-    steps = [step_from_row(dict(zip(MOTION_COLUMNS, row))) if i in keep else None for i, row in enumerate(rows)]
-    del rows
-    base = {"source": exam.frame_source(), "camera": exam.camera, "settings": settings.motion,
-            "radius_m": exam.radius_m, "mask": mask}
-    res = step_consistency(steps, settings.motion, base, jobs=jobs, pairs=pairs,
+    steps = [step_from_row(dict(zip(MOTION_COLUMNS, row))) if i in keep else None
+             for i, row in enumerate(_step_rows(d))]
+    res = step_consistency(steps, settings.motion, _engine_base(exam, settings, mask), jobs=jobs, pairs=pairs,
                            run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
     with atomic_path(f) as tmp:
         tmp.write_text(json.dumps({"step_consistency": res}), encoding="utf-8")

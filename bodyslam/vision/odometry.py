@@ -45,6 +45,7 @@ from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_radius_uncertainty",
+           "pair_motions",
            "consistency_pairs", "consistency_diagnostic", "step_consistency",
            "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
@@ -289,6 +290,20 @@ def split_motion(total: StepMotion, n: int) -> list[StepMotion]:
     return [share] * n
 
 
+def pair_motions(pairs: list[tuple[int, int]], task_base: dict, jobs: int | None = None, run_tasks=None):
+    """The motion from position ``a`` straight to ``b`` for each pair (:func:`bridge_task`: tube estimator; None
+    where it fails), in order. ``run_tasks(func, tasks)``: how to run them (default: local worker processes)."""
+    if run_tasks is None:
+        from bodyslam.parallel import imap_tasks
+
+        def run_tasks(func, tasks):
+            return imap_tasks(func, tasks, jobs)
+
+    src: FrameSource = task_base["source"]
+    return run_tasks(bridge_task, [dict(task_base, source=None, a=a, b=b, source_a=src.subset(a, a),
+                                        source_b=src.subset(b, b)) for a, b in pairs])
+
+
 def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
                 jobs: int | None = None, run_tasks=None) -> dict[int, StepMotion]:
     """Bridge the gaps of ``steps`` (StepMotions or their statuses; list item ``i`` = the step into position
@@ -299,17 +314,8 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
     gaps = find_gaps(steps, settings.bridge_gaps)
     if not gaps:
         return {}
-    if run_tasks is None:
-        from bodyslam.parallel import imap_tasks
-
-        def run_tasks(func, tasks):
-            return imap_tasks(func, tasks, jobs)
-
-    src: FrameSource = task_base["source"]
-    tasks = [dict(task_base, source=None, a=a, b=b, source_a=src.subset(a, a), source_b=src.subset(b, b))
-             for a, b in gaps]
     out = {}
-    for (a, b), total in zip(gaps, run_tasks(bridge_task, tasks)):
+    for (a, b), total in zip(gaps, pair_motions(gaps, task_base, jobs, run_tasks)):
         if total is not None:
             for i, s in zip(range(a, b), split_motion(total, b - a)):
                 out[i] = s
@@ -372,16 +378,7 @@ def step_consistency(steps: list, settings: MotionSettings, task_base: dict, k: 
     if settings.estimator != "tube":
         return None
     pairs = consistency_pairs(steps, k, max_pairs) if pairs is None else pairs
-    if run_tasks is None:
-        from bodyslam.parallel import imap_tasks
-
-        def run_tasks(func, tasks):
-            return imap_tasks(func, tasks, jobs)
-
-    src: FrameSource = task_base["source"]
-    tasks = [dict(task_base, source=None, a=a, b=b, source_a=src.subset(a, a), source_b=src.subset(b, b))
-             for a, b in pairs]
-    totals = list(run_tasks(bridge_task, tasks)) if tasks else []
+    totals = list(pair_motions(pairs, task_base, jobs, run_tasks)) if pairs else []
     return consistency_diagnostic([steps[a:b] for a, b in pairs], totals, k)
 
 
