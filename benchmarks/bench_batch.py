@@ -7,6 +7,7 @@ its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole pr
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
     .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
+        [--jobs 1,2]
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
 so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85).
@@ -83,6 +84,9 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=Path("/tmp/bench_batch"))
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--rf", action="store_true", help="also run the exam with its RF and print the throughput ratio")
+    ap.add_argument("--jobs", default=None,
+                    help="comma-separated worker counts (e.g. 1,2,4,8,16): frames/s against jobs for each length, "
+                         "and whether every count gives byte-identical motion.csv / trajectory.tum")
     args = ap.parse_args()
     lengths = [int(x) for x in args.frames.split(",")]
     args.keep.mkdir(parents=True, exist_ok=True)
@@ -105,10 +109,25 @@ def main() -> None:
         shutil.rmtree(out, ignore_errors=True)
         cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode,
                "--calib", str(calib), "--fps", "2", "--radius-m", str(meta["tube_radius_m"])]
+        if args.jobs:
+            scaling, ref = {}, None
+            for j in [int(x) for x in args.jobs.split(",")]:
+                out_j = args.keep / f"out_{args.mode}_{n}_jobs{j}"
+                shutil.rmtree(out_j, ignore_errors=True)
+                el_j, peak_j, _ = run_measured([*cmd[:6], str(out_j), *cmd[7:], "--jobs", str(j)])
+                files = tuple((out_j / folder.name / f).read_bytes() for f in ("motion.csv", "trajectory.tum"))
+                same = ref is None or files == ref
+                ref = ref or files
+                scaling[j] = {"seconds": el_j, "frames_per_s": n / el_j, "peak_tree_rss_mib": peak_j / 2**20,
+                              "identical_to_first": same}
+                base = scaling[min(scaling)]["frames_per_s"]
+                print(f"  --jobs {j}: {n / el_j:.1f} frames/s ({n / el_j / base:.2f}x the first), peak "
+                      f"{peak_j / 2**20:.0f} MiB, outputs identical to the first: {same}", flush=True)
+            res.setdefault(n, {})["jobs"] = scaling
         el, peak, rc = run_measured(cmd)
         summ = json.loads((out / "summary.json").read_text())["exams"][0]
-        res[n] = {"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20, "rc": rc,
-                  "steps": summ["steps"], "path_m": summ["path_travelled_m"]}
+        res.setdefault(n, {}).update({"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20,
+                                      "rc": rc, "steps": summ["steps"], "path_m": summ["path_travelled_m"]})
         print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
               f"(whole process, 2 cores); peak memory (process tree) {peak / 2**20:.0f} MiB; steps {summ['steps']}",
               flush=True)
