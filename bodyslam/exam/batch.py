@@ -857,6 +857,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "trajectory": "fused (RF + vision, RTS-smoothed)" if fused is not None else "dead reckoning",
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors
                "rss_error_correlation": (fused.channel.as_dict() if fused is not None and fused.channel else None),
+               # the lumen radius the fusion's scale state implies along the exam (radius * (1 + s), smoothed)
+               "lumen_radius_estimate_m": _radius_estimate(exam, fused),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
                # does the per-step 1-sigma hold? (k-frame motions against their single steps)
@@ -872,6 +874,15 @@ def _consistency_text(c: dict | None) -> str:
     return (f"{c['pairs_estimated']} three-frame motions against their single steps: {c['within_1sigma']:.0%} "
             f"within 1-sigma, {c['within_2sigma']:.0%} within 2 (68% / 95% if it holds); distance ratio "
             f"{c['median_distance_ratio_pair_over_singles']:.2f}")
+
+
+def _radius_estimate(exam: Exam, fused) -> dict | None:
+    s = None if fused is None else fused.smoothed.scale
+    if s is None:
+        return None
+    r = exam.radius_m * (1.0 + s)
+    return {"median": float(np.median(r)), "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)),
+            "median_1sigma": float(exam.radius_m * np.median(fused.smoothed.scale_sd))}
 
 
 def _read_consistency(d: Path) -> dict | None:

@@ -86,6 +86,10 @@ class FusionResult:
     searches: list[SearchResult] = field(default_factory=list, repr=False)
     resets: dict[int, Rotation] = field(default_factory=dict, repr=False)  # re-starts: frame -> orientation
     committed_positions_w_m: np.ndarray | None = field(default=None, repr=False)  # before the online mixture
+    # the visual scale state per frame (relative error s of the assumed lumen radius: the true one is about
+    # radius * (1 + s)) and its 1-sigma; None without the state (FusionSettings.scale_sd_rel = 0)
+    scale: np.ndarray | None = field(default=None, repr=False)
+    scale_sd: np.ndarray | None = field(default=None, repr=False)
 
 
 def predict(p: np.ndarray, R: Rotation, P: np.ndarray, t_s: np.ndarray, R_s: Rotation, sig_t: float,
@@ -269,6 +273,8 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
                        int(ekf.n_updates[0]), passes, (R0, np.asarray(p0, float)), alignment, P, dr, searches,
                        {k: (v[0] if isinstance(v[0], Rotation) else Rotation.from_matrix(v[0]))
                         for k, v in resets.items()}, pos[0].copy())
+    if ekf.n_scale:
+        res.scale, res.scale_sd = passes.post_b[:, 0].copy(), np.sqrt(passes.post_P[:, 6, 6])
     # Online output: inside each decision window the candidates' mixture on the readings so far
     for found in searches:
         k0, k1 = found.frames
@@ -314,9 +320,12 @@ def rts_smooth(res: FusionResult) -> FusionResult:
         if m:
             bs[k] = ps_.post_b[k] + corr[6:]
         Ps[k] = ps_.post_P[k] + C @ (Ps[k + 1] - Pp) @ C.T
-    return FusionResult(xs, Rotation.from_matrix(Rs), Ps[:, :6, :6], res.n_rejected, res.n_updates, res.passes,
-                        res.init, res.alignment, res.P0, res.dead_reckoning, res.searches, res.resets,
-                        res.committed_positions_w_m)
+    out = FusionResult(xs, Rotation.from_matrix(Rs), Ps[:, :6, :6], res.n_rejected, res.n_updates, res.passes,
+                       res.init, res.alignment, res.P0, res.dead_reckoning, res.searches, res.resets,
+                       res.committed_positions_w_m)
+    if res.scale is not None:  # the scale state is the first after the pose
+        out.scale, out.scale_sd = bs[:, 0].copy(), np.sqrt(Ps[:, 6, 6])
+    return out
 
 
 def kf_thesis(steps: list[StepMotion], fixes: list[Fix], init: tuple[Rotation, np.ndarray], sigma_p_m: float = 0.002,

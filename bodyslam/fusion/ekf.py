@@ -354,6 +354,8 @@ class ErrorStateEkf:
                     self.P = with_orientation_sigma(self.P, sig)
                 if keep:
                     Fs[i - 1] = F[0]
+                    if k in resets:  # the new orientation does not depend on the old one: the prior stored
+                        Fs[i - 1, 3:6, :] = 0.0  # below is F' P F'^T + Q' with these rows zero (RTS needs that)
             if keep:
                 prior_p[i], prior_R[i], prior_P[i], prior_b[i] = self.p[0], self.R[0], self.P[0], self.b[0]
             self.update(k)

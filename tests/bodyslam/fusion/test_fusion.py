@@ -256,6 +256,15 @@ def test_orientation_is_searched_again_after_a_long_gap():
     e_without = np.linalg.norm(without.positions_w_m[70:] - gt[70:], axis=1).mean()
     assert [s.frames[0] for s in with_search.searches] == [0, 70]
     assert e_with < 0.5 * e_without and e_with < 0.025, (e_with, e_without)
+    # what the smoother is told about the re-start: the new orientation does not depend on the old, so every stored
+    # prior is F post F^T plus a process noise without position-orientation cross terms (with the reset's F
+    # unchanged the cross block here was 1.2e-3, and on a realistic run the smoothed covariance had eigenvalues
+    # down to -10 and NaN 1-sigmas)
+    ps = with_search.passes
+    for k in range(len(ps.F)):
+        q = ps.prior_P[k + 1] - ps.F[k] @ ps.post_P[k] @ ps.F[k].T
+        assert np.abs(q[:3, 3:6]).max() < 1e-12, k
+    assert np.linalg.eigvalsh(rts_smooth(with_search).cov).min() > -1e-12
 
 
 def test_start_search_recovers_a_wrong_alignment_and_the_online_output_is_causal():
@@ -412,6 +421,12 @@ def test_the_scale_state_finds_a_wrong_radius():
     # measured: 3.5 cm without, 0.7 cm with it, 1.2 cm with the biases too
     assert out["scale"][0] < 0.4 * out["plain"][0], (out["scale"][0], out["plain"][0])
     assert out["both"][0] < 0.6 * out["plain"][0]
+    # fuse / rts_smooth report the state per frame with its 1-sigma (the smoothed one over the whole run)
+    kw = {"scale_sd_rel": 0.25, "scale_corr_m": 10.0}
+    f = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", init=(R0, gt[0]), **kw)
+    sm = rts_smooth(f)
+    assert f.scale.shape == sm.scale.shape == (len(gt),) and abs(sm.scale[0] + 0.23) < 0.1
+    assert sm.scale_sd[0] < f.scale_sd[0] and fuse(steps, fixes, rss, pos, nrm, pl, mode="rss").scale is None
 
 
 def test_steps_carry_the_radius_uncertainty_and_the_filter_takes_it_back_out():
