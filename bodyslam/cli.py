@@ -507,7 +507,7 @@ def _localize(args) -> int:
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
                                 progress=Progress("motion"), problems=problems, fov_used=fov)
     loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion,
-                   radius_sd_rel=seq.radius_sd_m / seq.radius_m)
+                   radius_sd_rel=seq.radius_sd_rel)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
         from bodyslam.vision.odometry import write_mask
@@ -535,7 +535,7 @@ def _batch(args) -> int:
     exams = open_exams(args.inputs, calib=args.calib, fps=args.fps, radius_m=args.radius_m, mask=args.mask,
                        rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks, problems=skipped)
     for p in skipped:
-        print(f"  not processed: {p[0]}: {p[3]}")
+        print(f"  {p[3]}")  # "exam not processed: <file>: why"
     if args.mark_file:
         read_marks(args.mark_file, exams)
     settings = BatchSettings(_motion_settings(args), chunk_frames=args.chunk_frames, fusion=args.fusion)
@@ -665,7 +665,7 @@ def _motion_or_track(args) -> int:
         write_tum(args.out, stamps, pos, rot, world="first camera frame")
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
-    path, var = path_travelled(steps, seq.radius_sd_m / seq.radius_m)
+    path, var = path_travelled(steps, seq.radius_sd_rel)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
     return _print_problems(problems)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Figure", "trajectory_figure", "path_figure", "BODY_AXES", "Path3D", "Mark"]
+__all__ = ["Figure", "trajectory_figure", "path_figure", "cube_cm", "BODY_AXES", "Path3D", "Mark"]
 
 # SPEC.md: x toward the patient's left, y anterior, z cranial
 BODY_AXES = ("x, toward the patient's left (cm)", "y, anterior (cm)", "z, cranial (cm)")
@@ -148,6 +148,21 @@ class Path3D:
         self.label, self.p, self.colour, self.width = label, np.asarray(positions_m, float), colour, width
         self.cov = None if cov_m2 is None else np.asarray(cov_m2, float)
 
+    def ends_cm(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The first and the last position with a value (cm), or None when there is none."""
+        ok = np.nonzero(np.isfinite(self.p).all(axis=1))[0]
+        return (self.p[ok[0]] * 100, self.p[ok[-1]] * 100) if len(ok) else None
+
+
+def cube_cm(paths: list[Path3D], marks: list = ()) -> tuple[np.ndarray, float]:
+    """``(centre, half side)`` in cm of one cube around every position drawn (equal axes in 3-D views; at least
+    1 cm, 10% margin)."""
+    pts = np.concatenate([p.p for p in paths] + [m.p[None] for m in marks] + [np.zeros((0, 3))]) * 100
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not len(pts):
+        return np.zeros(3), 1.0
+    return (pts.min(axis=0) + pts.max(axis=0)) / 2, max(float(np.ptp(pts, axis=0).max()) / 2, 1.0) * 1.1
+
 
 class Mark:
     """A marked frame (a lesion): its label, position (m) and 3x3 covariance (m^2)."""
@@ -172,28 +187,22 @@ def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n
              if body_frame else ((0, 2, "x-z"), (0, 1, "x-y"), (1, 2, "y-z")))
     fig = _canvas(*size)
     fig.suptitle(title, fontsize=12)
-    main = paths[0] if paths else None
+    ends = paths[0].ends_cm() if paths else None  # start and end of the first path
     with_cov = next((p for p in paths if p.cov is not None), None)
     ax3 = fig.add_subplot(2, 2, 1, projection="3d")
-    allp = np.concatenate([p.p for p in paths] + [m.p[None] for m in marks]) * 100 if paths or marks else np.zeros((1, 3))
-    allp = allp[np.isfinite(allp).all(axis=1)]
     for p in paths:
         q = p.p * 100
         ax3.plot(q[:, 0], q[:, 1], q[:, 2], color=_rgb(p.colour), lw=p.width, label=p.label)
-    if main is not None and np.isfinite(main.p).all(axis=1).any():
-        ok = np.nonzero(np.isfinite(main.p).all(axis=1))[0]
-        s, e = main.p[ok[0]] * 100, main.p[ok[-1]] * 100
-        ax3.scatter(*s, color="green", marker="^", s=70, edgecolors="black", label="start")
-        ax3.scatter(*e, color="red", marker="s", s=60, edgecolors="black", label="end")
+    if ends is not None:
+        ax3.scatter(*ends[0], color="green", marker="^", s=70, edgecolors="black", label="start")
+        ax3.scatter(*ends[1], color="red", marker="s", s=60, edgecolors="black", label="end")
     for m in marks:
         ax3.scatter(*(m.p * 100), color="gold", marker="*", s=220, edgecolors="black")
         ax3.text(*(m.p * 100), f"  {m.label}", fontsize=8)
-    if len(allp):
-        lo, hi = allp.min(axis=0), allp.max(axis=0)
-        mid, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 0.5) * 1.05
-        ax3.set_xlim(mid[0] - half, mid[0] + half)
-        ax3.set_ylim(mid[1] - half, mid[1] + half)
-        ax3.set_zlim(mid[2] - half, mid[2] + half)
+    mid, half = cube_cm(paths, marks)
+    ax3.set_xlim(mid[0] - half, mid[0] + half)
+    ax3.set_ylim(mid[1] - half, mid[1] + half)
+    ax3.set_zlim(mid[2] - half, mid[2] + half)
     ax3.set_box_aspect((1, 1, 1))
     short = ("x, left (cm)", "y, anterior (cm)", "z, cranial (cm)") if body_frame else ("x (cm)", "y (cm)", "z (cm)")
     ax3.set_xlabel(short[0], fontsize=8)
@@ -211,10 +220,9 @@ def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n
                                   if len(ok) else []):
                 f.ellipse(with_cov.p[k, [a, b]] * 100, with_cov.cov[k][np.ix_([a, b], [a, b])] * 1e4,
                           label=f"1-sigma ({with_cov.label})" if j == 0 else None, colour=with_cov.colour)
-        if main is not None and np.isfinite(main.p).all(axis=1).any():
-            ok = np.nonzero(np.isfinite(main.p).all(axis=1))[0]
-            f.points(main.p[ok[0], a] * 100, main.p[ok[0], b] * 100, "start", (44, 160, 44), "^")
-            f.points(main.p[ok[-1], a] * 100, main.p[ok[-1], b] * 100, "end", (214, 39, 40), "s")
+        if ends is not None:
+            f.points(ends[0][a], ends[0][b], "start", (44, 160, 44), "^")
+            f.points(ends[1][a], ends[1][b], "end", (214, 39, 40), "s")
         for j, m in enumerate(marks):
             f.points(m.p[a] * 100, m.p[b] * 100, "marked frame" if j == 0 else None, (255, 200, 0), "*", 220,
                      [m.label])

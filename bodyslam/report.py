@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from bodyslam.io import write_text_atomic
-from bodyslam.plots import Mark, Path3D
+from bodyslam.plots import Mark, Path3D, cube_cm
 
 __all__ = ["table", "view_3d", "write_page"]
 
@@ -86,13 +86,11 @@ def view_3d(paths: list[Path3D], marks: list[Mark] = (), stamps_s: np.ndarray | 
                                    line=dict(color=_hex(p.colour), width=max(2, 2 * p.width)),
                                    hovertemplate="%{text}<br>x %{x:.1f} cm, y %{y:.1f} cm, z %{z:.1f} cm"
                                    if text else None))
-    if paths:
-        ok = np.nonzero(np.isfinite(paths[0].p).all(axis=1))[0]
-        if len(ok):
-            for k, name, colour, symbol in ((ok[0], "start", "green", "diamond"), (ok[-1], "end", "red", "square")):
-                q = paths[0].p[k] * 100
-                traces.append(go.Scatter3d(x=[q[0]], y=[q[1]], z=[q[2]], mode="markers", name=name,
-                                           marker=dict(color=colour, size=6, symbol=symbol)))
+    ends = paths[0].ends_cm() if paths else None
+    if ends is not None:
+        for q, name, colour, symbol in ((ends[0], "start", "green", "diamond"), (ends[1], "end", "red", "square")):
+            traces.append(go.Scatter3d(x=[q[0]], y=[q[1]], z=[q[2]], mode="markers", name=name,
+                                       marker=dict(color=colour, size=6, symbol=symbol)))
     for j, m in enumerate(marks):
         q = m.p * 100
         sd = f" +- {np.sqrt(np.trace(m.cov)) * 100:.1f} cm (1-sigma)" if m.cov is not None else ""
@@ -107,10 +105,7 @@ def view_3d(paths: list[Path3D], marks: list[Mark] = (), stamps_s: np.ndarray | 
                                     color="orange", name=f"{m.label}: 1-sigma", showlegend=True, hoverinfo="skip"))
     fig = go.Figure(traces)
     # equal axes: one cube around everything drawn (plotly's "data" aspect zooms a long, thin path too close)
-    pts = np.concatenate([p.p for p in paths] + [m.p[None] for m in marks]) * 100 if (paths or marks) else np.zeros((1, 3))
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    mid = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
-    half = max(float(np.ptp(pts, axis=0).max()) / 2, 1.0) * 1.1 if len(pts) else 1.0
+    mid, half = cube_cm(paths, marks)
     titles = (("x, patient's left (cm)", "y, anterior (cm)", "z, cranial (cm)") if body_frame
               else ("x (cm)", "y (cm)", "z (cm)"))
     fig.update_layout(height=640, margin=dict(l=0, r=0, t=30, b=0), legend=dict(x=0, y=1),
@@ -123,13 +118,12 @@ def view_3d(paths: list[Path3D], marks: list[Mark] = (), stamps_s: np.ndarray | 
     return f'<div class="view3d">{div}</div>'
 
 
-def write_page(out_file: str | Path, title: str, intro: str, body_html: str, images: list[str] = (),
-               with_3d: bool = False) -> None:
+def write_page(out_file: str | Path, title: str, intro: str, body_html: str, images: list[str] = ()) -> None:
     """``out_file``: title, an ``intro`` paragraph (plain text, escaped), ``body_html`` (already HTML: tables,
     headings, :func:`view_3d` divs) and the ``images`` (file names next to the page). Plotly's JavaScript is
-    inlined once when the body holds a 3-D view (or ``with_3d``)."""
+    inlined once when the body holds a 3-D view."""
     script = ""
-    if with_3d or 'class="view3d"' in body_html:  # a view without its script would be a blank box
+    if 'class="view3d"' in body_html:  # a view without its script would be a blank box
         from plotly.offline import get_plotlyjs
 
         script = f"<script>{get_plotlyjs()}</script>"

@@ -297,7 +297,8 @@ SHORT = {"rf_ml": "RF only", "rf_nls": "RF only (NLS)", "dead_reckoning": "visio
 
 
 def _html(out: Path, report: dict, view_html: str = "") -> None:
-    """``report.html``: the tables and the plots, one self-contained page next to report.json."""
+    """``report.html``: the tables, the 3-D view ``view_html`` and the plots, one self-contained page next to
+    report.json."""
     from testbed.htmlpage import table, write_report_page
 
     rows = [[LABELS[k], f"{v['mean_error_cm']:.2f}", f"{v['rmse_cm']:.2f}", f"{v['median_error_cm']:.2f}",
@@ -314,16 +315,14 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
               f"{report['covariance_inflation_kappa']['online_last_frame']:.2f} (online filter at the last frame).</p>"
             + "<h2>Per-step motion (Table 4.1)</h2>"
             + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
-            + "<h2>Plots (Fig. 4.20-4.24)</h2>")
-    body = body.replace("<h2>Plots", view_html + "<h2>Plots") if view_html else body
-    view_html = ""  # placed above the plots
+            + view_html + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "
                       f"sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm; mean error of a causal filter that attains "
                       f"the bound: {report['pcrb_mean_error_cm']:.2f} cm; the smoothing bound: sqrt(mean) "
                       f"{report['smoothing_bound']['sqrt_mean_cm']:.2f} cm, a smoother at it "
                       f"{report['smoothing_bound']['mean_error_cm']:.2f} cm mean. {report['notes']}.", body,
-                      PLOT_FILES, view_html)
+                      PLOT_FILES)
 
 
 def _seed_text(seeds: list[int]) -> str:
@@ -343,15 +342,11 @@ def _plots(out: Path, first: dict, errs: dict) -> None:
     against the truth with the smoother's 1-sigma; its error against time beside the matching bound (the online
     filter against the PCRB of causal filtering, the smoother against the smoothing bound); the error CDF and the
     smoother's error histogram over all seeds."""
-    from bodyslam.plots import Path3D, trajectory_figure
+    from bodyslam.plots import trajectory_figure
 
-    gt, est, t = first["truth"], first["estimates"], first["stamps_s"]
-    img = trajectory_figure(
-        f"Seed {first['seed']}: where the capsule was, estimated and true (body frame)",
-        [Path3D(SHORT["ekf_rss_rts"], est["ekf_rss_rts"], _COLOURS["ekf_rss_rts"], 1.8, first["cov_m2"]["ekf_rss_rts"]),
-         Path3D("truth", gt, _COLOURS["truth"], 1.2),
-         Path3D(SHORT["ekf_rss"], est["ekf_rss"], _COLOURS["ekf_rss"], 1.0),
-         Path3D(SHORT["rf_ml"], est["rf_ml"], _COLOURS["rf_ml"], 0.8)])
+    t = first["stamps_s"]
+    img = trajectory_figure(f"Seed {first['seed']}: where the capsule was, estimated and true (body frame)",
+                            _first_seed_paths(first))
     write_image(out / "trajectory.png", img)
     f = Figure(f"Seed {first['seed']}: position error against time, with the matching bound", "time (s)",
                "position error (cm)", size=(900, 460))
@@ -380,16 +375,22 @@ def _plots(out: Path, first: dict, errs: dict) -> None:
 
 def _view(first: dict) -> str:
     """The first seed's 3-D view for the page (:func:`bodyslam.report.view_3d`)."""
-    from bodyslam.plots import Path3D
     from bodyslam.report import view_3d
 
+    return f"<h2>Seed {first['seed']} in 3-D</h2>" + view_3d(_first_seed_paths(first), stamps_s=first["stamps_s"])
+
+
+def _first_seed_paths(first: dict) -> list:
+    """What the trajectory plot and the 3-D view draw of the first seed: the smoother with its 1-sigma, the truth,
+    the online filter and the RF fixes."""
+    from bodyslam.plots import Path3D
+
     est = first["estimates"]
-    return (f"<h2>Seed {first['seed']} in 3-D</h2>"
-            + view_3d([Path3D(SHORT["ekf_rss_rts"], est["ekf_rss_rts"], _COLOURS["ekf_rss_rts"], 1.8,
-                              first["cov_m2"]["ekf_rss_rts"]),
-                       Path3D("truth", first["truth"], _COLOURS["truth"], 1.2),
-                       Path3D(SHORT["ekf_rss"], est["ekf_rss"], _COLOURS["ekf_rss"], 1.0),
-                       Path3D(SHORT["rf_ml"], est["rf_ml"], _COLOURS["rf_ml"], 0.8)], stamps_s=first["stamps_s"]))
+    return [Path3D(SHORT["ekf_rss_rts"], est["ekf_rss_rts"], _COLOURS["ekf_rss_rts"], 1.8,
+                   first["cov_m2"]["ekf_rss_rts"]),
+            Path3D("truth", first["truth"], _COLOURS["truth"], 1.2),
+            Path3D(SHORT["ekf_rss"], est["ekf_rss"], _COLOURS["ekf_rss"], 1.0),
+            Path3D(SHORT["rf_ml"], est["rf_ml"], _COLOURS["rf_ml"], 0.8)]
 
 
 def main_report_line(report: dict) -> str:

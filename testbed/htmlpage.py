@@ -11,10 +11,8 @@ from bodyslam.report import table, write_page
 __all__ = ["table", "write_report_page"]
 
 
-def write_report_page(out: Path, scenario: str, intro: str, body_html: str, images: list[str],
-                      view_html: str = "") -> None:
+def write_report_page(out: Path, scenario: str, intro: str, body_html: str, images: list[str]) -> None:
     """``out/report.html``: title, an ``intro`` paragraph (plain text, escaped), ``body_html`` (already HTML:
     tables, headings), a 3-D view (:func:`bodyslam.report.view_3d`, or none) and the ``images`` (file names next
     to the page)."""
-    write_page(Path(out) / "report.html", f"Evaluation of {scenario}", intro, body_html + view_html, images,
-               with_3d=bool(view_html))
+    write_page(Path(out) / "report.html", f"Evaluation of {scenario}", intro, body_html, images)

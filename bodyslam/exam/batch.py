@@ -162,6 +162,11 @@ class Exam:
                 "mask": self.mask, "rf": self.rf, "sensors": self.sensors, "files_sha256": h.hexdigest()}
 
     @property
+    def radius_sd_rel(self) -> float:
+        """The lumen radius's 1-sigma relative to it (the visual scale's)."""
+        return self.radius_sd_m / self.radius_m
+
+    @property
     def n_positions(self) -> int:
         return len(self.frames) if self.kind == "folder" else self.n_frames
 
@@ -348,7 +353,7 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
         p = Path(inp)
         if p.is_file() and p.suffix.lower() in (".csv", ".json") and p.name not in SIDECARS:
             for loc, row in _read_manifest(p):
-                add(lambda: _manifest_exam(p, loc, row, base, taken), f"{p}:{loc}")
+                add(lambda: _manifest_exam(p, loc, row, base, taken), p)  # its message names the row
         else:
             add(lambda: _open_exam(p, p.stem if p.is_file() else p.name, taken, **base), p)
     if failed and not exams:
@@ -619,13 +624,13 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     study's own (exams that could not be opened, :func:`open_exams`), listed first in ``problems.csv``; an exam
     whose field of view cannot be set up is listed there too and left out, the others go on."""
     out = Path(out)
-    if settings.chunk_frames is None:
-        settings = replace(settings, chunk_frames=_chunk_frames_for(out, settings, exams, jobs))
-    if settings.chunk_frames < 2:
-        raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
-    # the plan records the chunk size used (resolved when it was chosen automatically)
     plan = {"version": PLAN_VERSION, "code": code_fingerprint(), "settings": asdict(settings),
             "exams": [e.describe() for e in exams]}
+    if settings.chunk_frames is None:
+        settings = replace(settings, chunk_frames=_chunk_frames_for(out, plan, exams, jobs))
+        plan["settings"] = asdict(settings)  # the plan records the chunk size used
+    if settings.chunk_frames < 2:
+        raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
     _prepare_out(out, plan, force)
     t0 = time.monotonic()
     tasks, reused, total = [], 0, sum(e.n_positions for e in exams)
@@ -688,19 +693,19 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     return BatchReport(out, summaries, len(all_problems), n_err, len(tasks), reused)
 
 
-def _chunk_frames_for(out: Path, settings: BatchSettings, exams: list[Exam], jobs: int | None) -> int:
-    """The automatic chunk size: the one of the run already in ``out`` when everything else matches (a resumed run
-    keeps its chunks whatever ``--jobs`` it is resumed with), else :func:`auto_chunk_frames` for this study and
-    the workers (``jobs``, default one per core)."""
+def _chunk_frames_for(out: Path, plan: dict, exams: list[Exam], jobs: int | None) -> int:
+    """The automatic chunk size for ``plan`` (whose ``chunk_frames`` is not chosen yet): the one of the run already
+    in ``out`` when everything else matches (a resumed run keeps its chunks whatever ``--jobs`` it is resumed
+    with), else :func:`auto_chunk_frames` for this study and the workers (``jobs``, default one per core)."""
     from bodyslam.parallel import available_cores
+
+    def unsized(pl: dict) -> dict:
+        return dict(pl, settings=dict(pl["settings"], chunk_frames=None))
 
     try:
         old = read_json(out / "batch.json")["plan"]
-        ours = json.loads(json.dumps({"version": PLAN_VERSION, "code": code_fingerprint(),
-                                      "settings": asdict(replace(settings, chunk_frames=0)),
-                                      "exams": [e.describe() for e in exams]}))
         size = old["settings"]["chunk_frames"]
-        if dict(old, settings=dict(old["settings"], chunk_frames=0)) == ours and isinstance(size, int) and size >= 2:
+        if unsized(old) == json.loads(json.dumps(unsized(plan))) and isinstance(size, int) and size >= 2:
             return size
     except (InputError, KeyError, TypeError, AttributeError):
         pass
@@ -720,6 +725,16 @@ def _valid_chunk(path: Path, i: int) -> bool:
 def _iter_chunks(exam_dir: Path) -> Iterator[dict]:
     for f in sorted((exam_dir / "chunks").glob("chunk_*.json")):
         yield json.loads(f.read_text(encoding="utf-8"))
+
+
+def _checkpoint(f: Path, key: str) -> dict | None:
+    """An exam-level checkpoint written whole (``{key: value}``), or None when it is missing or unreadable (then
+    its step runs again)."""
+    try:
+        d = json.loads(f.read_text(encoding="utf-8"))
+        return d if isinstance(d, dict) and key in d else None
+    except (OSError, ValueError):
+        return None
 
 
 def _step_rows(d: Path) -> Iterator[list]:
@@ -743,12 +758,8 @@ def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, sched
     from bodyslam.steps import StepStatus
 
     f = d / "bridges.json"
-    if f.is_file():
-        try:
-            json.loads(f.read_text(encoding="utf-8"))["bridged"]
-            return
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
+    if _checkpoint(f, "bridged") is not None:
+        return
     statuses = [StepStatus(row[8]) for row in _step_rows(d)]
     shares = bridge_gaps(statuses, settings.motion, _engine_base(exam, settings, mask), jobs,
                          run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
@@ -764,12 +775,8 @@ def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, 
     from bodyslam.vision.odometry import consistency_pairs, step_consistency
 
     f = d / "consistency.json"
-    if f.is_file():
-        try:
-            json.loads(f.read_text(encoding="utf-8"))["step_consistency"]
-            return
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
+    if _checkpoint(f, "step_consistency") is not None:
+        return
     pairs = consistency_pairs([row[8] for row in _step_rows(d)])
     keep = {i for a, b in pairs for i in range(a, b)}
     steps = [step_from_row(dict(zip(MOTION_COLUMNS, row))) if i in keep else None
@@ -799,7 +806,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     dr = DeadReckoner()
     eof = None
     item = 0
-    rel = exam.radius_sd_m / exam.radius_m
+    rel = exam.radius_sd_rel
     with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
             open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
         fw, mw = csv.writer(ff, lineterminator="\n"), csv.writer(mf, lineterminator="\n")
@@ -862,7 +869,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
                # does the per-step 1-sigma hold? (k-frame motions against their single steps)
-               "step_consistency": _read_consistency(d)}
+               "step_consistency": (_checkpoint(d / "consistency.json", "step_consistency") or {}).get(
+                   "step_consistency")}
     write_json(d / "summary.json", summary)
     _report(exam, d, summary, t, P, cov, frame_idx, path_m, path_var, marks, fused is not None)
     return summary, problems
@@ -883,13 +891,6 @@ def _radius_estimate(exam: Exam, fused) -> dict | None:
     r = exam.radius_m * (1.0 + s)
     return {"median": float(np.median(r)), "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)),
             "median_1sigma": float(exam.radius_m * np.median(fused.smoothed.scale_sd))}
-
-
-def _read_consistency(d: Path) -> dict | None:
-    try:
-        return json.loads((d / "consistency.json").read_text(encoding="utf-8"))["step_consistency"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
 
 
 def _csv_cells(row: list) -> list:
@@ -935,7 +936,7 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
         steps = read_motion_steps(d / "motion.csv", frame_idx[1:])
         loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
-                       radius_sd_rel=exam.radius_sd_m / exam.radius_m)
+                       radius_sd_rel=exam.radius_sd_rel)
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
         return None
@@ -968,7 +969,7 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
         for lm in lms:
             j = where[lm]
             row += [path_m[k] - path_m[j],
-                    math.sqrt(segment_variance(path_m, path_var, j, k, exam.radius_sd_m / exam.radius_m))]
+                    math.sqrt(segment_variance(path_m, path_var, j, k, exam.radius_sd_rel))]
         rows.append(row)
     write_csv(d / "marks.csv", header, rows)
     return rows
@@ -1018,4 +1019,4 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
                   " (x toward the patient's left, y anterior, z cranial). The 1-sigma is the filter's, scaled by the "
                   "RF readings' measured correlation")
                + "; the path travelled is the sum of the visual steps (its 1-sigma includes the lumen radius's).", body,
-               ["trajectory.png", "path.png"], with_3d=True)
+               ["trajectory.png", "path.png"])

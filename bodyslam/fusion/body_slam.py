@@ -39,6 +39,7 @@ from bodyslam.errors import InputError
 from bodyslam.fusion.orientation_search import SearchResult, search_orientation
 from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.steps import StepMotion
+from bodyslam.vision.tracking import SCALE_CORR_M
 
 __all__ = ["FusionSettings", "FusionResult", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
            "kf_thesis", "step_pose"]
@@ -66,7 +67,7 @@ class FusionSettings:
     # visual scale state (bodyslam.fusion.ekf): relative 1-sigma of the lumen radius the vision assumed (0: off)
     # and the distance along the path over which the radius changes
     scale_sd_rel: float = 0.0
-    scale_corr_m: float = 0.2
+    scale_corr_m: float = SCALE_CORR_M
 
 
 @dataclass

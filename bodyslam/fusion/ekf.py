@@ -46,6 +46,7 @@ from bodyslam.choices import FUSION_MODES
 from bodyslam.errors import InputError
 from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.steps import StepMotion
+from bodyslam.vision.tracking import SCALE_CORR_M
 
 __all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "FilterPasses", "with_orientation_sigma",
            "CHI2_3_999", "Z_GATE_999"]
@@ -61,7 +62,11 @@ MISSING_SIGMA_T_MIN_M, MISSING_SIGMA_R_RAD = 3e-3, np.radians(5.0)
 
 
 def _skew(v):
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    """``[v]x`` of a vector (3,), or of many (..., 3) at once."""
+    v = np.asarray(v, float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return S - np.swapaxes(S, -1, -2)
 
 
 def process_model(R_w_c: np.ndarray, t_s_m: np.ndarray, R_s: np.ndarray, sigma_t_m: float,
@@ -161,7 +166,7 @@ class ErrorStateEkf:
     def __init__(self, steps: list[StepMotion], fixes: list[Fix] | None, rss: np.ndarray | None,
                  sensors_w_m: np.ndarray | None, normals_w: np.ndarray | None, pl: PathLossModel | None,
                  mode: str = "rss", max_rejections: int = 5, bias_corr_m: float = 0.0, bias_sd_db: float = 4.0,
-                 scale_sd_rel: float = 0.0, scale_corr_m: float = 0.2):
+                 scale_sd_rel: float = 0.0, scale_corr_m: float = SCALE_CORR_M):
         if mode not in FUSION_MODES:
             raise InputError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
         if mode == "rss" and (rss is None or sensors_w_m is None or pl is None):
@@ -218,7 +223,7 @@ class ErrorStateEkf:
         ts_c = np.repeat(ts[None], C, axis=0) * (1.0 + self.b[:, :1]) if self.n_scale else ts
         F, Q = process_model(self.R, ts, Rs, self.sig_t[k - 1], self.sig_r[k - 1])
         if self.n_scale:
-            F[:, :3, 3:] = -self.R @ np.array([_skew(t) for t in ts_c])
+            F[:, :3, 3:] = -self.R @ _skew(ts_c)
         if self.m_extra:  # Gauss-Markov steps of the scale and the biases, driven by the distance travelled
             D = self.D
             rho = np.r_[self.rho_s[k - 1:k] if self.n_scale else [],

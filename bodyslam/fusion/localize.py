@@ -145,11 +145,10 @@ def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2
                 cell(head[k]), cell(pm[k]), cell(psd[k])] for k in range(n)])
 
 
-def write_localization(out: str | os.PathLike, loc: Localization, title: str = "Body-SLAM",
-                       marks: list[tuple[int, str]] | None = None) -> None:
-    """The output set of a localization run (module docstring) into the directory ``out``; ``marks``: ``(row,
-    label)`` of marked frames (lesions), drawn with their 1-sigma."""
-    from bodyslam.plots import Mark, Path3D, path_figure, trajectory_figure
+def write_localization(out: str | os.PathLike, loc: Localization, title: str = "Body-SLAM") -> None:
+    """The output set of a localization run (module docstring) into the directory ``out`` (marked frames are
+    ``bodyslam batch``'s: ``--mark``)."""
+    from bodyslam.plots import Path3D, path_figure, trajectory_figure
     from bodyslam.report import table, view_3d, write_page
 
     out = Path(out)
@@ -166,12 +165,9 @@ def write_localization(out: str | os.PathLike, loc: Localization, title: str = "
     paths = [Path3D(f"{title} (smoothed)", res.positions_w_m, (214, 39, 40), 1.8, res.cov[:, :3, :3]),
              Path3D(f"{title} (online filter)", ekf.positions_w_m, (31, 119, 180), 1.0),
              Path3D("RF fixes (ML)", fixes_ok, (170, 170, 170), 0.8)]
-    marks = [Mark(label, res.positions_w_m[k], res.cov[k, :3, :3]) for k, label in (marks or [])]
-    write_image(out / "trajectory.png", trajectory_figure(f"{title}: where the capsule was (body frame)", paths,
-                                                          marks))
+    write_image(out / "trajectory.png", trajectory_figure(f"{title}: where the capsule was (body frame)", paths))
     write_image(out / "path.png", path_figure(f"{title}: how far along the gut", loc.stamps_s, loc.path_m,
-                                              loc.path_var_m2, [(loc.stamps_s[k], label) for k, label in
-                                                                (marks or [])]))
+                                              loc.path_var_m2))
     sd = np.sqrt(np.trace(c[:, :3, :3], axis1=1, axis2=2))
     rows = [["frames", len(loc.frames)], ["duration (s)", f"{loc.stamps_s[-1] - loc.stamps_s[0]:.1f}"],
             ["path travelled (cm)", f"{loc.path_m[-1] * 100:.1f} +- {math.sqrt(max(loc.path_var_m2[-1], 0)) * 100:.1f}"],
@@ -179,14 +175,8 @@ def write_localization(out: str | os.PathLike, loc: Localization, title: str = "
             ["RF readings' correlation factor kappa",
              f"{loc.channel.kappa:.2f}" if loc.channel is not None else "not measured"],
             ["RF updates / readings rejected", f"{ekf.n_updates} / {ekf.n_rejected}"]]
-    body = table(None, rows)
-    if marks:
-        body += "<h2>Marked frames</h2>" + table(
-            ["frame", "label", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)"],
-            [[int(loc.frames[k]), label, *(f"{v * 100:.1f}" for v in res.positions_w_m[k]), f"{sd[k] * 100:.1f}",
-              f"{loc.path_m[k] * 100:.1f}"] for k, label in marks])
-    body += "<h2>3-D view</h2>" + view_3d(paths[:2], marks, loc.stamps_s, loc.frames) + "<h2>Plots</h2>"
+    body = (table(None, rows) + "<h2>3-D view</h2>" + view_3d(paths[:2], [], loc.stamps_s, loc.frames)
+            + "<h2>Plots</h2>")
     write_page(out / "report.html", f"{title} localization", "Positions in the body frame (x toward the patient's "
                "left, y anterior, z cranial), from the visual steps fused with the RF readings; 1-sigma as stated by "
-               "the smoother, scaled by the readings' measured correlation.", body, ["trajectory.png", "path.png"],
-               with_3d=True)
+               "the smoother, scaled by the readings' measured correlation.", body, ["trajectory.png", "path.png"])

@@ -45,9 +45,7 @@ from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_radius_uncertainty",
-           "pair_motions",
-           "consistency_pairs", "consistency_diagnostic", "step_consistency",
-           "find_gaps",
+           "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
 
 
@@ -452,6 +450,11 @@ class Sequence:
     T_body_cam: tuple | None = None  # (q_xyzw, t_m) of a non-front camera in the body (front camera) frame
     radius_sd_m: float = 0.0  # 1-sigma of radius_m (meta.json; 0 when the radius was given on the command line)
 
+    @property
+    def radius_sd_rel(self) -> float:
+        """The lumen radius's 1-sigma relative to it (the visual scale's)."""
+        return self.radius_sd_m / self.radius_m
+
     @classmethod
     def open(cls, seq_dir: str | os.PathLike, radius_m: float | None = None, camera: str = "front") -> "Sequence":
         seq = Path(seq_dir)
@@ -532,7 +535,7 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             progress(len(steps), n - 1)
     for i, s in bridge_gaps(steps, settings, base, jobs).items():
         steps[i] = s
-    return with_radius_uncertainty(steps, seq.radius_sd_m / seq.radius_m)
+    return with_radius_uncertainty(steps, seq.radius_sd_rel)
 
 
 def with_radius_uncertainty(steps: list[StepMotion], radius_sd_rel: float) -> list[StepMotion]:

@@ -17,7 +17,7 @@ def _page(tmp_path):
     body = table(["a", "b"], [["<x>", 1.5]]) + view_3d([Path3D("estimate", p, cov_m2=cov), Path3D("truth", p * 1.1)],
                                                         [Mark("polyp", p[100], cov[100])], t, np.arange(200))
     out = tmp_path / "report.html"
-    write_page(out, "Exam <1>", "intro & more", body, [], with_3d=True)
+    write_page(out, "Exam <1>", "intro & more", body, [])
     return out
 
 

@@ -314,3 +314,8 @@ def test_the_automatic_chunk_size_keeps_every_worker_busy_and_a_resume_keeps_its
     assert plan["settings"]["chunk_frames"] == 20 and rep.chunks_computed == 2  # 40 frames: 20 (the floor)
     again = run_batch(open_exams([str(DEMO)]), out, BatchSettings(), jobs=1)  # 1 job alone would still give 20
     assert again.chunks_reused == 2 and again.chunks_computed == 0
+    # a size no automatic choice gives for 40 frames (7) is kept too: the resume follows the run in OUT
+    out7 = tmp_path / "run7"
+    run_batch(open_exams([str(DEMO)]), out7, BatchSettings(chunk_frames=7), jobs=2)
+    resumed = run_batch(open_exams([str(DEMO)]), out7, BatchSettings(), jobs=1)
+    assert resumed.chunks_computed == 0 and resumed.chunks_reused == 6
