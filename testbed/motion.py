@@ -178,7 +178,8 @@ def generate_motion(tube: Tube, n_frames: int, cfg: MotionConfig, rng: np.random
         lo, hi = 0.02, cl.length_m - 0.02
         # start further in when early backward motion would leave the path's start (sequences that fit keep
         # start_s_m exactly, so existing sequences are unchanged)
-        s = max(cfg.start_s_m, lo - rel.min()) + rel
+        # (1e-9: lo - rel.min() + rel.min() may round to just below lo)
+        s = max(cfg.start_s_m, lo - rel.min() + 1e-9) + rel
         if s.max() > hi or s.min() < lo:
             raise ConfigError(
                 f"the capsule would leave the {cl.length_m:.2f} m path (s from {s.min():.3f} to {s.max():.3f} m); "

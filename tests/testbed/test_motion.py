@@ -41,3 +41,11 @@ def test_labels_follow_the_geometric_rule():
     kappa = world.tube.centerline.curvature_per_m()[world.tube.centerline.index_at(traj.s_m).astype(int)]
     straight = (np.sum(z * F[:, :, 2], axis=1) > np.cos(np.radians(10))) & (kappa < 5.0)
     assert straight.sum() > 10 and np.all(labels[straight] == FT)
+
+
+def test_a_start_moved_in_for_early_backward_motion_stays_on_the_path():
+    # classifier_realistic seed 510 backs up early: the start is moved in to exactly 0.02 m from the path's end,
+    # and lo - min + min rounded to just below it ("the capsule would leave the path", s from 0.020)
+    w = build_world(load_scenario("classifier_realistic"), 510, None)
+    traj = generate_motion(w.tube, w.n_frames, w.motion, w.rngs["motion"])
+    assert traj.s_m.min() >= 0.02 and traj.s_m.max() <= w.tube.centerline.length_m - 0.02
