@@ -1,0 +1,56 @@
+"""The per-step fit's own 1-sigma against the truth, with the lumen radius's share taken out (issue 16 item 3).
+
+For every estimated step of kept sequences (``testbed evaluate ... --out D`` keeps ``D/sequences/seed_*`` with
+motion.csv): the fit's own 1-sigma distance (the stated one less the radius prior's share ``sd/r |d|``) against
+the error of the distance rescaled by the true local radius over the told one (the radius error is what the
+prior's share covers; what is left is the fit's). An honest 1-sigma puts ~68% / 95% of ``|z|`` within 1 / 2.
+
+    .venv/bin/python benchmarks/bench_step_sigma.py D/sequences [--ahead-m 0.02]
+
+The local radius is the centre line's at the step's midpoint plus ``--ahead-m`` (the wall the camera sees most of
+lies ahead): an approximation, so the rescaled error is an upper bound of the fit's own on a varying lumen.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("sequences", type=Path)
+    ap.add_argument("--ahead-m", type=float, default=0.02)
+    args = ap.parse_args()
+    rows = []
+    for d in sorted(args.sequences.glob("seed_*")):
+        if not (d / "motion.csv").exists():
+            continue
+        truth = {int(r["frame"]): float(r["distance_m"]) for r in csv.DictReader(open(d / "motion_truth.csv"))}
+        s_at = {int(r["frame"]): float(r["s_m"]) for r in csv.DictReader(open(d / "labels.csv"))}
+        cl = np.loadtxt(d / "centerline.csv", delimiter=",", skiprows=1)
+        meta = json.loads((d / "meta.json").read_text())
+        r_told, sd = meta["tube_radius_m"], meta.get("tube_radius_sd_m", 0.0)
+        for r in csv.DictReader(open(d / "motion.csv")):
+            if r["status"] != "ok":
+                continue
+            k, de, sig = int(r["frame"]), float(r["distance_m"]), float(r["sigma_distance_m"])
+            sig_fit = np.sqrt(max(sig**2 - (sd / r_told * de) ** 2, 1e-18))
+            r_loc = np.interp(0.5 * (s_at[k] + s_at[k - 1]) + args.ahead_m, cl[:, 0], cl[:, 4])
+            rows.append((de * r_loc / r_told - truth[k], de - truth[k], sig_fit, sig))
+    a = np.array(rows)
+    z_fit, z_all = np.abs(a[:, 0] / a[:, 2]), np.abs(a[:, 1] / a[:, 3])
+    print(f"{len(a)} estimated steps in {args.sequences}")
+    print(f"fit's own 1-sigma vs radius-rescaled error: within 1 / 2 sigma {np.mean(z_fit <= 1):.3f} / "
+          f"{np.mean(z_fit <= 2):.3f}, median |z| {np.median(z_fit):.2f}; median 1-sigma {np.median(a[:, 2]) * 1e3:.3f} mm,"
+          f" median |error| {np.median(np.abs(a[:, 0])) * 1e3:.3f} mm")
+    print(f"stated 1-sigma (radius share included) vs raw error: within 1 / 2 sigma {np.mean(z_all <= 1):.3f} / "
+          f"{np.mean(z_all <= 2):.3f}; median |error| {np.median(np.abs(a[:, 1])) * 1e3:.3f} mm")
+
+
+if __name__ == "__main__":
+    main()
