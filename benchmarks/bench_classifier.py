@@ -28,6 +28,7 @@ Throughput: the whole `bodyslam classify` process on a 200-frame 320x320 sequenc
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import tempfile
@@ -40,9 +41,9 @@ from bodyslam.camera import FisheyeCamera
 from bodyslam.frames import list_frames
 from bodyslam.io import frame_name, read_image
 from bodyslam.meta import read_meta
-from bodyslam.vision.classify import FEATURES_9, FEATURES_RICH, features_of_frames, frame_features, train
-from bodyslam.vision.matching import field_of_view
-from bodyslam.vision.odometry import fov_from_frames
+from bodyslam.vision.classify import (FEATURES_9, FEATURES_RICH, TunnelClassifier, features_of_frames, frame_features,
+                                      train)
+from bodyslam.vision.odometry import Sequence, fov_from_frames, resolve_mask
 from testbed.scenario import load_scenario
 from testbed.simulate import simulate
 
@@ -95,29 +96,26 @@ def render(root: Path, items) -> list[Path]:
     for scn_name, seed, sets in items:
         d = root / f"{scn_name}_{seed}"
         if not (d / "meta.json").exists():
-            vals = [f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in sets.items()]
-            scn = load_scenario(scn_name, [v.replace("'", '"') for v in vals])
+            scn = load_scenario(scn_name, [f"{k}={json.dumps(v)}" for k, v in sets.items()])  # JSON values are TOML
             simulate(scn, seed, d, force=True)
         out.append(d)
     return out
 
 
 def sequence_mask(d: Path) -> np.ndarray:
-    """The field of view the pipeline would use: detected from 30 frames spread over the sequence."""
-    meta = read_meta(d)
-    cam = meta.camera_model()
-    ks = np.unique(np.linspace(0, meta.n_frames - 1, min(30, meta.n_frames)).astype(int))
-    m = fov_from_frames([read_image(d / meta.frames_dir / frame_name(int(k))) for k in ks], cam, None)
-    return cam.fov_mask() if m is None else m
+    """The field of view the pipeline uses (:func:`bodyslam.vision.odometry.resolve_mask`, default rule)."""
+    seq = Sequence.open(d)
+    m = resolve_mask(seq.source, seq.camera, None)
+    return seq.camera.fov_mask() if m is None else m
 
 
-def dataset(dirs: list[Path], work_px: int) -> tuple[np.ndarray, np.ndarray]:
+def dataset(dirs: list[Path], masks: dict[Path, np.ndarray], work_px: int) -> tuple[np.ndarray, np.ndarray]:
     X, y = [], []
     for d in dirs:
         meta = read_meta(d)
         labels = np.loadtxt(d / "labels.csv", delimiter=",", skiprows=1, usecols=2, dtype=str)
         paths = [d / meta.frames_dir / frame_name(k) for k in range(meta.n_frames)]
-        for (st, _, f), lab in zip(features_of_frames(paths, sequence_mask(d), work_px=work_px), labels):
+        for (st, _, f), lab in zip(features_of_frames(paths, masks[d], work_px=work_px), labels):
             if st == "ok":
                 X.append(f)
                 y.append(lab)
@@ -134,9 +132,9 @@ def real_frames(real_dir: Path) -> list[tuple[str, np.ndarray, np.ndarray, str]]
         if not imgs:
             continue
         h, w = imgs[0][1].shape[:2]
-        circle = FisheyeCamera.equidistant(w, h, 156.0).fov_mask()  # what `bodyslam` assumes without calibration
-        m, _ = field_of_view([im for _, im in imgs], circle)
-        m = circle if m is None else m
+        cam = FisheyeCamera.equidistant(w, h, 156.0)  # what `bodyslam` assumes without a calibration
+        m = fov_from_frames([im for _, im in imgs], cam, None)
+        m = cam.fov_mask() if m is None else m
         out.extend((name, im, m, "lumen" if name.startswith("C2_") else "wall") for name, im in imgs)
     return out
 
@@ -170,15 +168,22 @@ def main() -> None:
     for scn_name, seed, s in REAL_TRAIN + REAL_VALID + REAL_TEST:
         print(f"  {scn_name} {seed}: {fmt_sets(s)}")
     if args.realistic_seqs:
+        if not args.realistic_seqs.is_dir():
+            raise SystemExit(f"--realistic-seqs {args.realistic_seqs}: not a folder")
         sets["test realistic scenario"] = sorted(d for d in args.realistic_seqs.iterdir()
                                                  if (d / "frames").is_dir() and (d / "labels.csv").exists())
     reals = real_frames(args.real) if args.real.is_dir() else []
+    masks = {d: sequence_mask(d) for dirs in sets.values() for d in dirs}  # once, not once per working size
     cands = []  # (valid score, work_px, feature name, model)
     for px in [int(v) for v in args.work_px.split(",")]:
-        data = {name: dataset(dirs, px) for name, dirs in sets.items()}
+        data = {name: dataset(dirs, masks, px) for name, dirs in sets.items()}
         Xtr, ytr = data["train"]
         print(f"\n== SRM at {px} px: train {len(ytr)} frames ({np.sum(ytr == 'FT')} FT, {np.sum(ytr == 'FL')} FL)",
               flush=True)
+        shipped = TunnelClassifier.default()  # the comparison: what the pipeline uses now, at this size
+        print("shipped model: " + "; ".join(
+            f"{name} balanced {balanced(y, shipped.predict(X)):.3f}" for name, (X, y) in data.items()
+            if name != "train"), flush=True)
         for fname, feats in (("nine", FEATURES_9), ("rich", FEATURES_RICH)):
             t = time.perf_counter()
             model = train(Xtr, ytr, feats, info={

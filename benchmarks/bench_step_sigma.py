@@ -15,10 +15,13 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
+
+from bodyslam.io import read_motion_csv
+from bodyslam.meta import read_meta
+from bodyslam.steps import StepStatus
 
 
 def main() -> None:
@@ -30,18 +33,21 @@ def main() -> None:
     for d in sorted(args.sequences.glob("seed_*")):
         if not (d / "motion.csv").exists():
             continue
-        truth = {int(r["frame"]): float(r["distance_m"]) for r in csv.DictReader(open(d / "motion_truth.csv"))}
+        truth = read_motion_csv(d / "motion_truth.csv")
         s_at = {int(r["frame"]): float(r["s_m"]) for r in csv.DictReader(open(d / "labels.csv"))}
         cl = np.loadtxt(d / "centerline.csv", delimiter=",", skiprows=1)
-        meta = json.loads((d / "meta.json").read_text())
-        r_told, sd = meta["tube_radius_m"], meta.get("tube_radius_sd_m", 0.0)
-        for r in csv.DictReader(open(d / "motion.csv")):
-            if r["status"] != "ok":
+        meta = read_meta(d)
+        r_told, sd = meta.tube_radius_m, meta.tube_radius_sd_m
+        for k, r in read_motion_csv(d / "motion.csv").items():
+            if r["status"] != StepStatus.OK:
                 continue
-            k, de, sig = int(r["frame"]), float(r["distance_m"]), float(r["sigma_distance_m"])
+            de, sig = r["distance_m"], r["sigma_distance_m"]
             sig_fit = np.sqrt(max(sig**2 - (sd / r_told * de) ** 2, 1e-18))
             r_loc = np.interp(0.5 * (s_at[k] + s_at[k - 1]) + args.ahead_m, cl[:, 0], cl[:, 4])
-            rows.append((de * r_loc / r_told - truth[k], de - truth[k], sig_fit, sig))
+            rows.append((de * r_loc / r_told - truth[k]["distance_m"], de - truth[k]["distance_m"], sig_fit, sig))
+    if not rows:
+        raise SystemExit(f"{args.sequences}: no seed_*/motion.csv with estimated steps (give a `testbed evaluate` "
+                         "run's sequences/ folder)")
     a = np.array(rows)
     z_fit, z_all = np.abs(a[:, 0] / a[:, 2]), np.abs(a[:, 1] / a[:, 3])
     print(f"{len(a)} estimated steps in {args.sequences}")

@@ -44,7 +44,7 @@ def test_labels_follow_the_geometric_rule():
 
 
 def test_a_start_moved_in_for_early_backward_motion_stays_on_the_path():
-    # classifier_realistic seed 510 backs up early: the start is moved in to exactly 0.02 m from the path's end,
+    # classifier_realistic seed 510 backs up early: the start is moved in to exactly 0.02 m from the path's start,
     # and lo - min + min rounded to just below it ("the capsule would leave the path", s from 0.020)
     w = build_world(load_scenario("classifier_realistic"), 510, None)
     traj = generate_motion(w.tube, w.n_frames, w.motion, w.rngs["motion"])
