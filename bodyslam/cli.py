@@ -128,6 +128,8 @@ def _parser() -> argparse.ArgumentParser:
     tc.add_argument("--out", required=True, help="model file (.npz)")
     tc.add_argument("--features", default="rich", choices=("nine", "rich"),
                     help="nine: the dissertation's features; rich: nine + five (default)")
+    tc.add_argument("--work-px", type=int, default=96,
+                    help="SRM working size (px) of the features, recorded in the model and used wherever it classifies")
     tc.add_argument("--jobs", type=int, default=None)
     cl = cmd("classify")
     cl.add_argument("input", help="a sequence directory (meta.json) or a folder of frames")
@@ -288,8 +290,10 @@ def _train_classifier(args) -> int:
     import numpy as np
 
     from bodyslam.vision.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
-    from bodyslam.errors import InputError
+    from bodyslam.errors import ConfigError, InputError
 
+    if not 16 <= args.work_px <= 1024:
+        raise ConfigError(f"--work-px must be 16-1024 px, got {args.work_px}")
     X, y, names = [], [], []
     for sd in args.seqdirs:
         paths, cam = _frames_of(sd)
@@ -297,14 +301,15 @@ def _train_classifier(args) -> int:
         if not lab_path.exists():
             raise InputError(f"{sd}: no labels.csv (training needs testbed sequences with FT/FL labels)")
         labels = {int(r.split(",")[0]): r.split(",")[2] for r in lab_path.read_text().splitlines()[1:] if r}
-        res = features_of_frames(paths, cam.fov_mask(), jobs=args.jobs, progress=Progress(f"features {sd}"))
+        fov = _fov_of(_sample_frames(paths), cam, "auto")  # the field the pipeline will use on such frames
+        res = features_of_frames(paths, fov, work_px=args.work_px, jobs=args.jobs, progress=Progress(f"features {sd}"))
         for k, (st, _, f) in enumerate(res):
             if st == "ok" and k in labels:
                 X.append(f)
                 y.append(labels[k])
         names.append(str(sd))
     model = train(np.array(X), np.array(y), FEATURES_9 if args.features == "nine" else FEATURES_RICH,
-                  info={"trained_on": names})
+                  info={"trained_on": names, "work_px": args.work_px})
     model.save(args.out)
     print(f"{args.out}: {args.features} features, {len(y)} frames ({model.info['n_train_ft']} FT, "
           f"{model.info['n_train_fl']} FL), cross-validated accuracy {model.info['cv_accuracy']:.4f}, "
@@ -328,7 +333,7 @@ def _classify(args) -> int:
         cam = _camera_for(read_image(paths[0]), args.meta)
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
     fov = _fov_of(_sample_frames(paths), cam, args.mask)
-    res = features_of_frames(paths, fov, jobs=args.jobs, progress=Progress("classify"))
+    res = features_of_frames(paths, fov, work_px=model.work_px or 96, jobs=args.jobs, progress=Progress("classify"))
     rows = []
     for p, (st, msg, f) in zip(paths, res):
         if st == "ok":

@@ -1,11 +1,12 @@
 """``meta.json`` of a sequence directory, read, validated and written in one place (SPEC.md "Files").
 
 :class:`SequenceMeta` is what the pipeline may know of a recording: frame count and rate, the camera, the
-nominal lumen radius, where the frames are, the RF calibration, a rear camera's extrinsics. Every reader
-(``bodyslam check``, ``motion``, ``track``, ``localize``, ``batch``, ``classify``, the testbed's evaluation) goes
-through :func:`read_meta`, and ``testbed simulate`` writes through :func:`write_meta`, so what ``check`` accepts
-the pipeline runs, and what it refuses is refused everywhere with one line naming the file, the field and the
-value. Keys this module does not know (provenance, depth, units, other systems' tables) are kept in ``raw``.
+nominal lumen radius and how far the lumen departs from a cylinder, where the frames are, the RF calibration, a
+rear camera's extrinsics. Every reader (``bodyslam check``, ``motion``, ``track``, ``localize``, ``batch``,
+``classify``, the testbed's evaluation) goes through :func:`read_meta`, and ``testbed simulate`` writes through
+:func:`write_meta`, so what ``check`` accepts the pipeline runs, and what it refuses is refused everywhere with one
+line naming the file, the field and the value. Keys this module does not know (provenance, depth, units, other
+systems' tables) are kept in ``raw``.
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ class SequenceMeta:
     raw: dict = field(default_factory=dict, repr=False, compare=False)
     path: Path | None = field(default=None, compare=False)  # the meta.json read, for messages
     tube_radius_sd_m: float = 0.0  # 1-sigma of tube_radius_m (0: known exactly; a population prior's spread)
+    # relative 1-sigma of a step's distance from the lumen not being the cylinder the tube estimator fits (folds,
+    # a star-shaped cross-section, a radius that changes within the view); 0 or absent: a cylinder (the ideal tube)
+    lumen_shape_sd_rel: float = 0.0
 
     def camera_model(self) -> CameraModel:
         return camera_from_dict(self.camera)
@@ -108,6 +112,10 @@ def meta_from_dict(d: Any, path: Path | None = None) -> SequenceMeta:
     radius_sd = 0.0 if radius_sd is None else radius_sd
     if radius_sd < 0 or (radius is not None and radius_sd >= radius):
         raise InputError(f"{where}: tube_radius_sd_m must be >= 0 and below tube_radius_m, got {radius_sd!r}")
+    shape_sd = _number(d, "lumen_shape_sd_rel", where, positive=False, required=False)
+    shape_sd = 0.0 if shape_sd is None else shape_sd
+    if not 0.0 <= shape_sd < 1.0:
+        raise InputError(f"{where}: lumen_shape_sd_rel must be a fraction of the distance in 0-1, got {shape_sd!r}")
     frames = d.get("frames", {})
     if frames is None:
         frames = {}
@@ -143,7 +151,8 @@ def meta_from_dict(d: Any, path: Path | None = None) -> SequenceMeta:
         except (KeyError, TypeError, ValueError, AttributeError, InputError) as exc:
             raise InputError(f"{where}: malformed rear_camera ({exc})") from None
         rear = RearCamera(r["camera"], rdir, q, t)
-    return SequenceMeta(n, rate, cam, radius, frames.get("dir", "frames"), rf, rear, dict(d), path, radius_sd)
+    return SequenceMeta(n, rate, cam, radius, frames.get("dir", "frames"), rf, rear, dict(d), path, radius_sd,
+                        shape_sd)
 
 
 def read_meta(seq_dir: str | os.PathLike) -> SequenceMeta:

@@ -79,7 +79,8 @@ OPTIONAL_KEYS: dict[str, dict[str, str]] = {
              "min_self_distance_diameters": _NUM},
     "tube": {"radius_m": _NUM, "radius_end_m": _NUM, "radius_variation_m": _NUM, "radius_wavelength_m": _NUM,
              "contraction_frac": _NUM, "contraction_length_m": _NUM, "contraction_spacing_m": _NUM,
-             "radius_in_meta_m": _NUM, "radius_sd_in_meta_m": _NUM, "sections": _INT, "ring_spacing_m": _NUM, "fold_depth_frac": _NUM,
+             "radius_in_meta_m": _NUM, "radius_sd_in_meta_m": _NUM, "shape_sd_in_meta_rel": _NUM, "sections": _INT,
+             "ring_spacing_m": _NUM, "fold_depth_frac": _NUM,
              "fold_spacing_m": _NUM, "fold_width_m": _NUM, "fold_coverage": _NUM, "lobes": _INT,
              "lobe_depth_frac": _NUM, "lobe_twist_rad_per_m": _NUM},
     "render": {"backend": _STR},
@@ -188,6 +189,7 @@ class World:
     # prior ([tube] radius_in_meta_m; the realistic testbed hides the true radius)
     radius_in_meta_m: float | None = None
     radius_sd_in_meta_m: float = 0.0  # ... and its stated 1-sigma (0: exact, the ideal world)
+    shape_sd_in_meta_rel: float = 0.0  # the lumen's stated departure from a cylinder (meta.json lumen_shape_sd_rel)
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -314,8 +316,12 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     told_sd = tube_sec.get("radius_sd_in_meta_m", 0.0)
     if not (isinstance(told_sd, (int, float)) and 0.0 <= told_sd <= 0.02) or (told_sd and told is None):
         raise ConfigError(f"[tube] radius_sd_in_meta_m must be 0-20 mm (in m), with radius_in_meta_m, got {told_sd!r}")
+    told_shape = tube_sec.get("shape_sd_in_meta_rel", 0.0)
+    if isinstance(told_shape, bool) or not (isinstance(told_shape, (int, float)) and 0.0 <= told_shape < 1.0):
+        raise ConfigError(f"[tube] shape_sd_in_meta_rel must be a fraction in 0-1, got {told_shape!r}")
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
-                 backend, rear_baseline, bubbles, rf, optics, None if told is None else float(told), float(told_sd))
+                 backend, rear_baseline, bubbles, rf, optics, None if told is None else float(told), float(told_sd),
+                 float(told_shape))
 
 
 def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:

@@ -197,6 +197,8 @@ def simulate(
         "tube_radius_sd_m": float(world.radius_sd_in_meta_m),
         "tube_radius_source": ("mean of this tube" if world.radius_in_meta_m is None
                                else "population prior (the true radius is hidden)"),
+        # the lumen's departure from a cylinder as a relative 1-sigma of each step's distance: 0 on a cylinder
+        "lumen_shape_sd_rel": float(world.shape_sd_in_meta_rel),
         "frames": {"dir": "frames", "pattern": "{index:06d}.png", "color": "RGB"},
         "depth": (
             {"dir": "depth", "kind": "range_along_ray", "scale_m_per_unit": RANGE_SCALE_M, "invalid_value": 0}

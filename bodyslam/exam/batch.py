@@ -90,6 +90,10 @@ DEFAULT_RADIUS_M = 0.0125  # small intestine, 2.5 cm lumen diameter (the thesis'
 # its 1-sigma when assumed: small bowel lumen radius ~0.8-1.6 cm is the assumption +-1.5 sigma (stated choice); the
 # fusion carries it as a visual scale state and each step's 1-sigma includes it
 DEFAULT_RADIUS_SD_M = 0.0025
+# the lumen's departure from the cylinder the tube estimator fits, as a relative 1-sigma of each step's distance,
+# when meta.json does not say: the realistic testbed's (chosen on its tuning seeds 503-509: 68% of the radius-free
+# step errors inside the fit's 1-sigma with it, 18% without)
+DEFAULT_SHAPE_SD_REL = 0.13
 DEFAULT_FPS = 2.0
 MAX_FRAME_RANGE = 10_000_000  # a frame range (``--mark 100-200``) longer than any exam is a typing error
 _SIGMA_D = MOTION_COLUMNS.index("sigma_distance_m")
@@ -138,6 +142,7 @@ class Exam:
     assumed: list[str] = field(default_factory=list)
     problems: list[list] = field(default_factory=list, repr=False)  # found while listing (gaps, non-images)
     radius_sd_m: float = 0.0  # 1-sigma of radius_m: meta.json's, 0 when given, DEFAULT_RADIUS_SD_M when assumed
+    shape_sd_rel: float = 0.0  # the lumen's departure from a cylinder: meta.json's, else DEFAULT_SHAPE_SD_REL
 
     def frame_source(self) -> FrameSource:
         # (while the exam is being opened its frame rate is not known yet: 1 frame/s for the size probe)
@@ -158,6 +163,7 @@ class Exam:
             h.update(f"{st.st_size}".encode())
         return {"name": self.name, "kind": self.kind, "source": os.path.abspath(self.source), "camera": self.camera,
                 "frame_rate_hz": self.frame_rate_hz, "radius_m": self.radius_m, "radius_sd_m": self.radius_sd_m,
+                "shape_sd_rel": self.shape_sd_rel,
                 "n_frames": self.n_positions,
                 "mask": self.mask, "rf": self.rf, "sensors": self.sensors, "files_sha256": h.hexdigest()}
 
@@ -484,6 +490,11 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
         exam.radius_sd_m = meta.tube_radius_sd_m
     else:
         exam.radius_sd_m = DEFAULT_RADIUS_SD_M
+    if meta is not None:
+        exam.shape_sd_rel = meta.lumen_shape_sd_rel
+    else:
+        exam.shape_sd_rel = DEFAULT_SHAPE_SD_REL
+        assumed.append(f"lumen shape {DEFAULT_SHAPE_SD_REL:.0%} of each step (1-sigma: the lumen is not a cylinder)")
     exam.mask = mask
     rf_meta = meta.rf if meta is not None else None
     if rf is None and sensors is None and src.is_dir() and rf_meta:
@@ -794,7 +805,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
-    from bodyslam.vision.odometry import with_radius_uncertainty
+    from bodyslam.vision.odometry import with_lumen_uncertainty
     from bodyslam.vision.tracking import path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
@@ -806,7 +817,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     dr = DeadReckoner()
     eof = None
     item = 0
-    rel = exam.radius_sd_rel
+    rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
     with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
             open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
         fw, mw = csv.writer(ff, lineterminator="\n"), csv.writer(mf, lineterminator="\n")
@@ -824,8 +835,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                     step = step[:2] + bridged[str(item)][2:]
                 item += 1
                 s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
-                if rel > 0 and s.has_estimate:  # the radius's uncertainty in the step's 1-sigma
-                    s = with_radius_uncertainty([s], rel)[0]
+                if (rel > 0 or shape > 0) and s.has_estimate:  # the lumen's uncertainty in the step's 1-sigma
+                    s = with_lumen_uncertainty([s], rel, shape)[0]
                     step = list(step)
                     step[_SIGMA_D] = s.sigma_distance_m
                 fw.writerow(_csv_cells(row))
@@ -868,6 +879,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "lumen_radius_estimate_m": _radius_estimate(exam, fused),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
+               "lumen_shape_sd_rel": exam.shape_sd_rel,
                # does the per-step 1-sigma hold? (k-frame motions against their single steps)
                "step_consistency": (_checkpoint(d / "consistency.json", "step_consistency") or {}).get(
                    "step_consistency")}
@@ -1005,6 +1017,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
+            ["lumen shape", f"steps +- {exam.shape_sd_rel:.0%} (1-sigma) for a lumen that is not a cylinder"],
             ["per-step 1-sigma check", _consistency_text(sm.get("step_consistency"))],
             ["assumed", "; ".join(sm["assumed"]) or "nothing"],
             ["problems", f"{sm['problems']} (problems.csv)"]]

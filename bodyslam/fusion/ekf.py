@@ -104,7 +104,7 @@ def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0) -> 
     """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
     a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity). With a scale state
     (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
-    (:func:`bodyslam.vision.odometry.with_radius_uncertainty`) is taken out: the state carries it."""
+    (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`) is taken out: the state carries it."""
     if s.has_estimate:
         t = np.asarray(s.t_c1_c2_m, float)
         sig = s.sigma_t_m

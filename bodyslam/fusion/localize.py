@@ -88,7 +88,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
     ``radius_sd_rel``: relative 1-sigma of the lumen radius the steps assumed; above 0 the fusion estimates the
     visual scale as a state (:mod:`bodyslam.fusion.ekf`), and the steps' 1-sigma is expected to include it
-    (:func:`bodyslam.vision.odometry.with_radius_uncertainty`).
+    (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`).
 
     Raises
     ------

@@ -110,6 +110,12 @@ class TunnelClassifier:
     def feature_index(self) -> np.ndarray:
         return np.array([FEATURES_RICH.index(f) for f in self.features])
 
+    @property
+    def work_px(self) -> int | None:
+        """The SRM working size the model was trained at (its features are measured at that size), if recorded."""
+        v = self.info.get("work_px")
+        return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 16 else None
+
     def decision(self, X_rich: np.ndarray) -> np.ndarray:
         """Decision values for rows of ``FEATURES_RICH`` vectors (the model picks its own columns)."""
         X = np.atleast_2d(np.asarray(X_rich, float))[:, self.feature_index]
@@ -181,8 +187,11 @@ class TunnelClassifier:
 
 
 def train(X_rich: np.ndarray, y: np.ndarray, features: tuple[str, ...] = FEATURES_RICH, folds: int = 5,
-          seed: int = 0, info: dict | None = None) -> TunnelClassifier:
-    """Fit scaler + RBF SVM, ``C`` and ``gamma`` chosen by stratified k-fold cross-validation (accuracy)."""
+          seed: int = 0, info: dict | None = None, balanced: bool = False) -> TunnelClassifier:
+    """Fit scaler + RBF SVM, ``C`` and ``gamma`` chosen by stratified k-fold cross-validation (accuracy).
+    ``balanced``: weight each class by the inverse of its frequency and choose by balanced accuracy (the mean of
+    the FT and FL recalls): for training sets where one class is rare (a thesis-like motion faces the tunnel
+    almost always)."""
     import sklearn
     from sklearn.model_selection import GridSearchCV, StratifiedKFold
     from sklearn.pipeline import Pipeline
@@ -195,15 +204,17 @@ def train(X_rich: np.ndarray, y: np.ndarray, features: tuple[str, ...] = FEATURE
     cols = np.array([FEATURES_RICH.index(f) for f in features])
     X = np.asarray(X_rich, float)[:, cols]
     yy = np.where(y == "FT", 1, -1)
-    pipe = Pipeline([("scale", StandardScaler()), ("svm", SVC(kernel="rbf"))])
+    svc = SVC(kernel="rbf", class_weight="balanced" if balanced else None)
+    pipe = Pipeline([("scale", StandardScaler()), ("svm", svc)])
     grid = {"svm__C": [0.3, 1, 3, 10, 30, 100], "svm__gamma": [0.01, 0.03, 0.1, 0.3, 1.0]}
     n_min = int(min(np.sum(yy == 1), np.sum(yy == -1)))
     cv = StratifiedKFold(n_splits=max(2, min(folds, n_min)), shuffle=True, random_state=seed)
-    search = GridSearchCV(pipe, grid, cv=cv, scoring="accuracy", n_jobs=1)
+    search = GridSearchCV(pipe, grid, cv=cv, scoring="balanced_accuracy" if balanced else "accuracy", n_jobs=1)
     search.fit(X, yy)
     best = search.best_estimator_
     svm, sc = best.named_steps["svm"], best.named_steps["scale"]
     meta = {"cv_accuracy": float(search.best_score_), "C": float(search.best_params_["svm__C"]),
+            "class_weight": "balanced" if balanced else "none",
             "n_train": int(len(y)), "n_train_ft": int(np.sum(yy == 1)), "n_train_fl": int(np.sum(yy == -1)),
             "sklearn_version": sklearn.__version__, "numpy_version": np.__version__, **(info or {})}
     # sklearn's decision_function: sum dual_coef * K + intercept, positive for classes_[1] (= +1: FT)

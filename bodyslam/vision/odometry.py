@@ -44,7 +44,7 @@ from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_radius_uncertainty",
+__all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_lumen_uncertainty",
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
 
@@ -60,7 +60,7 @@ class MotionSettings:
     #                          PNG path (non-zero = valid)
     classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
     model: str | None = None  # classifier model file (default: the shipped one)
-    classify_px: int | None = None  # SRM working size for classification; None: classify_work_px (96, fast 64)
+    classify_px: int | None = None  # SRM working size for classification; None: classify_work_px (the model's)
     bridge_gaps: int = 15  # runs of up to this many steps without an estimate are bridged by matching their
     #                        end frames directly (0: off); see README "gap bridging"
 
@@ -74,13 +74,16 @@ class MotionSettings:
             raise ConfigError(f"bridge_gaps must be >= 0, got {self.bridge_gaps}")
 
 
-def classify_work_px(settings: MotionSettings) -> int:
-    """SRM working size of the classifier: 96 px, 64 px in fast mode, unless the settings say. Chosen by accuracy on
-    the realistic testbed's appearance (tuning seeds 503-509, 700 frames: 0.909 at 48 px, 0.923 at 64, 0.957 at 96)
-    and on real PillCam frames (48 px calls four lumen-facing frames FL, 64 and 96 px FT), against speed in fast
-    mode (a whole exam at 96 px: 49 frames/s instead of 78 at 48 px). Fast mode used 48 px until session 7."""
+def classify_work_px(settings: MotionSettings, model=None) -> int:
+    """SRM working size of the classifier: the settings' if they say, else the size ``model`` (a
+    :class:`~bodyslam.vision.classify.TunnelClassifier`) was trained at (its features are measured at that size),
+    else 96 px (64 px in fast mode) for a model that does not record it. Models trained by
+    ``benchmarks/bench_classifier.py`` record the size chosen on held-out tuning seeds; the size matters: a model
+    used at another size than its training's mis-calls realistic frames."""
     if settings.classify_px:
         return int(settings.classify_px)
+    if model is not None and model.work_px:
+        return model.work_px
     return 64 if settings.match_mode == "fast" else 96
 
 
@@ -120,7 +123,7 @@ class VisualOdometry:
 
             self.classifier = (TunnelClassifier.load(settings.model) if settings.model
                                else TunnelClassifier.default())
-        self.work_px = classify_work_px(settings)
+        self.work_px = classify_work_px(settings, self.classifier)
         self.T_body_cam = None
         if T_body_cam is not None:
             self.T_body_cam = (Rotation.from_quat(T_body_cam[0]), np.asarray(T_body_cam[1], float).reshape(3))
@@ -370,7 +373,7 @@ def step_consistency(steps: list, settings: MotionSettings, task_base: dict, k: 
                      max_pairs: int = 30, jobs: int | None = None, run_tasks=None,
                      pairs: list[tuple[int, int]] | None = None) -> dict | None:
     """:func:`consistency_diagnostic` of ``steps`` (the fit's own 1-sigma, before
-    :func:`with_radius_uncertainty`), the k-frame motions estimated with the gap bridge's rule; None for an
+    :func:`with_lumen_uncertainty`), the k-frame motions estimated with the gap bridge's rule; None for an
     estimator without a full pose (``thesis``). ``pairs``: already chosen (:func:`consistency_pairs`; then only
     their steps need to be in ``steps``)."""
     if settings.estimator != "tube":
@@ -449,6 +452,7 @@ class Sequence:
     camera_name: str = "front"
     T_body_cam: tuple | None = None  # (q_xyzw, t_m) of a non-front camera in the body (front camera) frame
     radius_sd_m: float = 0.0  # 1-sigma of radius_m (meta.json; 0 when the radius was given on the command line)
+    shape_sd_rel: float = 0.0  # the lumen's departure from a cylinder, relative to a step (meta.json)
 
     @property
     def radius_sd_rel(self) -> float:
@@ -479,7 +483,7 @@ class Sequence:
             raise InputError(f"{frames_dir}: frames directory not found")
         src = FrameSource.sequence(frames_dir, meta.n_frames, meta.frame_rate_hz)
         return cls(seq, camera_from_dict(cam_d), cam_d, meta.n_frames, meta.frame_rate_hz, float(r), src, camera,
-                   extr, meta.tube_radius_sd_m if radius_m is None else 0.0)
+                   extr, meta.tube_radius_sd_m if radius_m is None else 0.0, meta.lumen_shape_sd_rel)
 
     def frame(self, k: int) -> np.ndarray:
         """Frame ``k`` as RGB; raises :class:`InputError` when unreadable or of the wrong size."""
@@ -535,21 +539,31 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             progress(len(steps), n - 1)
     for i, s in bridge_gaps(steps, settings, base, jobs).items():
         steps[i] = s
-    return with_radius_uncertainty(steps, seq.radius_sd_rel)
+    return with_lumen_uncertainty(steps, seq.radius_sd_rel, seq.shape_sd_rel)
 
 
-def with_radius_uncertainty(steps: list[StepMotion], radius_sd_rel: float) -> list[StepMotion]:
-    """The steps with the lumen radius's uncertainty in their 1-sigma distance: the tube estimator's translation
-    scales with the radius it assumes, so a relative 1-sigma ``radius_sd_rel`` of the radius adds
-    ``radius_sd_rel * |d|`` (in quadrature) to the fit's own 1-sigma. The error is the same for neighbouring
-    steps (the radius changes over centimetres): the fusion carries it as one scale state and takes this part back
-    out of each step (:func:`bodyslam.fusion.ekf.process_noise`). Steps without an estimate are unchanged."""
-    if not radius_sd_rel > 0:
+def with_lumen_uncertainty(steps: list[StepMotion], radius_sd_rel: float,
+                           shape_sd_rel: float = 0.0) -> list[StepMotion]:
+    """The steps with what the tube estimator assumes of the lumen in their 1-sigma distance, both added in
+    quadrature to the fit's own 1-sigma:
+
+    - the radius: the translation scales with the radius the fit assumes, so a relative 1-sigma ``radius_sd_rel``
+      of the radius adds ``radius_sd_rel * |d|``. The error is the same for neighbouring steps (the radius changes
+      over centimetres): the fusion carries it as one scale state and takes this part back out of each step
+      (:func:`bodyslam.fusion.ekf.step_noise`, :func:`bodyslam.vision.tracking.path_from_lengths`);
+    - the shape: a lumen that is not the cylinder the fit assumes (folds, a star-shaped cross-section, a radius
+      that changes within the view) errs by a fraction of the step that changes from step to step, which the fit's
+      residuals do not show (its 1-sigma was ~5x optimistic on the realistic testbed); ``shape_sd_rel * |d|``
+      stays in the step's 1-sigma (meta.json ``lumen_shape_sd_rel``).
+
+    Steps without an estimate are unchanged."""
+    if not (radius_sd_rel > 0 or shape_sd_rel > 0):
         return steps
+    rel = math.hypot(max(radius_sd_rel, 0.0), max(shape_sd_rel, 0.0))
     out = []
     for s in steps:
         if s.has_estimate and math.isfinite(s.distance_m):
             fit = s.sigma_distance_m if math.isfinite(s.sigma_distance_m) else 0.0
-            s = replace(s, sigma_distance_m=math.hypot(fit, radius_sd_rel * abs(s.distance_m)))
+            s = replace(s, sigma_distance_m=math.hypot(fit, rel * abs(s.distance_m)))
         out.append(s)
     return out

@@ -101,7 +101,7 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
                       corr_m: float = SCALE_CORR_M) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
     only these two numbers per step). ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
-    assumed (:func:`bodyslam.vision.odometry.with_radius_uncertainty` put its share into each step's variance):
+    assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
     that share is taken out of the steps and added back as one error correlated along the path
     (:func:`scale_path_variance`), which neighbouring steps share instead of averaging it out."""
     length = np.array(length_m, float)

@@ -40,7 +40,9 @@ def _seq(tmp_path: Path, n: int = 4, **changes) -> Path:
 
 @pytest.mark.parametrize("field,value", [("frame_rate_hz", "two"), ("frame_rate_hz", None), ("frame_rate_hz", -2),
                                          ("tube_radius_m", -0.01), ("tube_radius_m", "wide"), ("tube_radius_sd_m", -0.001),
-                                         ("tube_radius_sd_m", 0.5), ("n_frames", "forty"),
+                                         ("tube_radius_sd_m", 0.5), ("lumen_shape_sd_rel", -0.1),
+                                         ("lumen_shape_sd_rel", 1.5), ("lumen_shape_sd_rel", "folded"),
+                                         ("n_frames", "forty"),
                                          ("n_frames", 0), ("camera", {"model": "equidistant", "width": 320}),
                                          ("frames", {"dir": 7}), ("rf", {"pathloss": {"pt_dbm": "loud"}})])
 def test_check_and_every_reader_refuse_the_same_bad_field(tmp_path, field, value):
@@ -79,3 +81,16 @@ def test_messages_name_the_field_and_value():
         meta_from_dict({**good, "rear_camera": {"camera": good["camera"]}})
     m = meta_from_dict(good)
     assert m.rf is not None and m.rf.file == "rf.csv" and m.tube_radius_m == pytest.approx(0.013777, abs=1e-6)
+
+
+def test_the_lumen_shape_reaches_the_pipeline(tmp_path):
+    """``lumen_shape_sd_rel`` (absent: 0, a cylinder) is what the motion and batch readers carry into each step's
+    1-sigma; a sequence that states it is not assumed to have the default."""
+    from bodyslam.exam.batch import open_exams
+    from bodyslam.vision.odometry import Sequence
+
+    assert read_meta(DEMO).lumen_shape_sd_rel == 0.0
+    d = _seq(tmp_path, lumen_shape_sd_rel=0.07)
+    assert read_meta(d).lumen_shape_sd_rel == 0.07 and Sequence.open(d).shape_sd_rel == 0.07
+    (exam,) = open_exams([str(d)])
+    assert exam.shape_sd_rel == 0.07 and not any("lumen shape" in a for a in exam.assumed)

@@ -56,6 +56,7 @@ def test_realistic_sequence_hides_the_radius_and_shows_real_optics(tmp_path):
     assert meta["tube_radius_m"] == 0.0125 and abs(truth_r - 0.0125) > 1e-4  # a prior, not this gut's radius
     assert "prior" in meta["tube_radius_source"]
     assert meta["tube_radius_sd_m"] == 0.0025  # and the prior's spread, which the pipeline carries
+    assert meta["lumen_shape_sd_rel"] == 0.13  # and the lumen's departure from a cylinder (0 on `thesis`)
     img = read_image(tmp_path / "frames" / "000000.png")
     assert img[:8, :8].max() < 20  # octagon corner (JPEG ringing stays below 20)
     rf_lines = (tmp_path / "rf.csv").read_text().splitlines()[1:]

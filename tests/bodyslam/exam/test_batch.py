@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bodyslam.exam.batch import BatchSettings, open_exams, read_calibration, run_batch
+from bodyslam.exam.batch import DEFAULT_SHAPE_SD_REL, BatchSettings, open_exams, read_calibration, run_batch
 from bodyslam.frames import list_frames
 from bodyslam.vision.odometry import MotionSettings
 from bodyslam.cli import main as cli_main
@@ -260,6 +260,8 @@ def test_manifest_lists_exams_with_their_options(tmp_path):
     assert exams[0].frame_rate_hz == 4.0 and exams[0].marks == [(2, ""), (3, "")]
     assert any("frame rate" in a for a in exams[1].assumed) and any("radius" in a for a in exams[1].assumed)
     assert [i for i, _ in exams[1].frames] == list(range(10, 16))
+    # a plain folder says nothing of the lumen: its departure from a cylinder is assumed (the realistic testbed's)
+    assert all(e.shape_sd_rel == DEFAULT_SHAPE_SD_REL > 0 and any("lumen shape" in a for a in e.assumed) for e in exams)
 
 
 def test_list_frames_orders_by_number_and_reports_gaps(tmp_path):

@@ -430,18 +430,23 @@ def test_the_scale_state_finds_a_wrong_radius():
 
 
 def test_steps_carry_the_radius_uncertainty_and_the_filter_takes_it_back_out():
-    """``with_radius_uncertainty`` adds ``rel * |d|`` in quadrature to an estimated step's 1-sigma (a 4 mm step
+    """``with_lumen_uncertainty`` adds ``rel * |d|`` in quadrature to an estimated step's 1-sigma (a 4 mm step
     with a 0.1 mm fit and a 20% radius prior: hypot(0.1, 0.8) mm) and leaves steps without an estimate alone; the
-    filter with a scale state of the same prior applies the fit's part only."""
+    filter with a scale state of the same prior applies the fit's part only. A lumen-shape share (10%: 0.4 mm)
+    is added too and stays: the scale state does not carry it."""
     from bodyslam.fusion.ekf import step_noise
-    from bodyslam.vision.odometry import with_radius_uncertainty
+    from bodyslam.vision.odometry import with_lumen_uncertainty
 
     s = motion_from_transform(Rotation.identity(), [0.0, 0.0, 0.004], 50, 1e-4, np.radians(0.5))
     miss = StepMotion.failed(StepStatus.TOO_FEW_MATCHES)
-    a, b = with_radius_uncertainty([s, miss], 0.2)
+    a, b = with_lumen_uncertainty([s, miss], 0.2)
     assert a.sigma_distance_m == pytest.approx(np.hypot(1e-4, 8e-4), rel=1e-9) and b is miss
-    assert with_radius_uncertainty([s], 0.0)[0] is s
+    assert with_lumen_uncertainty([s], 0.0)[0] is s and with_lumen_uncertainty([s], 0.0, 0.0)[0] is s
     _, sig_t, _ = step_noise(a, np.zeros(3), 0.2)
     assert sig_t == pytest.approx(3e-4)  # the fit's 0.1 mm, raised to the filter's 0.3 mm floor
     _, sig_t, _ = step_noise(a, np.zeros(3), 0.0)
     assert sig_t == pytest.approx(np.hypot(1e-4, 8e-4))
+    c = with_lumen_uncertainty([s], 0.2, 0.1)[0]
+    assert c.sigma_distance_m == pytest.approx(np.sqrt(1e-4**2 + 8e-4**2 + 4e-4**2), rel=1e-9)
+    _, sig_t, _ = step_noise(c, np.zeros(3), 0.2)
+    assert sig_t == pytest.approx(np.hypot(1e-4, 4e-4), rel=1e-9)  # the fit's and the shape's, not the radius's

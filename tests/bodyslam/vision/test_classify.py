@@ -109,3 +109,32 @@ def test_model_files_round_trip_and_refuse_tampering(toy_model, tmp_path):
         TunnelClassifier.load(tmp_path / "shape.npz")
     with pytest.raises(InputError, match="not found"):
         TunnelClassifier.load(tmp_path / "missing.npz")
+
+
+def test_a_model_is_used_at_the_working_size_it_was_trained_at(toy_model, tmp_path):
+    """The size a model records (info ``work_px``) survives its file and is what the pipeline classifies at,
+    unless the settings say otherwise; a model that does not record one keeps the old rule (96 px, fast 64)."""
+    from dataclasses import replace
+
+    from bodyslam.vision.odometry import MotionSettings, classify_work_px
+
+    model = toy_model[0]
+    sized = replace(model, info={**model.info, "work_px": 64})
+    sized.save(tmp_path / "m.npz")
+    back = TunnelClassifier.load(tmp_path / "m.npz")
+    assert back.work_px == 64 and model.work_px is None
+    assert classify_work_px(MotionSettings(), back) == 64 == classify_work_px(MotionSettings(match_mode="fast"), back)
+    assert classify_work_px(MotionSettings(classify_px=48), back) == 48
+    assert classify_work_px(MotionSettings(), model) == 96 and classify_work_px(MotionSettings(match_mode="fast")) == 64
+
+
+def test_balanced_training_weights_the_rare_class():
+    """With one class rare (~10% FL, as on thesis-like motion), class weighting finds more of it than plain
+    training on the same data (recall on the training frames themselves: what the weighting changes)."""
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(300, len(FEATURES_RICH)))
+    y = np.where(X[:, 0] + 0.6 * rng.normal(size=300) > 1.2, "FL", "FT")
+    plain, bal = train(X, y, FEATURES_RICH, folds=3), train(X, y, FEATURES_RICH, folds=3, balanced=True)
+    recall = [np.mean(m.predict(X)[y == "FL"] == "FL") for m in (plain, bal)]
+    assert 0.05 < np.mean(y == "FL") < 0.2 and recall[1] > recall[0]
+    assert bal.info["class_weight"] == "balanced" and plain.info["class_weight"] == "none"
