@@ -4,10 +4,12 @@ features, and the throughput of segmentation + classification.
 
 Seed sets (issue 16 item 2; tuning 500-599 and reporting 700-799 as everywhere in the project):
 
-- training: `classifier` seeds 1-8 (the ideal tube; lighting, radius and folds varied per seed as before) and
-  `classifier_realistic` tuning seeds 510-521;
-- validation (chooses the SRM working size and the feature set): `classifier_realistic` tuning seeds 522-525 and
-  `classifier` seeds 9-10;
+- training: `classifier` seeds 1-8 (the ideal tube; lighting, radius and folds varied per seed as before),
+  `classifier_realistic` tuning seeds 510-521 and the `realistic` scenario's tuning seeds 530-541 (its 420 px camera
+  and centred thesis motion; every FL frame and every 4th FT frame);
+- validation (chooses the SRM working size, the feature set and plain or class-weighted training, by the mean
+  balanced accuracy of its three sets): `classifier_realistic` tuning seeds 522-525, `classifier` seeds 9-10 and
+  `realistic` tuning seeds 542-545;
 - test (reported, chose nothing): `classifier_realistic` reporting seeds 720-727 and `classifier` seeds 101-104;
   with ``--realistic-seqs DIR`` also every kept `realistic` reporting sequence in DIR (thesis motion: nearly all FT).
 
