@@ -163,7 +163,15 @@ def main() -> None:
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--accuracy-only", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--speed-runs", default=None,
+                    help="SCENARIO/MODE/FRAMES,... (default: " + ",".join("/".join(map(str, r)) for r in SPEED_RUNS) + ")")
     args = ap.parse_args()
+    runs = SPEED_RUNS
+    if args.speed_runs:
+        try:
+            runs = [(a, b, int(c)) for a, b, c in (r.split("/") for r in args.speed_runs.split(","))]
+        except ValueError:
+            raise SystemExit(f"--speed-runs {args.speed_runs!r}: expected SCENARIO/MODE/FRAMES,...") from None
     report = {}
     if not args.speed_only:
         report["accuracy"] = acc = accuracy(parse_seeds(args.seeds), args.mode, args.frames, args.keep)
@@ -181,7 +189,7 @@ def main() -> None:
         print(f"mean true per step: distance {m0['mean_true_distance_cm']:.3f} cm, roll "
               f"{m0['mean_true_roll_deg']:.2f} deg, tilt {m0['mean_true_tilt_deg']:.2f} deg")
     if not args.accuracy_only:
-        report["speed"] = speed(SPEED_RUNS)
+        report["speed"] = speed(runs)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 
