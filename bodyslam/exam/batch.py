@@ -1017,7 +1017,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
-            ["lumen shape", f"steps +- {exam.shape_sd_rel:.0%} (1-sigma) for a lumen that is not a cylinder"],
+            ["lumen shape", f"steps +- {exam.shape_sd_rel:.0%} (1-sigma) for a lumen that is not a cylinder"
+             if exam.shape_sd_rel > 0 else "a cylinder (each step's 1-sigma has no shape share)"],
             ["per-step 1-sigma check", _consistency_text(sm.get("step_consistency"))],
             ["assumed", "; ".join(sm["assumed"]) or "nothing"],
             ["problems", f"{sm['problems']} (problems.csv)"]]
