@@ -184,6 +184,7 @@ def main() -> None:
                                                  if (d / "frames").is_dir() and (d / "labels.csv").exists())
     reals = real_frames(args.real) if args.real.is_dir() else []
     masks = {d: sequence_mask(d) for dirs in sets.values() for d in dirs}  # once, not once per working size
+    shipped = TunnelClassifier.default()  # the comparison: what the pipeline uses now
     cands = []  # (valid score, work_px, feature name, model)
     for px in [int(v) for v in args.work_px.split(",")]:
         data = {name: dataset(dirs, masks, px, SCN_TRAIN_FT_EVERY if name == "train scenario" else 1)
@@ -191,8 +192,7 @@ def main() -> None:
         Xtr, ytr = (np.concatenate(v) for v in zip(data.pop("train"), data.pop("train scenario")))
         print(f"\n== SRM at {px} px: train {len(ytr)} frames ({np.sum(ytr == 'FT')} FT, {np.sum(ytr == 'FL')} FL)",
               flush=True)
-        shipped = TunnelClassifier.default()  # the comparison: what the pipeline uses now, at this size
-        print("shipped model: " + "; ".join(
+        print(f"shipped model (at {px} px): " + "; ".join(
             f"{name} balanced {balanced(y, shipped.predict(X)):.3f}" for name, (X, y) in data.items()), flush=True)
         for fname, feats, bal in (("nine", FEATURES_9, False), ("rich", FEATURES_RICH, False),
                                   ("nine balanced", FEATURES_9, True), ("rich balanced", FEATURES_RICH, True)):

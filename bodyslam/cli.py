@@ -326,6 +326,7 @@ def _classify(args) -> int:
 
     from bodyslam.io import check_writable, read_image, write_csv, write_image
     from bodyslam.vision.classify import TunnelClassifier, features_of_frames
+    from bodyslam.vision.odometry import MotionSettings, classify_work_px
 
     check_writable(args.out)
     paths, cam = _frames_of(args.input)
@@ -333,7 +334,8 @@ def _classify(args) -> int:
         cam = _camera_for(read_image(paths[0]), args.meta)
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
     fov = _fov_of(_sample_frames(paths), cam, args.mask)
-    res = features_of_frames(paths, fov, work_px=model.work_px or 96, jobs=args.jobs, progress=Progress("classify"))
+    work_px = classify_work_px(MotionSettings(), model)  # the pipeline's rule: the size the model was trained at
+    res = features_of_frames(paths, fov, work_px=work_px, jobs=args.jobs, progress=Progress("classify"))
     rows = []
     for p, (st, msg, f) in zip(paths, res):
         if st == "ok":

@@ -91,7 +91,7 @@ DEFAULT_RADIUS_M = 0.0125  # small intestine, 2.5 cm lumen diameter (the thesis'
 # fusion carries it as a visual scale state and each step's 1-sigma includes it
 DEFAULT_RADIUS_SD_M = 0.0025
 # the lumen's departure from the cylinder the tube estimator fits, as a relative 1-sigma of each step's distance,
-# when meta.json does not say: the realistic testbed's (chosen on its tuning seeds 503-509: 68% of the radius-free
+# when meta.json does not say: the realistic testbed's (chosen on its tuning seeds 503-509: 69% of the radius-free
 # step errors inside the fit's 1-sigma with it, 18% without)
 DEFAULT_SHAPE_SD_REL = 0.13
 DEFAULT_FPS = 2.0
