@@ -7,10 +7,15 @@ its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole pr
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
     .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
-        [--jobs 1,2]
+        [--jobs 1,2] [--dask 2]
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
 so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85).
+
+``--dask N``: also the same frames on a Dask ``LocalCluster`` of N single-threaded worker processes started by
+this script (``bodyslam batch --scheduler ADDRESS``): frames/s of the whole batch process, and whether its
+motion.csv and trajectory.tum are byte-identical to the local run's. The cluster's workers are not children of
+the batch process, so its peak memory is the coordinator's only.
 
 Goal (issue 7): >= 100 frames/s in fast mode on this 2-core machine; peak memory at 10,000 frames no more than
 10% above that at 2,000.
@@ -76,6 +81,23 @@ def run_measured(cmd: list[str]) -> tuple[float, int, int]:
     return el, peak, p.returncode
 
 
+def run_on_dask(cmd: list[str], out_local: Path, n_workers: int, n: int, exam: str) -> dict:
+    """The batch command ``cmd`` (its ``--out`` is item 6) sent to a Dask LocalCluster of ``n_workers`` processes,
+    timed and compared with the local run in ``out_local``."""
+    from distributed import LocalCluster
+
+    out = out_local.with_name(out_local.name + f"_dask{n_workers}")
+    shutil.rmtree(out, ignore_errors=True)
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        el, peak, rc = run_measured([*cmd[:6], str(out), *cmd[7:], "--scheduler", cluster.scheduler_address])
+    same = all((out / exam / f).read_bytes() == (out_local / exam / f).read_bytes()
+               for f in ("motion.csv", "trajectory.tum"))
+    print(f"  on a Dask LocalCluster of {n_workers} worker processes: {el:.1f} s = {n / el:.1f} frames/s "
+          f"(rc {rc}); motion.csv and trajectory.tum identical to the local run's: {same}", flush=True)
+    return {"workers": n_workers, "seconds": el, "frames_per_s": n / el, "rc": rc, "identical_to_local": same,
+            "coordinator_peak_rss_mib": peak / 2**20}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", default="2000,10000")
@@ -87,6 +109,8 @@ def main() -> None:
     ap.add_argument("--jobs", default=None,
                     help="comma-separated worker counts (e.g. 1,2,4,8,16): frames/s against jobs for each length, "
                          "and whether every count gives byte-identical motion.csv / trajectory.tum")
+    ap.add_argument("--dask", type=int, default=0, metavar="N",
+                    help="also run on a Dask LocalCluster of N worker processes and compare with the local run")
     args = ap.parse_args()
     lengths = [int(x) for x in args.frames.split(",")]
     args.keep.mkdir(parents=True, exist_ok=True)
@@ -131,6 +155,8 @@ def main() -> None:
         print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
               f"(whole process, 2 cores); peak memory (process tree) {peak / 2**20:.0f} MiB; steps {summ['steps']}",
               flush=True)
+        if args.dask:
+            res[n]["dask"] = run_on_dask(cmd, out, args.dask, n, folder.name)
         if args.rf:
             out_rf = args.keep / f"out_{args.mode}_{n}_rf"
             shutil.rmtree(out_rf, ignore_errors=True)

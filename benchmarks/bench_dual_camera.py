@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from bodyslam.io import read_motion_csv
+from bodyslam.steps import MEASURED
 
 
 def run(*args) -> None:
@@ -48,8 +49,8 @@ def main() -> None:
             r = read_motion_csv(d / "rear.csv")
             t = read_motion_csv(d / "motion_truth.csv")
             ks = sorted(t)
-            fv = np.array([f[k]["distance_m"] if f[k]["status"] == "ok" else np.nan for k in ks])
-            rv = np.array([r[k]["distance_m"] if r[k]["status"] == "ok" else np.nan for k in ks])
+            fv = np.array([f[k]["distance_m"] if f[k]["status"] in MEASURED else np.nan for k in ks])
+            rv = np.array([r[k]["distance_m"] if r[k]["status"] in MEASURED else np.nan for k in ks])
             tv = np.array([t[k]["distance_m"] for k in ks])
             both = np.isfinite(fv) & np.isfinite(rv)
             c = np.corrcoef(fv[both], rv[both])[0, 1] if both.sum() > 2 else np.nan

@@ -4,7 +4,8 @@ For every estimated step of kept sequences (``testbed evaluate ... --out D`` kee
 motion.csv): the 1-sigma distance less the radius prior's share ``sd/r |d|`` (what the fusion applies: the fit's
 own and the lumen-shape share ``lumen_shape_sd_rel |d|`` where meta.json states one) against the error of the
 distance rescaled by the true local radius over the told one (the radius error is what the prior's share covers;
-what is left is the fit's and the shape's). An honest 1-sigma puts ~68% / 95% of ``|z|`` within 1 / 2.
+what is left is the fit's and the shape's). An honest 1-sigma puts ~68% / 95% of ``|z|`` within 1 / 2. Printed for all estimated steps and for each status
+(``ok``; ``wall``: a frame of the pair faces the wall, 1-sigma inflated; ``bridged``: a share of a gap).
 
     .venv/bin/python benchmarks/bench_step_sigma.py D/sequences [--ahead-m 0.02]
 
@@ -24,13 +25,15 @@ from bodyslam.io import read_motion_csv
 from bodyslam.meta import read_meta
 from bodyslam.steps import StepStatus
 
+STATUSES = (StepStatus.OK, StepStatus.WALL, StepStatus.BRIDGED)
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("sequences", type=Path)
     ap.add_argument("--ahead-m", type=float, default=0.02)
     args = ap.parse_args()
-    rows = []
+    rows, status = [], []
     for d in sorted(args.sequences.glob("seed_*")):
         if not (d / "motion.csv").exists():
             continue
@@ -40,19 +43,28 @@ def main() -> None:
         meta = read_meta(d)
         r_told, sd, shape = meta.tube_radius_m, meta.tube_radius_sd_m, meta.lumen_shape_sd_rel
         for k, r in read_motion_csv(d / "motion.csv").items():
-            if r["status"] != StepStatus.OK:
+            if r["status"] not in STATUSES:
                 continue
             de, sig = r["distance_m"], r["sigma_distance_m"]
             sig_fs = np.sqrt(max(sig**2 - (sd / r_told * de) ** 2, 1e-18))  # the fit's and the shape's
             r_loc = np.interp(0.5 * (s_at[k] + s_at[k - 1]) + args.ahead_m, cl[:, 0], cl[:, 4])
             rows.append((de * r_loc / r_told - truth[k]["distance_m"], de - truth[k]["distance_m"], sig_fs, sig,
                          np.sqrt(max(sig_fs**2 - (shape * de) ** 2, 1e-18))))
+            status.append(r["status"])
     if not rows:
         raise SystemExit(f"{args.sequences}: no seed_*/motion.csv with estimated steps (give a `testbed evaluate` "
                          "run's sequences/ folder)")
-    a = np.array(rows)
-    z_fs, z_fit, z_all = np.abs(a[:, 0] / a[:, 2]), np.abs(a[:, 0] / a[:, 4]), np.abs(a[:, 1] / a[:, 3])
+    a, status = np.array(rows), np.array(status)
     print(f"{len(a)} estimated steps in {args.sequences}")
+    for name in ("all", *STATUSES):
+        sel = np.ones(len(a), bool) if name == "all" else status == name
+        if sel.any():
+            report(a[sel], f"{name} ({sel.sum()} steps)")
+
+
+def report(a: np.ndarray, title: str) -> None:
+    print(f"-- {title}")
+    z_fs, z_fit, z_all = np.abs(a[:, 0] / a[:, 2]), np.abs(a[:, 0] / a[:, 4]), np.abs(a[:, 1] / a[:, 3])
     print(f"fit's own 1-sigma vs radius-rescaled error: within 1 / 2 sigma {np.mean(z_fit <= 1):.3f} / "
           f"{np.mean(z_fit <= 2):.3f}, median |z| {np.median(z_fit):.2f}; median 1-sigma "
           f"{np.median(a[:, 4]) * 1e3:.3f} mm, median |error| {np.median(np.abs(a[:, 0])) * 1e3:.3f} mm")

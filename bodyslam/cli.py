@@ -90,7 +90,10 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--mask", default="auto",
                        help=FOV_HELP + "; the one used is written next to the output (*_mask.png, mask.png)")
         q.add_argument("--no-classify", action="store_true",
-                       help="estimate every step; by default steps touching a facing-the-wall frame get no_lumen")
+                       help="do not classify frames FT/FL (every step is estimated as if facing the tunnel)")
+        q.add_argument("--drop-wall-steps", action="store_true",
+                       help="give a step touching a facing-the-wall frame no estimate (status no_lumen), as the "
+                            "dissertation does; by default the tube fit estimates it (status wall, 1-sigma inflated)")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
                        help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
@@ -208,7 +211,8 @@ def _motion_settings(args):
 
     return MotionSettings(args.mode, args.estimator, args.unroll_mode,
                           mask=getattr(args, "mask", None) if args.cmd != "batch" else None,
-                          classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps)
+                          classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps,
+                          wall_steps="drop" if args.drop_wall_steps else "estimate")
 
 
 def _print_problems(problems: list, limit: int = 20) -> int:
@@ -554,8 +558,9 @@ def _batch(args) -> int:
         steps = s["steps"]
         c = s["classes"]
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
-        print(f"{s['exam']}: {s['frames']} frames ({classes}), {steps.get('ok', 0)}/{sum(steps.values())} steps "
-              f"estimated ({steps.get('bridged', 0)} bridged), path {s['path_travelled_m'] * 100:.1f} "
+        n_est = sum(steps.get(k, 0) for k in ("ok", "wall", "bridged"))
+        print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps "
+              f"estimated ({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged), path {s['path_travelled_m'] * 100:.1f} "
               f"+- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; {s['problems']} problem(s)")
         for a in s["assumed"]:
             print(f"  assumed {a}")

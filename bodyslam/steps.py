@@ -9,13 +9,17 @@ object is what the estimators return, what ``motion.csv`` stores (:func:`bodysla
 Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which is what ``motion.csv`` holds):
 
 - ``ok``: estimated from the pair's matches;
+- ``wall``: estimated from the pair's matches by the tube fit although a frame of the pair faces the wall (FL),
+  with its 1-sigma inflated (:data:`bodyslam.vision.odometry.WALL_SIGMA_FACTOR`); the dissertation drops such steps
+  (``--drop-wall-steps``);
 - ``bridged``: a share of a gap's end-to-end motion (:func:`bodyslam.vision.odometry.split_motion`);
 - ``too_few_matches``, ``uncertain``, ``solver_failed``: the estimator gave no usable estimate;
-- ``no_lumen``: a frame of the pair faces the wall (classifier), so the tube model does not apply;
+- ``no_lumen``: a frame of the pair is too dark or saturated to fit, or faces the wall and the step was not
+  estimated (the thesis estimator's unrolling needs the lumen in view; ``--drop-wall-steps``);
 - ``bad_frame``: a frame of the pair could not be read;
 - ``missing``: no row for the step in a ``motion.csv`` that was read back.
 
-Steps that are neither ``ok`` nor ``bridged`` carry NaN, never an invented number.
+Steps that are neither ``ok``, ``wall`` nor ``bridged`` carry NaN, never an invented number.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from enum import StrEnum
 
 import numpy as np
 
-__all__ = ["StepStatus", "StepMotion", "motion_from_transform", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
+__all__ = ["StepStatus", "MEASURED", "StepMotion", "motion_from_transform", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -36,6 +40,7 @@ SIGMA_R_DEFAULT_RAD = math.radians(1.0)
 
 class StepStatus(StrEnum):
     OK = "ok"
+    WALL = "wall"
     BRIDGED = "bridged"
     TOO_FEW_MATCHES = "too_few_matches"
     UNCERTAIN = "uncertain"
@@ -43,6 +48,10 @@ class StepStatus(StrEnum):
     NO_LUMEN = "no_lumen"
     BAD_FRAME = "bad_frame"
     MISSING = "missing"
+
+
+# statuses of a step estimated from its own pair's matches
+MEASURED = (StepStatus.OK, StepStatus.WALL)
 
 
 @dataclass(frozen=True)
@@ -66,8 +75,8 @@ class StepMotion:
 
     @property
     def ok(self) -> bool:
-        """Estimated from this pair's own matches."""
-        return self.status == StepStatus.OK
+        """Estimated from this pair's own matches (``ok`` or ``wall``)."""
+        return self.status in MEASURED
 
     @property
     def bridged(self) -> bool:
@@ -75,8 +84,9 @@ class StepMotion:
 
     @property
     def has_estimate(self) -> bool:
-        """A full pose the filters can use: ``ok`` or ``bridged``, with finite ``R_c1_c2`` and ``t_c1_c2_m``."""
-        return (self.status in (StepStatus.OK, StepStatus.BRIDGED) and self.R_c1_c2 is not None
+        """A full pose the filters can use: ``ok``, ``wall`` or ``bridged``, with finite ``R_c1_c2`` and
+        ``t_c1_c2_m``."""
+        return (self.status in (*MEASURED, StepStatus.BRIDGED) and self.R_c1_c2 is not None
                 and self.t_c1_c2_m is not None and bool(np.isfinite(self.t_c1_c2_m).all())
                 and bool(np.isfinite(self.R_c1_c2).all()))
 

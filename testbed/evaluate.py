@@ -28,6 +28,7 @@ from bodyslam.fusion.channel import inflate
 from bodyslam.fusion.localize import RfInput, localize, online_inflation
 from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
+from bodyslam.steps import MEASURED, StepStatus
 from bodyslam.fusion.rf import locate_nls
 from testbed.bound import efficient_mean_error, position_bounds
 from testbed.score import score_motion
@@ -213,6 +214,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     jobs = available_cores() if jobs is None else max(1, int(jobs))
     jobs = min(jobs, len(seeds))
     per_seed, errs, pcrbs, motion, timing, eff = [], {a: [] for a in ALGORITHMS}, [], [], [], []
+    step_counts: dict[str, int] = {}
     cons: dict[str, list] = {}
     orient: dict[str, list] = {}
     sm, sm_eff = [], []
@@ -233,6 +235,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         sm.append(res["smoothing_bound_m2"])
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
+        for st, c in res["motion"]["status_counts"].items():
+            step_counts[st] = step_counts.get(st, 0) + c
         timing.append(res["seconds"])
         per_seed.append({"seed": seed, **{a: _stats(res["errors"][a], res["pcrb_m2"]) for a in ALGORITHMS},
                          "sqrt_mean_pcrb_cm": float(np.sqrt(res["pcrb_m2"].mean()) * 100),
@@ -260,6 +264,12 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         # Table 4.1, and whether the per-step 1-sigma holds (distance_within_1sigma: 0.683 if honest)
         "table_4_1": {k: float(np.nanmean([m.get(k, np.nan) for m in motion])) for k in motion[0]
                       if k.endswith(("_cm", "_deg", "sigma"))},
+        # what became of every step over all seeds (bodyslam.steps.StepStatus), and the fractions with an estimate:
+        # measured from the pair (ok, wall), and with the bridged gaps' shares
+        "step_status_counts": dict(sorted(step_counts.items())),
+        "steps_measured_frac": sum(step_counts.get(k, 0) for k in MEASURED) / max(sum(step_counts.values()), 1),
+        "steps_with_estimate_frac": sum(step_counts.get(k, 0) for k in (*MEASURED, StepStatus.BRIDGED))
+        / max(sum(step_counts.values()), 1),
         # honest uncertainty: NEES (3 expected), frames inside the 68.3% ellipsoid, axes inside 1-sigma (0.683)
         "consistency": {a: {"mean_nees": float(np.concatenate([c["nees"] for c in v]).mean()),
                             "inside_68pct_ellipsoid": float(np.concatenate([c["inside_68"] for c in v]).mean()),
@@ -315,6 +325,10 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
               f"{report['covariance_inflation_kappa']['online_last_frame']:.2f} (online filter at the last frame).</p>"
             + "<h2>Per-step motion (Table 4.1)</h2>"
             + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
+            + (f"<p>Steps measured from their own pair (ok, wall): {report['steps_measured_frac']:.1%}; with the "
+               f"bridged gaps' shares: {report['steps_with_estimate_frac']:.1%}. What became of every step: "
+               + ", ".join(f"{k} {v}" for k, v in report["step_status_counts"].items()) + ".</p>"
+               if "step_status_counts" in report else "")
             + view_html + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "

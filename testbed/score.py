@@ -4,9 +4,11 @@ scored").
 Table 4.1 figures: mean true value and mean absolute error per step of the distance travelled (cm), the roll
 (deg) and the tilt (deg, the angle between consecutive optical axes: ``|tilt_est - tilt_true|``). Beside them:
 the error of the tilt as a vector (pitch, yaw: the swing rotation's x, y components), which also checks its
-direction, and the coverage (steps with an estimate). Errors are over the steps that have an estimate; the
-``ft_only`` block restricts them to steps whose two frames are both labelled FT (facing the tunnel) by the truth.
-Steps without an estimate are counted, never scored as zero.
+direction, and the coverage (steps measured from their own pair: status ``ok`` or ``wall``; ``coverage_with_bridged``
+also counts the shares of bridged gaps). Errors are over the measured steps; the ``ft_only`` block restricts them
+to steps whose two frames are both labelled FT (facing the tunnel) by the truth, ``wall_only`` to the steps the
+pipeline estimated although its classifier said a frame faces the wall (status ``wall``). Steps without an
+estimate are counted, never scored as zero.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import numpy as np
 
 from bodyslam.errors import InputError
 from bodyslam.io import read_motion_csv
+from bodyslam.steps import MEASURED, StepStatus
 
 __all__ = ["score_motion", "format_table"]
 
@@ -76,7 +79,7 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
                                        for k in frames])
     status = np.array([est[k]["status"] if k in est else "missing" for k in frames])
     label = np.array([truth[k]["label"] for k in frames])
-    has = (status == "ok") & np.isfinite(es["distance_m"]) & np.isfinite(es["roll_rad"])
+    has = np.isin(status, MEASURED) & np.isfinite(es["distance_m"]) & np.isfinite(es["roll_rad"])
     has &= np.isfinite(es["tilt_rad"])
     labels_prev = np.r_[label[:1], label[:-1]]
     ft = (label == "FT") & (labels_prev == "FT")
@@ -88,8 +91,10 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
         "n_steps_missing_rows": len(missing),
         "status_counts": counts,
         "coverage": float(np.mean(has)),
+        "coverage_with_bridged": float(np.mean(has | (status == StepStatus.BRIDGED))),
         "all": _block(tr, es, np.nonzero(has)[0]),
         "ft_only": _block(tr, es, np.nonzero(has & ft)[0]),
+        "wall_only": _block(tr, es, np.nonzero(has & (status == StepStatus.WALL))[0]),
     }
 
 
@@ -109,8 +114,10 @@ def format_table(rep: dict) -> str:
         f"{'tilt':10s} {a['mean_true_tilt_deg']:8.2f} deg {a['mae_tilt_deg']:11.3f} deg "
         f"{a['p90_tilt_error_deg']:6.3f} deg   (as a vector: {a['mae_tilt_vector_deg']:.3f} deg)",
     ]
-    f = rep["ft_only"]
-    if f.get("n_steps_scored"):
-        lines.append(f"FT-FT steps only ({f['n_steps_scored']}): distance {f['mae_distance_cm']:.4f} cm, roll "
-                     f"{f['mae_roll_deg']:.3f} deg, tilt {f['mae_tilt_deg']:.3f} deg")
+    for key, what in (("ft_only", "FT-FT steps only (truth's labels)"), ("wall_only", "steps facing the wall "
+                                                                                     "(status wall)")):
+        f = rep.get(key, {})
+        if f.get("n_steps_scored"):
+            lines.append(f"{what} ({f['n_steps_scored']}): distance {f['mae_distance_cm']:.4f} cm, roll "
+                         f"{f['mae_roll_deg']:.3f} deg, tilt {f['mae_tilt_deg']:.3f} deg")
     return "\n".join(lines)

@@ -40,13 +40,23 @@ from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import Frame, FrameSource
 from bodyslam.io import read_image
 from bodyslam.meta import read_meta
-from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
+from bodyslam.steps import MEASURED, StepMotion, StepStatus, motion_from_transform
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_lumen_uncertainty",
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
-           "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps"]
+           "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps",
+           "WALL_SIGMA_FACTOR", "WALL_STEPS"]
+
+
+WALL_STEPS = ("estimate", "drop")
+# factor on the 1-sigma (the fit's and the lumen shape's share; not the radius's, which the fusion's scale state
+# carries) of a step estimated although a frame of the pair faces the wall (status ``wall``): such steps err more
+# than that 1-sigma says. Chosen on the realistic scenario's tuning seeds 503-509 (201 wall steps, 944 ok) to give
+# wall steps the ok steps' coverage (0.688 / 0.981 within 1 / 2 sigma): 0.517 / 0.896 at 1, 0.632 / 0.945 at 1.5,
+# 0.687 / 0.950 at 1.8, 0.706 / 0.955 at 2 (docs/RESULTS.md)
+WALL_SIGMA_FACTOR = 1.8
 
 
 @dataclass(frozen=True)
@@ -58,7 +68,10 @@ class MotionSettings:
     mask: str | None = None  # valid field of view: None or "auto" = detected from the frames (field stop, burned-in
     #                          text; the image circle where they agree), "circle" = the camera's image circle, or a
     #                          PNG path (non-zero = valid)
-    classify: bool = True  # FT/FL per frame (kernel SVM); steps touching an FL frame get status no_lumen
+    classify: bool = True  # FT/FL per frame (kernel SVM); a step touching an FL frame is "wall" (below)
+    wall_steps: str = "estimate"  # a step touching an FL frame: "estimate" it by the tube fit, status wall, its
+    #                               1-sigma times WALL_SIGMA_FACTOR; "drop" it (status no_lumen: the dissertation,
+    #                               and always with the thesis estimator, whose unrolling needs the lumen in view)
     model: str | None = None  # classifier model file (default: the shipped one)
     classify_px: int | None = None  # SRM working size for classification; None: classify_work_px (the model's)
     bridge_gaps: int = 15  # runs of up to this many steps without an estimate are bridged by matching their
@@ -72,6 +85,8 @@ class MotionSettings:
             raise ConfigError(f"min_matches must be at least 5, got {self.min_matches}")
         if self.bridge_gaps < 0:
             raise ConfigError(f"bridge_gaps must be >= 0, got {self.bridge_gaps}")
+        if self.wall_steps not in WALL_STEPS:
+            raise ConfigError(f"wall_steps must be one of {', '.join(WALL_STEPS)}, got {self.wall_steps!r}")
 
 
 def classify_work_px(settings: MotionSettings, model=None) -> int:
@@ -156,6 +171,19 @@ class VisualOdometry:
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
         return motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad)
 
+    def estimate_wall(self, f1, f2) -> StepMotion:
+        """A step touching a frame that faces the wall. The dissertation drops it (its unrolling needs the lumen
+        in view, Sec. 3.2.1: status ``no_lumen``, as with ``wall_steps="drop"`` or the thesis estimator); the tube
+        fit does not need the lumen in view, only the wall, so by default it is estimated (status ``wall``) with
+        its 1-sigma times :data:`WALL_SIGMA_FACTOR`. A failed fit keeps its own reason."""
+        if self.settings.wall_steps == "drop" or self.settings.estimator != "tube":
+            return StepMotion.failed(StepStatus.NO_LUMEN)
+        s = self.estimate_pair(f1, f2)
+        if not s.ok:
+            return s
+        return replace(s, status=StepStatus.WALL, sigma_distance_m=s.sigma_distance_m * WALL_SIGMA_FACTOR,
+                       sigma_rotation_rad=s.sigma_rotation_rad * WALL_SIGMA_FACTOR)
+
     def classify(self, img: np.ndarray) -> tuple[str, str]:
         """``(class, status)`` of a frame: FT/FL by the kernel SVM (dark or saturated frames: FL), ``""`` and
         ``ok`` when classification is off."""
@@ -173,7 +201,7 @@ class VisualOdometry:
         """Records and steps of the frames at positions ``first ..`` (module docstring)."""
         cam = self.camera
         out = ChunkResult([], [], [])
-        prev = None  # (features or None, class)
+        prev = None  # (features or None, class, frame status)
         for fr in frames:
             if fr.end_of_video:  # a container's frame count is an estimate: every decodable frame was read
                 out.eof = fr.pos
@@ -195,13 +223,14 @@ class VisualOdometry:
             if fr.pos > first:
                 if prev is None or prev[0] is None or feats is None:
                     s = StepMotion.failed(StepStatus.BAD_FRAME)
+                elif self.classifier is not None and (prev[2] != "ok" or status != "ok"):
+                    s = StepMotion.failed(StepStatus.NO_LUMEN)  # a dark or saturated frame: nothing to fit
                 elif self.classifier is not None and (prev[1] != "FT" or cls != "FT"):
-                    # the geometric model needs the lumen in view in both frames (dissertation Sec. 3.2.1)
-                    s = StepMotion.failed(StepStatus.NO_LUMEN)
+                    s = self.estimate_wall(prev[0], feats)
                 else:
                     s = self.estimate_pair(prev[0], feats)
                 out.steps.append((fr.pos, fr.index, fr.t_s, s))
-            prev = (feats, cls)
+            prev = (feats, cls, status)
         return out
 
     def bridge(self, img_a: np.ndarray | None, img_b: np.ndarray | None) -> StepMotion | None:
@@ -256,17 +285,17 @@ def bridge_task(task: dict) -> StepMotion | None:
 # -- gaps -------------------------------------------------------------------------------------------------------
 def find_gaps(statuses: list, max_len: int) -> list[tuple[int, int]]:
     """Runs of steps without an estimate, as position pairs ``(a, b)``: steps ``a+1..b`` (0-based list items
-    ``a..b-1``) have none, the steps on both sides have one (so frames ``a`` and ``b`` face the tunnel and are
-    readable); runs of at most ``max_len``, none across an unreadable frame. ``statuses``: per step, a
-    :class:`StepStatus` or a StepMotion."""
+    ``a..b-1``) have none, the steps on both sides have one (so frames ``a`` and ``b`` are readable and
+    were matched); runs of at most ``max_len``, none across an unreadable frame. ``statuses``: per step, a
+    :class:`StepStatus` or a StepMotion; estimated = measured from its own matches (``ok``, ``wall``)."""
     st = [getattr(s, "status", s) for s in statuses]
     out, k, n = [], 0, len(st)
     while k < n:
-        if st[k] == StepStatus.OK:
+        if st[k] in MEASURED:
             k += 1
             continue
         j = k
-        while j < n and st[j] != StepStatus.OK:
+        while j < n and st[j] not in MEASURED:
             j += 1
         if k > 0 and j < n and j - k <= max_len and all(s != StepStatus.BAD_FRAME for s in st[k:j]):
             out.append((k, j))
@@ -330,7 +359,7 @@ def consistency_pairs(statuses: list, k: int = 3, max_pairs: int = 30) -> list[t
     st = [getattr(s, "status", s) for s in statuses]
     cand, a = [], 0
     while a + k <= len(st):
-        if all(x == StepStatus.OK for x in st[a:a + k]):
+        if all(x in MEASURED for x in st[a:a + k]):
             cand.append(a)
             a += k
         else:
@@ -554,16 +583,19 @@ def with_lumen_uncertainty(steps: list[StepMotion], radius_sd_rel: float,
     - the shape: a lumen that is not the cylinder the fit assumes (folds, a star-shaped cross-section, a radius
       that changes within the view) errs by a fraction of the step that changes from step to step, which the fit's
       residuals do not show (its 1-sigma was ~5x optimistic on the realistic testbed); ``shape_sd_rel * |d|``
-      stays in the step's 1-sigma (meta.json ``lumen_shape_sd_rel``).
+      stays in the step's 1-sigma (meta.json ``lumen_shape_sd_rel``). A step facing the wall (status ``wall``)
+      has it times :data:`WALL_SIGMA_FACTOR`, as its fit's share already is: its non-radius part is inflated.
 
     Steps without an estimate are unchanged."""
     if not (radius_sd_rel > 0 or shape_sd_rel > 0):
         return steps
-    rel = math.hypot(max(radius_sd_rel, 0.0), max(shape_sd_rel, 0.0))
+    radius_sd_rel, shape_sd_rel = max(radius_sd_rel, 0.0), max(shape_sd_rel, 0.0)
     out = []
     for s in steps:
         if s.has_estimate and math.isfinite(s.distance_m):
             fit = s.sigma_distance_m if math.isfinite(s.sigma_distance_m) else 0.0
-            s = replace(s, sigma_distance_m=math.hypot(fit, rel * abs(s.distance_m)))
+            shape = shape_sd_rel * (WALL_SIGMA_FACTOR if s.status == StepStatus.WALL else 1.0)
+            s = replace(s, sigma_distance_m=math.hypot(fit, radius_sd_rel * abs(s.distance_m),
+                                                       shape * abs(s.distance_m)))
         out.append(s)
     return out

@@ -24,6 +24,7 @@ import numpy as np
 from bodyslam.errors import InputError
 from bodyslam.io import read_json, write_image, write_json
 from bodyslam.plots import Figure
+from bodyslam.steps import MEASURED
 
 __all__ = ["speed_statistics", "fit_speed_model", "write_speed_report", "load_speed_model"]
 
@@ -33,7 +34,7 @@ CLASSES = ("stopped", "slow", "fast", "backward")
 
 def speed_statistics(rows: dict[int, dict], frame_rate_hz: float) -> dict:
     """Speeds (m/s, signed) of the steps that have an estimate, with their per-step roll and tilt."""
-    ks = sorted(k for k, r in rows.items() if r["status"] == "ok" and np.isfinite(r["distance_m"]))
+    ks = sorted(k for k, r in rows.items() if r["status"] in MEASURED and np.isfinite(r["distance_m"]))
     if len(ks) < 5:
         raise InputError(f"need at least 5 steps with an estimate to fit speeds, got {len(ks)}")
     d = np.array([rows[k]["distance_m"] for k in ks])

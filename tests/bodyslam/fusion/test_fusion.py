@@ -450,3 +450,8 @@ def test_steps_carry_the_radius_uncertainty_and_the_filter_takes_it_back_out():
     assert c.sigma_distance_m == pytest.approx(np.sqrt(1e-4**2 + 8e-4**2 + 4e-4**2), rel=1e-9)
     _, sig_t, _ = step_noise(c, np.zeros(3), 0.2)
     assert sig_t == pytest.approx(np.hypot(1e-4, 4e-4), rel=1e-9)  # the fit's and the shape's, not the radius's
+    # a step facing the wall: its shape share is inflated as its fit's share was (estimate_wall), not the radius's
+    from bodyslam.vision.odometry import WALL_SIGMA_FACTOR
+
+    w = with_lumen_uncertainty([s.with_status(StepStatus.WALL)], 0.2, 0.1)[0]
+    assert w.sigma_distance_m == pytest.approx(np.sqrt(1e-4**2 + 8e-4**2 + (WALL_SIGMA_FACTOR * 4e-4)**2), rel=1e-9)

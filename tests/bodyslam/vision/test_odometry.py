@@ -133,3 +133,27 @@ def test_the_k_step_check_tells_an_honest_1sigma_from_an_optimistic_one():
     assert optimistic["within_1sigma"] < 0.3
     assert honest["median_distance_ratio_pair_over_singles"] == pytest.approx(1.0, abs=0.01)
     assert consistency_diagnostic([[StepMotion.failed(bad)] * 3], [None])["pairs_estimated"] == 0
+
+
+@pytest.mark.parametrize("settings_kw, status", [({}, "wall"), ({"wall_steps": "drop"}, "no_lumen"),
+                                                  ({"estimator": "thesis"}, "no_lumen")])
+def test_a_step_facing_the_wall_is_estimated_by_the_tube_fit_with_a_wider_1sigma(settings_kw, status):
+    """By default a step touching an FL frame is fitted like any other (the tube fit needs the wall, not the
+    lumen, in view) and says so: status wall, the same motion, its 1-sigma times WALL_SIGMA_FACTOR. The
+    dissertation's rule (drop it) is one setting away, and the thesis estimator, whose unrolling needs the lumen
+    in view, always drops it."""
+    from bodyslam.meta import read_meta
+    from bodyslam.vision.odometry import WALL_SIGMA_FACTOR, MotionSettings, VisualOdometry
+
+    meta = read_meta(DEMO)
+    vo = VisualOdometry(meta.camera_model(), MotionSettings(**settings_kw), meta.tube_radius_m)
+    f1, f2 = (vo.matcher.features(read_image(DEMO / "frames" / f"{k:06d}.png")) for k in (10, 11))
+    s, w = vo.estimate_pair(f1, f2), vo.estimate_wall(f1, f2)
+    assert w.status == status
+    if status == "wall":
+        assert s.ok and w.ok and w.has_estimate
+        assert w.distance_m == s.distance_m and np.array_equal(w.t_c1_c2_m, s.t_c1_c2_m)
+        assert w.sigma_distance_m == pytest.approx(WALL_SIGMA_FACTOR * s.sigma_distance_m, rel=1e-12)
+        assert w.sigma_rotation_rad == pytest.approx(WALL_SIGMA_FACTOR * s.sigma_rotation_rad, rel=1e-12)
+    else:
+        assert not w.has_estimate and np.isnan(w.distance_m)

@@ -34,14 +34,22 @@ def test_shipped_model_classifies_an_unseen_sequence(fl_sequence, tmp_path):
 
 
 def test_motion_gives_facing_the_wall_steps_a_status(fl_sequence, tmp_path):
-    out = tmp_path / "motion.csv"
-    p = run("bodyslam.cli", "motion", str(fl_sequence), "--out", str(out), "--jobs", "1")
-    assert p.returncode == 0, p.stderr
-    rows = {int(r["frame"]): r for r in csv.DictReader(out.open())}
+    """Steps between two frames facing the wall: by default fitted and marked ``wall`` (or the fit's own reason
+    for failing), with --drop-wall-steps the dissertation's ``no_lumen`` without a number."""
     labels = {int(r["frame"]): r["label"] for r in csv.DictReader((fl_sequence / "labels.csv").open())}
-    both_fl = [k for k in rows if labels[k] == "FL" and labels[k - 1] == "FL"]
-    assert both_fl and all(rows[k]["status"] == "no_lumen" for k in both_fl)
-    assert all(rows[k]["distance_m"] == "nan" for k in both_fl)
+    got = {}
+    for name, extra in (("default", []), ("drop", ["--drop-wall-steps"])):
+        out = tmp_path / f"motion_{name}.csv"
+        p = run("bodyslam.cli", "motion", str(fl_sequence), "--out", str(out), "--jobs", "1", *extra)
+        assert p.returncode == 0, p.stderr
+        got[name] = {int(r["frame"]): r for r in csv.DictReader(out.open())}
+    both_fl = [k for k in got["drop"] if labels[k] == "FL" and labels[k - 1] == "FL"]
+    assert both_fl and all(got["drop"][k]["status"] == "no_lumen" for k in both_fl)
+    assert all(got["drop"][k]["distance_m"] == "nan" for k in both_fl)
+    default = [got["default"][k] for k in both_fl]
+    assert all(r["status"] in ("wall", "too_few_matches", "uncertain", "solver_failed", "bridged") for r in default)
+    walls = [r for r in default if r["status"] == "wall"]
+    assert walls and all(np.isfinite(float(r["distance_m"])) for r in walls)
 
 
 def test_a_folder_of_awkward_frames_gets_an_answer_per_frame(fl_sequence, tmp_path):

@@ -1,0 +1,35 @@
+"""Table 4.1 scoring (testbed.score): which steps count as estimated, and what each block scores."""
+
+from __future__ import annotations
+
+import pytest
+
+from testbed.score import format_table, score_motion
+
+HEADER = "frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad"
+
+
+def _write(tmp_path, est_rows):
+    truth = [HEADER + ",label"] + [f"{k},{k * 0.5},0.01,0.0,0.0,0.0,0.0,FT" for k in range(1, 9)]
+    (tmp_path / "motion_truth.csv").write_text("\n".join(truth) + "\n")
+    est = [HEADER + ",n_matches,status,sigma_distance_m"] + est_rows
+    (tmp_path / "motion.csv").write_text("\n".join(est) + "\n")
+
+
+def test_steps_measured_from_their_pair_are_scored_and_bridged_shares_only_counted(tmp_path):
+    """Eight true steps of 1 cm: four ok (error 1 mm), two wall (error 3 mm), one bridged share (error 5 mm, not
+    scored: it is a share of a gap's motion), one without an estimate. Coverage counts ok and wall (6/8), with the
+    bridged share 7/8; the distance error is over the six measured steps, and the wall block is its own."""
+    rows = [f"{k},{k * 0.5},0.011,0,0,0,0,50,ok,0.002" for k in range(1, 5)]
+    rows += [f"{k},{k * 0.5},0.013,0,0,0,0,40,wall,0.002" for k in (5, 6)]
+    rows += ["7,3.5,0.015,0,0,0,0,0,bridged,0.002", "8,4.0,nan,nan,nan,nan,nan,3,too_few_matches,nan"]
+    _write(tmp_path, rows)
+    rep = score_motion(tmp_path, tmp_path / "motion.csv")
+    assert rep["coverage"] == pytest.approx(6 / 8) and rep["coverage_with_bridged"] == pytest.approx(7 / 8)
+    assert rep["status_counts"] == {"bridged": 1, "ok": 4, "too_few_matches": 1, "wall": 2}
+    assert rep["all"]["n_steps_scored"] == 6
+    assert rep["all"]["mae_distance_cm"] == pytest.approx((4 * 0.1 + 2 * 0.3) / 6)
+    assert rep["wall_only"]["n_steps_scored"] == 2 and rep["wall_only"]["mae_distance_cm"] == pytest.approx(0.3)
+    # within 1-sigma (2 mm): the four ok steps, not the wall steps
+    assert rep["all"]["distance_within_1sigma"] == pytest.approx(4 / 6)
+    assert "steps facing the wall (status wall) (2)" in format_table(rep)
