@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from bodyslam.fusion.body_slam import fuse, kf_thesis, step_pose
 from bodyslam.io import read_motion_steps, read_tum, write_image, write_json, write_tum
@@ -90,8 +91,7 @@ def evaluate_sequence(d: Path) -> dict:
             "truth": gt, "rf_problems": len(problems), "stamps_s": np.arange(len(gt)) / meta.frame_rate_hz,
             "cov_m2": {k: r.cov[:, :3, :3] for k, r in with_cov.items()},  # for the plots' 1-sigma
             "consistency": {k: consistency(r.positions_w_m, r.cov[:, :3, :3], gt) for k, r in with_cov.items()},
-            "orientation_error_deg": {k: np.degrees((r.rotations_w_c.inv() * grot).magnitude())
-                                      for k, r in with_cov.items()},
+            "orientation_error_deg": {k: orientation_errors_deg(r.rotations_w_c, grot) for k, r in with_cov.items()},
             "motion": score_motion(d, d / "motion.csv"),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": loc.channel.kappa, "online_last_frame": float(loc.kappa_online[-1])}}
@@ -101,8 +101,6 @@ def _write_trajectories(out: Path, stamps_s: np.ndarray, est: dict, with_cov: di
     """Every algorithm's trajectory as ``out/<algorithm>.tum`` (body frame; evo reads them beside
     ``groundtruth.tum``). Frames without a position (an RF fix that failed) are left out; algorithms that estimate
     no orientation carry the identity, and their header says so."""
-    from scipy.spatial.transform import Rotation
-
     out.mkdir(parents=True, exist_ok=True)
     for name, pos in est.items():
         ok = np.isfinite(pos).all(axis=1)
@@ -123,6 +121,17 @@ def consistency(positions_w_m: np.ndarray, cov_m2: np.ndarray, truth_w_m: np.nda
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov_m2, e[..., None])[..., 0])
     sd = np.sqrt(np.maximum(np.diagonal(cov_m2, axis1=1, axis2=2), 1e-30))
     return {"nees": nees, "inside_68": nees <= CHI2_3_683, "axis_inside_1sigma": np.mean(np.abs(e) <= sd, axis=1)}
+
+
+def orientation_errors_deg(est_w_c: Rotation, truth_w_c: Rotation) -> np.ndarray:
+    """``(3, n)`` per-frame orientation errors (deg): the whole rotation's angle, the angle between the estimated
+    and the true optical axes, and the roll about the optical axis (the error rotation's twist about camera z)."""
+    whole = np.degrees((est_w_c.inv() * truth_w_c).magnitude())
+    za, zb = est_w_c.apply([0.0, 0.0, 1.0]), truth_w_c.apply([0.0, 0.0, 1.0])
+    axis = np.degrees(np.arccos(np.clip(np.sum(za * zb, axis=1), -1.0, 1.0)))
+    q = (truth_w_c.inv() * est_w_c).as_quat()
+    roll = np.degrees(2.0 * np.arctan2(np.abs(q[:, 2]), np.abs(q[:, 3])))
+    return np.stack([whole, axis, np.minimum(roll, 360.0 - roll)])
 
 
 def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
@@ -231,7 +240,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         eff.append(res["pcrb_mean_error_m"])
         for a, c in res["consistency"].items():
             cons.setdefault(a, []).append(c)
-            orient.setdefault(a, []).append(res["orientation_error_deg"][a])
+            orient.setdefault(a, []).append(np.asarray(res["orientation_error_deg"][a]))
         sm.append(res["smoothing_bound_m2"])
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
@@ -278,8 +287,12 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         # what the stated covariances were scaled by: the RSS residuals' variance inflation factor (1: independent)
         "covariance_inflation_kappa": {k: float(np.mean([p["covariance_inflation_kappa"][k] for p in per_seed]))
                                        for k in per_seed[0]["covariance_inflation_kappa"]},
-        "orientation_error_deg": {a: {"mean": float(np.concatenate(v).mean()),
-                                      "p90": float(np.percentile(np.concatenate(v), 90))} for a, v in orient.items()},
+        # the whole rotation's error, and its parts: the optical axis's direction, the roll about the axis
+        "orientation_error_deg": {a: {"mean": float(np.concatenate(v, axis=1)[0].mean()),
+                                      "p90": float(np.percentile(np.concatenate(v, axis=1)[0], 90)),
+                                      "axis_mean": float(np.concatenate(v, axis=1)[1].mean()),
+                                      "roll_mean": float(np.concatenate(v, axis=1)[2].mean())}
+                                  for a, v in orient.items()},
         "per_seed": per_seed,
         "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
                     **{f"{k}_total": round(sum(t[k] for t in timing), 2) for k in timing[0]}},
@@ -314,12 +327,13 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
     rows = [[LABELS[k], f"{v['mean_error_cm']:.2f}", f"{v['rmse_cm']:.2f}", f"{v['median_error_cm']:.2f}",
              f"{v['p90_error_cm']:.2f}", f"{v['rmse_over_sqrt_pcrb']:.2f}"] for k, v in report["algorithms"].items()]
     crows = [[LABELS[k], f"{v['mean_nees']:.2f}", f"{v['inside_68pct_ellipsoid']:.2f}", f"{v['axis_inside_1sigma']:.2f}",
-              f"{report['orientation_error_deg'][k]['mean']:.1f}", f"{report['orientation_error_deg'][k]['p90']:.1f}"]
+              *(f"{report['orientation_error_deg'][k].get(c, float('nan')):.1f}"
+                for c in ("mean", "p90", "axis_mean", "roll_mean"))]
              for k, v in report["consistency"].items()]
     body = (table(["algorithm", "mean (cm)", "RMSE (cm)", "median (cm)", "p90 (cm)", "RMSE / sqrt(PCRB)"], rows)
             + "<h2>Is the stated uncertainty honest? Orientation</h2>"
             + table(["algorithm", "mean NEES (3 if honest)", "inside the 68% ellipsoid", "axes inside 1-sigma (0.68)",
-                     "orientation error mean (deg)", "p90 (deg)"], crows)
+                     "orientation error mean (deg)", "p90 (deg)", "optical axis mean (deg)", "roll mean (deg)"], crows)
             + "<p>Covariances are scaled by the RSS residuals' measured correlation (kappa, 1 on an independent "
               f"channel): mean kappa {report['covariance_inflation_kappa']['smoothed']:.2f} (smoother, whole exam), "
               f"{report['covariance_inflation_kappa']['online_last_frame']:.2f} (online filter at the last frame).</p>"

@@ -28,9 +28,10 @@ Two estimators, same output (:class:`StepMotion`, conventions of :mod:`bodyslam.
   determine it (a stopped capsule). Scale comes from ``R``; the capsule can be off-centre and tilted.
 
 Status values (``StepMotion.status``): ``ok``; ``too_few_matches`` (fewer than ``min_matches`` verified
-matches); ``no_lumen`` (the frame faces the wall: no tube geometry to use; set by the caller's classifier);
+matches); ``wall`` and ``no_lumen`` (a frame of the pair faces the wall: fitted with a wider 1-sigma, or not
+used; set by the caller, :meth:`bodyslam.vision.odometry.VisualOdometry.estimate_wall`);
 ``solver_failed``; ``uncertain`` (the fit's 1-sigma distance uncertainty exceeds ``max_sigma_distance_m``,
-1 mm by default, a quarter of the mean step: few or badly spread matches after a large jump); ``bad_frame`` (a frame of the pair could not be read; set by the sequence reader). Rows that are not ``ok`` carry NaN, never an invented number.
+1 mm by default, a quarter of the mean step: few or badly spread matches after a large jump); ``bad_frame`` (a frame of the pair could not be read; set by the sequence reader). Rows without an estimate carry NaN, never an invented number.
 """
 
 from __future__ import annotations

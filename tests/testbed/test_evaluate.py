@@ -99,3 +99,22 @@ def test_per_step_sigma_coverage():
     got = _within_sigma(np.array([0.1, 0.5, 2.0, 3.0]), np.array([1.0, 1.0, 1.0, np.nan]))
     assert got == {"distance_within_1sigma": 2 / 3, "distance_within_2sigma": 1.0}  # the NaN-sigma step left out
     assert _within_sigma(np.array([0.1]), np.array([np.nan])) == {}
+
+
+def test_orientation_error_splits_into_the_optical_axis_and_the_roll_about_it():
+    """A 30-degree roll about the optical axis moves no axis; a 20-degree turn about camera x moves the axis by
+    20 and rolls nothing; a composition of both shows both (within the swing-twist split's exactness: 1e-9)."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from testbed.evaluate import orientation_errors_deg
+
+    truth = Rotation.from_euler("xyz", [[10, -40, 70], [0, 0, 0]], degrees=True)
+    roll = truth * Rotation.from_rotvec([0, 0, np.radians(30)])
+    tilt = truth * Rotation.from_rotvec([np.radians(20), 0, 0])
+    both = truth * Rotation.from_rotvec([np.radians(20), 0, 0]) * Rotation.from_rotvec([0, 0, np.radians(30)])
+    np.testing.assert_allclose(orientation_errors_deg(roll, truth), [[30, 30], [0, 0], [30, 30]], atol=1e-9)
+    np.testing.assert_allclose(orientation_errors_deg(tilt, truth), [[20, 20], [20, 20], [0, 0]], atol=1e-9)
+    e = orientation_errors_deg(both, truth)
+    np.testing.assert_allclose(e[1:], [[20, 20], [30, 30]], atol=1e-9)
+    assert (e[0] > 30).all()
