@@ -157,3 +157,11 @@ def test_a_step_facing_the_wall_is_estimated_by_the_tube_fit_with_a_wider_1sigma
         assert w.sigma_rotation_rad == pytest.approx(WALL_SIGMA_FACTOR * s.sigma_rotation_rad, rel=1e-12)
     else:
         assert not w.has_estimate and np.isnan(w.distance_m)
+
+
+def test_an_unknown_wall_step_rule_is_refused():
+    from bodyslam.errors import ConfigError
+    from bodyslam.vision.odometry import MotionSettings
+
+    with pytest.raises(ConfigError, match="wall_steps must be one of estimate, drop"):
+        MotionSettings(wall_steps="keep")
