@@ -559,9 +559,10 @@ def _batch(args) -> int:
         c = s["classes"]
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in ("ok", "wall", "bridged"))
-        print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps "
-              f"estimated ({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged), path {s['path_travelled_m'] * 100:.1f} "
-              f"+- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; {s['problems']} problem(s)")
+        print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
+              f"({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged), path "
+              f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "
+              f"{s['problems']} problem(s)")
         for a in s["assumed"]:
             print(f"  assumed {a}")
         if s.get("video_ended_at") is not None:

@@ -987,6 +987,12 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
     return rows
 
 
+# what the report says beside a step status (bodyslam.steps.StepStatus)
+STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)",
+              "bridged": " (shares of gaps measured end to end)",
+              "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
+
+
 def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, path_var, marks: list[list],
             fused: bool) -> None:
     """The exam's plots (``trajectory.png``: 3-D and three projections with the 1-sigma and the marked frames;
@@ -1013,7 +1019,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
              + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
             ["duration", f"{sm['duration_s'] / 60:.1f} min at {sm['frame_rate_hz']:g} frames/s"],
             ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"],
-            ["steps", ", ".join(f"{v} {k}" for k, v in sm["steps"].items())],
+            ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())],
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
