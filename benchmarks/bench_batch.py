@@ -24,6 +24,7 @@ Goal (issue 7): >= 100 frames/s in fast mode on this 2-core machine; peak memory
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import shutil
@@ -112,6 +113,10 @@ def main() -> None:
     ap.add_argument("--dask", type=int, default=0, metavar="N",
                     help="also run on a Dask LocalCluster of N worker processes and compare with the local run")
     args = ap.parse_args()
+    if args.dask < 0:
+        raise SystemExit(f"--dask {args.dask}: give a number of Dask worker processes (0: no Dask run)")
+    if args.dask and importlib.util.find_spec("distributed") is None:  # checked before any exam is run
+        raise SystemExit("--dask needs Dask distributed (pip install 'dask[distributed]')")
     lengths = [int(x) for x in args.frames.split(",")]
     args.keep.mkdir(parents=True, exist_ok=True)
     res = {}

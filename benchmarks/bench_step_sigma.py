@@ -4,8 +4,9 @@ For every estimated step of kept sequences (``testbed evaluate ... --out D`` kee
 motion.csv): the 1-sigma distance less the radius prior's share ``sd/r |d|`` (what the fusion applies: the fit's
 own and the lumen-shape share ``lumen_shape_sd_rel |d|`` where meta.json states one) against the error of the
 distance rescaled by the true local radius over the told one (the radius error is what the prior's share covers;
-what is left is the fit's and the shape's). An honest 1-sigma puts ~68% / 95% of ``|z|`` within 1 / 2. Printed for all estimated steps and for each status
-(``ok``; ``wall``: a frame of the pair faces the wall, 1-sigma inflated; ``bridged``: a share of a gap).
+what is left is the fit's and the shape's). An honest 1-sigma puts ~68% / 95% of ``|z|`` within 1 / 2. Printed
+for all estimated steps and for each status (``ok``; ``wall``: a frame of the pair faces the wall, 1-sigma
+inflated; ``bridged``: a share of a gap).
 
     .venv/bin/python benchmarks/bench_step_sigma.py D/sequences [--ahead-m 0.02]
 

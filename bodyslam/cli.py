@@ -539,6 +539,7 @@ def _localize(args) -> int:
 
 def _batch(args) -> int:
     from bodyslam.exam.batch import BatchSettings, open_exams, parse_frame_list, read_marks, run_batch
+    from bodyslam.steps import WITH_ESTIMATE
 
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
@@ -558,7 +559,7 @@ def _batch(args) -> int:
         steps = s["steps"]
         c = s["classes"]
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
-        n_est = sum(steps.get(k, 0) for k in ("ok", "wall", "bridged"))
+        n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
               f"({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged), path "
               f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "

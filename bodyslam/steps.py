@@ -30,7 +30,7 @@ from enum import StrEnum
 
 import numpy as np
 
-__all__ = ["StepStatus", "MEASURED", "StepMotion", "motion_from_transform", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
+__all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "StepMotion", "motion_from_transform", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -50,8 +50,9 @@ class StepStatus(StrEnum):
     MISSING = "missing"
 
 
-# statuses of a step estimated from its own pair's matches
+# statuses of a step estimated from its own pair's matches, and of every step that carries a pose
 MEASURED = (StepStatus.OK, StepStatus.WALL)
+WITH_ESTIMATE = (*MEASURED, StepStatus.BRIDGED)
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ class StepMotion:
     def has_estimate(self) -> bool:
         """A full pose the filters can use: ``ok``, ``wall`` or ``bridged``, with finite ``R_c1_c2`` and
         ``t_c1_c2_m``."""
-        return (self.status in (*MEASURED, StepStatus.BRIDGED) and self.R_c1_c2 is not None
+        return (self.status in WITH_ESTIMATE and self.R_c1_c2 is not None
                 and self.t_c1_c2_m is not None and bool(np.isfinite(self.t_c1_c2_m).all())
                 and bool(np.isfinite(self.R_c1_c2).all()))
 

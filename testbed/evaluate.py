@@ -29,7 +29,7 @@ from bodyslam.fusion.channel import inflate
 from bodyslam.fusion.localize import RfInput, localize, online_inflation
 from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
-from bodyslam.steps import MEASURED, StepStatus
+from bodyslam.steps import MEASURED, WITH_ESTIMATE
 from bodyslam.fusion.rf import locate_nls
 from testbed.bound import efficient_mean_error, position_bounds
 from testbed.score import score_motion
@@ -132,6 +132,12 @@ def orientation_errors_deg(est_w_c: Rotation, truth_w_c: Rotation) -> np.ndarray
     q = (truth_w_c.inv() * est_w_c).as_quat()
     roll = np.degrees(2.0 * np.arctan2(np.abs(q[:, 2]), np.abs(q[:, 3])))
     return np.stack([whole, axis, np.minimum(roll, 360.0 - roll)])
+
+
+def _orientation_stats(e_deg: np.ndarray) -> dict:
+    """Mean and p90 of the whole orientation error, means of its parts (rows of :func:`orientation_errors_deg`)."""
+    return {"mean": float(e_deg[0].mean()), "p90": float(np.percentile(e_deg[0], 90)),
+            "axis_mean": float(e_deg[1].mean()), "roll_mean": float(e_deg[2].mean())}
 
 
 def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
@@ -240,7 +246,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         eff.append(res["pcrb_mean_error_m"])
         for a, c in res["consistency"].items():
             cons.setdefault(a, []).append(c)
-            orient.setdefault(a, []).append(np.asarray(res["orientation_error_deg"][a]))
+            orient.setdefault(a, []).append(res["orientation_error_deg"][a])
         sm.append(res["smoothing_bound_m2"])
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
@@ -276,9 +282,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         # what became of every step over all seeds (bodyslam.steps.StepStatus), and the fractions with an estimate:
         # measured from the pair (ok, wall), and with the bridged gaps' shares
         "step_status_counts": dict(sorted(step_counts.items())),
-        "steps_measured_frac": sum(step_counts.get(k, 0) for k in MEASURED) / max(sum(step_counts.values()), 1),
-        "steps_with_estimate_frac": sum(step_counts.get(k, 0) for k in (*MEASURED, StepStatus.BRIDGED))
-        / max(sum(step_counts.values()), 1),
+        **{f"steps_{name}_frac": sum(step_counts.get(k, 0) for k in which) / max(sum(step_counts.values()), 1)
+           for name, which in (("measured", MEASURED), ("with_estimate", WITH_ESTIMATE))},
         # honest uncertainty: NEES (3 expected), frames inside the 68.3% ellipsoid, axes inside 1-sigma (0.683)
         "consistency": {a: {"mean_nees": float(np.concatenate([c["nees"] for c in v]).mean()),
                             "inside_68pct_ellipsoid": float(np.concatenate([c["inside_68"] for c in v]).mean()),
@@ -288,11 +293,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         "covariance_inflation_kappa": {k: float(np.mean([p["covariance_inflation_kappa"][k] for p in per_seed]))
                                        for k in per_seed[0]["covariance_inflation_kappa"]},
         # the whole rotation's error, and its parts: the optical axis's direction, the roll about the axis
-        "orientation_error_deg": {a: {"mean": float(np.concatenate(v, axis=1)[0].mean()),
-                                      "p90": float(np.percentile(np.concatenate(v, axis=1)[0], 90)),
-                                      "axis_mean": float(np.concatenate(v, axis=1)[1].mean()),
-                                      "roll_mean": float(np.concatenate(v, axis=1)[2].mean())}
-                                  for a, v in orient.items()},
+        "orientation_error_deg": {a: _orientation_stats(np.concatenate(v, axis=1)) for a, v in orient.items()},
         "per_seed": per_seed,
         "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
                     **{f"{k}_total": round(sum(t[k] for t in timing), 2) for k in timing[0]}},
