@@ -94,6 +94,9 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--drop-wall-steps", action="store_true",
                        help="give a step touching a facing-the-wall frame no estimate (status no_lumen), as the "
                             "dissertation does; by default the tube fit estimates it (status wall, 1-sigma inflated)")
+        q.add_argument("--no-rotation-steps", action="store_true",
+                       help="do not measure the rotation alone of a step the tube fit fails on (fast steps; by "
+                            "default guided matching measures it: status rotation, distance unknown)")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
                        help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
@@ -212,7 +215,8 @@ def _motion_settings(args):
     return MotionSettings(args.mode, args.estimator, args.unroll_mode,
                           mask=getattr(args, "mask", None) if args.cmd != "batch" else None,
                           classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps,
-                          wall_steps="drop" if args.drop_wall_steps else "estimate")
+                          wall_steps="drop" if args.drop_wall_steps else "estimate",
+                          rotation_steps=not args.no_rotation_steps)
 
 
 def _print_problems(problems: list, limit: int = 20) -> int:
@@ -532,7 +536,8 @@ def _localize(args) -> int:
           f"position 1-sigma median {np.median(sd) * 100:.2f} cm (max {sd.max() * 100:.2f}; RSS errors correlated "
           f"x{loc.channel.kappa:.1f}, bodyslam.fusion.channel); "
           f"{loc.filtered.n_updates} RF updates, {loc.filtered.n_rejected} readings rejected by the gate; "
-          f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate; "
+          f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate "
+          f"({sum(s.has_rotation and not s.has_estimate for s in steps)} of them with their rotation); "
           f"{len(loc.rf_problems)} RF line(s) skipped")
     return _print_problems(problems + loc.rf_problems)
 
@@ -561,7 +566,8 @@ def _batch(args) -> int:
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
-              f"({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged), path "
+              f"({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged; "
+              f"{steps.get('rotation', 0)} more with only their rotation), path "
               f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "
               f"{s['problems']} problem(s)")
         for a in s["assumed"]:

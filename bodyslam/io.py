@@ -296,9 +296,10 @@ def step_from_row(row: dict) -> StepMotion:
     """A :class:`StepMotion` from a :func:`read_motion_csv` row (the full step where its columns are finite)."""
     vals = [row.get(c, math.nan) for c in _FULL_STEP]
     R = t = None
-    if np.isfinite(vals[:6]).all():
-        t = np.array(vals[:3], float)
+    if np.isfinite(vals[3:6]).all():  # a rotation step has its rotation and no translation
         R = Rotation.from_rotvec(vals[3:6]).as_matrix()
+    if R is not None and np.isfinite(vals[:3]).all():
+        t = np.array(vals[:3], float)
     return StepMotion(row["distance_m"], row["roll_rad"], row["pitch_rad"], row["yaw_rad"], row["tilt_rad"],
                       int(row.get("n_matches", 0)), row["status"], R, t, vals[6], vals[7])
 

@@ -13,13 +13,17 @@ Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which 
   with its 1-sigma inflated (:data:`bodyslam.vision.odometry.WALL_SIGMA_FACTOR`); the dissertation drops such steps
   (``--drop-wall-steps``);
 - ``bridged``: a share of a gap's end-to-end motion (:func:`bodyslam.vision.odometry.split_motion`);
+- ``rotation``: only the rotation was measured (a fast step whose ordinary matches were too few: guided matching,
+  :mod:`bodyslam.vision.guided`); roll, pitch, yaw, tilt and ``R_c1_c2`` are set, the distance and translation
+  are NaN;
 - ``too_few_matches``, ``uncertain``, ``solver_failed``: the estimator gave no usable estimate;
 - ``no_lumen``: a frame of the pair is too dark or saturated to fit, or faces the wall and the step was not
   estimated (the thesis estimator's unrolling needs the lumen in view; ``--drop-wall-steps``);
 - ``bad_frame``: a frame of the pair could not be read;
 - ``missing``: no row for the step in a ``motion.csv`` that was read back.
 
-Steps that are neither ``ok``, ``wall`` nor ``bridged`` carry NaN, never an invented number.
+Steps that are neither ``ok``, ``wall`` nor ``bridged`` carry NaN distances, never an invented number; only
+``rotation`` steps among them carry a rotation.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from enum import StrEnum
 
 import numpy as np
 
-__all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "StepMotion", "motion_from_transform", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
+__all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "WITH_ROTATION", "StepMotion", "motion_from_transform",
+           "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -42,6 +47,7 @@ class StepStatus(StrEnum):
     OK = "ok"
     WALL = "wall"
     BRIDGED = "bridged"
+    ROTATION = "rotation"
     TOO_FEW_MATCHES = "too_few_matches"
     UNCERTAIN = "uncertain"
     SOLVER_FAILED = "solver_failed"
@@ -50,9 +56,11 @@ class StepStatus(StrEnum):
     MISSING = "missing"
 
 
-# statuses of a step estimated from its own pair's matches, and of every step that carries a pose
+# statuses of a step estimated from its own pair's matches, of every step that carries a pose, and of every step
+# that carries at least a rotation
 MEASURED = (StepStatus.OK, StepStatus.WALL)
 WITH_ESTIMATE = (*MEASURED, StepStatus.BRIDGED)
+WITH_ROTATION = (*WITH_ESTIMATE, StepStatus.ROTATION)
 
 
 @dataclass(frozen=True)
@@ -89,6 +97,12 @@ class StepMotion:
         ``t_c1_c2_m``."""
         return (self.status in WITH_ESTIMATE and self.R_c1_c2 is not None
                 and self.t_c1_c2_m is not None and bool(np.isfinite(self.t_c1_c2_m).all())
+                and bool(np.isfinite(self.R_c1_c2).all()))
+
+    @property
+    def has_rotation(self) -> bool:
+        """A rotation the filters can use: every step with an estimate, and ``rotation`` steps."""
+        return (self.status in WITH_ROTATION and self.R_c1_c2 is not None
                 and bool(np.isfinite(self.R_c1_c2).all()))
 
     @property

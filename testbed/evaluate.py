@@ -29,7 +29,7 @@ from bodyslam.fusion.channel import inflate
 from bodyslam.fusion.localize import RfInput, localize, online_inflation
 from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
-from bodyslam.steps import MEASURED, WITH_ESTIMATE
+from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION
 from bodyslam.fusion.rf import locate_nls
 from testbed.bound import efficient_mean_error, position_bounds
 from testbed.score import score_motion
@@ -143,8 +143,9 @@ def _orientation_stats(e_deg: np.ndarray) -> dict:
 def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
     """Process noise for the bound from the vision's *actual* errors on this run (scoring may use the truth):
     RMS translation and rotation error of the estimated steps, and for steps without an estimate the RMS of
-    the true step itself (a filter knows nothing of it). The filter's own noise settings are floors chosen
-    for robustness; a bound built on them would not bound the real errors."""
+    the true step itself (a filter knows nothing of it; a ``rotation`` step's rotation: its own RMS error). The
+    filter's own noise settings are floors chosen for robustness; a bound built on them would not bound the real
+    errors."""
     t_true = np.array([grot[k].inv().apply(gt[k + 1] - gt[k]) for k in range(len(gt) - 1)])
     R_true = [grot[k].inv() * grot[k + 1] for k in range(len(gt) - 1)]
     ok = np.array([s.has_estimate for s in steps])
@@ -159,8 +160,37 @@ def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
             sig_r[group] = np.sqrt(np.mean(er[group] ** 2) / 3)
     if (~ok).any():
         sig_t[~ok] = np.sqrt(np.mean(np.sum(t_true[~ok] ** 2, axis=1)) / 3)
-        sig_r[~ok] = np.sqrt(np.mean([R_true[k].magnitude() ** 2 for k in np.nonzero(~ok)[0]]) / 3)
+        rot = np.array([s.has_rotation for s in steps]) & ~ok  # rotation steps: their rotation's own RMS error
+        none = ~ok & ~rot
+        if rot.any():
+            sig_r[rot] = np.sqrt(np.mean(er[rot] ** 2) / 3)
+        if none.any():
+            sig_r[none] = np.sqrt(np.mean([R_true[k].magnitude() ** 2 for k in np.nonzero(none)[0]]) / 3)
     return sig_t, sig_r
+
+
+def _rotation_summary(blocks: list[dict]) -> dict:
+    """The seeds' ``rotation_only`` blocks (:func:`testbed.score.score_motion`) as one: step-weighted means."""
+    blocks = [b for b in blocks if b.get("n_steps_scored")]
+    n = sum(b["n_steps_scored"] for b in blocks)
+    if not n:
+        return {"n_steps_scored": 0}
+    out = {"n_steps_scored": n}
+    for k in ("mean_true_roll_deg", "mae_roll_deg", "mean_true_tilt_deg", "mae_tilt_deg"):
+        out[k] = sum(b[k] * b["n_steps_scored"] for b in blocks) / n
+    out["rms_roll_error_deg"] = float(np.sqrt(sum(b["rms_roll_error_deg"] ** 2 * b["n_steps_scored"]
+                                                  for b in blocks) / n))
+    return out
+
+
+def _rotation_html(rot: dict) -> str:
+    """The report page's line on the steps with only their rotation measured ("" when there are none)."""
+    if not rot.get("n_steps_scored"):
+        return ""
+    return (f"<p>Steps with only their rotation measured (status rotation: fast steps, distance unknown): "
+            f"{rot['n_steps_scored']}, roll error {rot['mae_roll_deg']:.2f} deg mean "
+            f"({rot['rms_roll_error_deg']:.2f} RMS; their true roll {rot['mean_true_roll_deg']:.2f} deg), "
+            f"tilt error {rot['mae_tilt_deg']:.2f} deg (true {rot['mean_true_tilt_deg']:.2f}).</p>")
 
 
 def _stats(e_m: np.ndarray, pcrb_m2: np.ndarray) -> dict:
@@ -230,6 +260,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     jobs = min(jobs, len(seeds))
     per_seed, errs, pcrbs, motion, timing, eff = [], {a: [] for a in ALGORITHMS}, [], [], [], []
     step_counts: dict[str, int] = {}
+    rot_blocks: list[dict] = []
     cons: dict[str, list] = {}
     orient: dict[str, list] = {}
     sm, sm_eff = [], []
@@ -250,6 +281,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         sm.append(res["smoothing_bound_m2"])
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
+        rot_blocks.append(res["motion"].get("rotation_only", {}))
         for st, c in res["motion"]["status_counts"].items():
             step_counts[st] = step_counts.get(st, 0) + c
         timing.append(res["seconds"])
@@ -280,10 +312,12 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         "table_4_1": {k: float(np.nanmean([m.get(k, np.nan) for m in motion])) for k in motion[0]
                       if k.endswith(("_cm", "_deg", "sigma"))},
         # what became of every step over all seeds (bodyslam.steps.StepStatus), and the fractions with an estimate:
-        # measured from the pair (ok, wall), and with the bridged gaps' shares
+        # measured from the pair (ok, wall), with the bridged gaps' shares, and with the rotation steps
         "step_status_counts": dict(sorted(step_counts.items())),
+        "rotation_steps": _rotation_summary(rot_blocks),
         **{f"steps_{name}_frac": sum(step_counts.get(k, 0) for k in which) / max(sum(step_counts.values()), 1)
-           for name, which in (("measured", MEASURED), ("with_estimate", WITH_ESTIMATE))},
+           for name, which in (("measured", MEASURED), ("with_estimate", WITH_ESTIMATE),
+                               ("with_rotation", WITH_ROTATION))},
         # honest uncertainty: NEES (3 expected), frames inside the 68.3% ellipsoid, axes inside 1-sigma (0.683)
         "consistency": {a: {"mean_nees": float(np.concatenate([c["nees"] for c in v]).mean()),
                             "inside_68pct_ellipsoid": float(np.concatenate([c["inside_68"] for c in v]).mean()),
@@ -341,9 +375,12 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
             + "<h2>Per-step motion (Table 4.1)</h2>"
             + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
             + (f"<p>Steps measured from their own pair (ok, wall): {report['steps_measured_frac']:.1%}; with the "
-               f"bridged gaps' shares: {report['steps_with_estimate_frac']:.1%}. What became of every step: "
+               f"bridged gaps' shares: {report['steps_with_estimate_frac']:.1%}; with at least a rotation "
+               f"(status rotation too): {report.get('steps_with_rotation_frac', float('nan')):.1%}. What became "
+               "of every step: "
                + ", ".join(f"{k} {v}" for k, v in report["step_status_counts"].items()) + ".</p>"
                if "step_status_counts" in report else "")
+            + _rotation_html(report.get("rotation_steps", {}))
             + view_html + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "

@@ -7,8 +7,9 @@ the error of the tilt as a vector (pitch, yaw: the swing rotation's x, y compone
 direction, and the coverage (steps measured from their own pair: status ``ok`` or ``wall``; ``coverage_with_bridged``
 also counts the shares of bridged gaps). Errors are over the measured steps; the ``ft_only`` block restricts them
 to steps whose two frames are both labelled FT (facing the tunnel) by the truth, ``wall_only`` to the steps the
-pipeline estimated although its classifier said a frame faces the wall (status ``wall``). Steps without an
-estimate are counted, never scored as zero.
+pipeline estimated although its classifier said a frame faces the wall (status ``wall``). ``rotation_only``
+scores the roll and tilt of the steps that measured only their rotation (status ``rotation``), which are not in
+the coverage. Steps without an estimate are counted, never scored as zero.
 """
 
 from __future__ import annotations
@@ -55,6 +56,20 @@ def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
     }
 
 
+def _rotation_block(tr: dict, es: dict, idx: np.ndarray) -> dict:
+    """Roll and tilt errors of steps that measured only their rotation (status ``rotation``; no distance)."""
+    if len(idx) == 0:
+        return {"n_steps_scored": 0}
+    e_r = np.abs(_wrap(es["roll_rad"][idx] - tr["roll_rad"][idx]))
+    e_t = np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx])
+    return {"n_steps_scored": int(len(idx)),
+            "mean_true_roll_deg": float(np.degrees(np.mean(np.abs(tr["roll_rad"][idx])))),
+            "mae_roll_deg": float(np.degrees(np.mean(e_r))),
+            "rms_roll_error_deg": float(np.degrees(np.sqrt(np.mean(e_r**2)))),
+            "mean_true_tilt_deg": float(np.degrees(np.mean(tr["tilt_rad"][idx]))),
+            "mae_tilt_deg": float(np.degrees(np.mean(e_t)))}
+
+
 def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
     ok = np.isfinite(sigma) & (sigma > 0)
     if not ok.any():
@@ -95,6 +110,8 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
         "all": _block(tr, es, np.nonzero(has)[0]),
         "ft_only": _block(tr, es, np.nonzero(has & ft)[0]),
         "wall_only": _block(tr, es, np.nonzero(has & (status == StepStatus.WALL))[0]),
+        "rotation_only": _rotation_block(tr, es, np.nonzero((status == StepStatus.ROTATION)
+                                                            & np.isfinite(es["roll_rad"]))[0]),
     }
 
 
@@ -120,4 +137,8 @@ def format_table(rep: dict) -> str:
         if f.get("n_steps_scored"):
             lines.append(f"{what} ({f['n_steps_scored']}): distance {f['mae_distance_cm']:.4f} cm, roll "
                          f"{f['mae_roll_deg']:.3f} deg, tilt {f['mae_tilt_deg']:.3f} deg")
+    f = rep.get("rotation_only", {})
+    if f.get("n_steps_scored"):
+        lines.append(f"steps with only their rotation ({f['n_steps_scored']}): roll {f['mae_roll_deg']:.3f} deg "
+                     f"(true {f['mean_true_roll_deg']:.2f}), tilt {f['mae_tilt_deg']:.3f} deg")
     return "\n".join(lines)

@@ -990,6 +990,7 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
 # what the report says beside a step status (bodyslam.steps.StepStatus)
 STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)",
               "bridged": " (shares of gaps measured end to end)",
+              "rotation": " (fast steps: only the rotation measured, the distance unknown)",
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
 

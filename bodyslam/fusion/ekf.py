@@ -84,17 +84,20 @@ def process_model(R_w_c: np.ndarray, t_s_m: np.ndarray, R_s: np.ndarray, sigma_t
 
 
 def step_pose(s: StepMotion) -> tuple[Rotation, np.ndarray]:
-    """``(R_c1_c2, t_c1_c2_m)`` of a step with an estimate (ok or bridged); identity and zero otherwise."""
+    """``(R_c1_c2, t_c1_c2_m)`` of a step with an estimate (ok, wall or bridged); a ``rotation`` step's rotation
+    and zero; identity and zero otherwise."""
     if s.has_estimate:
         return Rotation.from_matrix(s.R_c1_c2), np.asarray(s.t_c1_c2_m, float)
+    if s.has_rotation:
+        return Rotation.from_matrix(s.R_c1_c2), np.zeros(3)
     return Rotation.identity(), np.zeros(3)
 
 
 def step_rotation_matrices(steps: list[StepMotion]) -> np.ndarray:
-    """``R_c1_c2 (n, 3, 3)`` of every step, orthonormalised in one vectorised call; identity without an
-    estimate (as :func:`step_pose`, without a Rotation per step: this is on the whole-exam path)."""
+    """``R_c1_c2 (n, 3, 3)`` of every step, orthonormalised in one vectorised call; identity without a
+    rotation (as :func:`step_pose`, without a Rotation per step: this is on the whole-exam path)."""
     mats = np.repeat(np.eye(3)[None], len(steps), axis=0)
-    has = [k for k, s in enumerate(steps) if s.has_estimate]
+    has = [k for k, s in enumerate(steps) if s.has_rotation]
     if has:
         mats[has] = Rotation.from_matrix(np.array([steps[k].R_c1_c2 for k in has])).as_matrix()
     return mats
@@ -102,7 +105,8 @@ def step_rotation_matrices(steps: list[StepMotion]) -> np.ndarray:
 
 def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0) -> tuple[np.ndarray, float, float]:
     """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
-    a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity). With a scale state
+    a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity), and so does a
+    ``rotation`` step, with its own rotation 1-sigma (its translation is unknown). With a scale state
     (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
     (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`) is taken out: the state carries it."""
     if s.has_estimate:
@@ -111,7 +115,10 @@ def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0) -> 
         if scale_sd_rel > 0:
             sig = math.sqrt(max(sig**2 - (scale_sd_rel * float(np.linalg.norm(t))) ** 2, 0.0))
         return t, max(sig, SIGMA_T_FLOOR_M), max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD)
-    return last_t, max(float(np.linalg.norm(last_t)), MISSING_SIGMA_T_MIN_M), MISSING_SIGMA_R_RAD
+    sig_t = max(float(np.linalg.norm(last_t)), MISSING_SIGMA_T_MIN_M)
+    if s.has_rotation:
+        return last_t, sig_t, max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD)
+    return last_t, sig_t, MISSING_SIGMA_R_RAD
 
 
 def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

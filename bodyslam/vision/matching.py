@@ -282,6 +282,15 @@ class Matcher:
     def match(self, rgb1: np.ndarray, rgb2: np.ndarray) -> Matches:
         return self.match_features(self.features(rgb1), self.features(rgb2))
 
+    def verify(self, p1: np.ndarray, p2: np.ndarray) -> Matches:
+        """The matches ``p1 -> p2`` (pixels) that a RANSAC essential matrix keeps (at most ``max_matches``, an
+        even subset, are tried)."""
+        if len(p1) > self.max_matches:
+            sel = np.linspace(0, len(p1) - 1, self.max_matches).astype(int)
+            p1, p2 = p1[sel], p2[sel]
+        inl = self._verify(p1, p2)
+        return Matches(p1[inl], p2[inl], len(p1))
+
     # -- internals ------------------------------------------------------------------------------------------
     def _track(self, f1: FrameFeatures, f2: FrameFeatures) -> Matches:
         """Pyramidal Lucas-Kanade tracking of frame 1's corners into frame 2, kept when the track back lands
@@ -318,16 +327,7 @@ class Matcher:
                        min_sep_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
         """Indices ``(query, train)`` passing the ratio test against the nearest neighbour that is a different
         point of frame 2 (more than ``min_sep_px`` away); a match with no such neighbour among ``k`` passes."""
-        k = min(k, len(d2))
-        if self._flann:
-            cv2.setRNGSeed(0x5EED)  # FLANN's random trees: the same for every pair (module docstring)
-        knn = self._bf.knnMatch(d1, d2, k=k)
-        idx = np.full((len(knn), k), -1, np.int64)
-        dist = np.full((len(knn), k), np.inf)
-        for i, ms in enumerate(knn):
-            for j, m in enumerate(ms):
-                idx[i, j] = m.trainIdx
-                dist[i, j] = m.distance
+        idx, dist = self._knn(d1, d2, k)
         have = idx[:, 0] >= 0
         idx, dist = idx[have], dist[have]
         query = np.nonzero(have)[0]
@@ -341,6 +341,20 @@ class Matcher:
         second = np.where(first >= 0, dist[np.arange(len(dist)), np.maximum(first, 0)], np.inf)
         good = dist[:, 0] < self.ratio * second
         return query[good], idx[good, 0]
+
+    def _knn(self, d1: np.ndarray, d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(idx, dist)`` ``(n1, k)`` of each descriptor's ``k`` nearest in ``d2``; -1 / inf where fewer."""
+        k = min(k, len(d2))
+        if self._flann:
+            cv2.setRNGSeed(0x5EED)  # FLANN's random trees: the same for every pair (module docstring)
+        knn = self._bf.knnMatch(d1, d2, k=k)
+        idx = np.full((len(knn), k), -1, np.int64)
+        dist = np.full((len(knn), k), np.inf)
+        for i, ms in enumerate(knn):
+            for j, m in enumerate(ms):
+                idx[i, j] = m.trainIdx
+                dist[i, j] = m.distance
+        return idx, dist
 
     def _normalise(self, gray: np.ndarray) -> np.ndarray:
         """Stretch the field of view's 1st-99th brightness percentiles to the full 8-bit range.

@@ -49,7 +49,8 @@ from bodyslam.vision.matching import Matches
 from bodyslam.steps import StepMotion, motion_from_transform  # noqa: F401  (re-exported)
 from bodyslam.vision.unroll import Unroller
 
-__all__ = ["ESTIMATORS", "StepMotion", "estimate_thesis", "estimate_tube", "motion_from_transform"]
+__all__ = ["ESTIMATORS", "StepMotion", "estimate_thesis", "estimate_tube", "fit_tube", "tube_predict",
+           "motion_from_transform"]
 
 from bodyslam.choices import ESTIMATORS  # noqa: E402
 NAN = float("nan")
@@ -211,9 +212,20 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
                   max_points: int = 150, max_sigma_distance_m: float = 1e-3, solver: str = "lm") -> StepMotion:
     """The tube-constrained 6-DOF estimator (module docstring). ``init``: optional 10-vector to start from;
     ``solver``: ``lm`` (the hand-written robust Levenberg-Marquardt) or ``trf`` (scipy's ``least_squares``)."""
+    return fit_tube(m, camera, radius_m, min_matches, noise_rad, max_depth_m, init, max_points,
+                    max_sigma_distance_m, solver)[0]
+
+
+def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 20,
+             noise_rad: float = 0.003, max_depth_m: float = 0.3, init: np.ndarray | None = None,
+             max_points: int = 150, max_sigma_distance_m: float = 1e-3,
+             solver: str = "lm") -> tuple[StepMotion, np.ndarray | None]:
+    """:func:`estimate_tube` and the fitted 10-vector (rotation vector of ``R_c1_c2``, ``t_c1_c2_m``, the tube
+    axis's direction ``(ax, ay, 1)`` and offset ``(ox, oy, 0)`` in frame 1; :func:`tube_predict` reads it), or
+    None where no fit was made. An ``uncertain`` step keeps its parameters."""
     n = len(m)
     if n < min_matches:
-        return StepMotion(n_matches=n, status="too_few_matches")
+        return StepMotion(n_matches=n, status="too_few_matches"), None
     if not radius_m > 0:
         raise ConfigError(f"tube radius must be positive, got {radius_m}")
     b1, v1 = camera.unproject(m.pts1_px)
@@ -221,7 +233,7 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     ok = v1 & v2
     b1, b2 = b1[ok], b2[ok]
     if len(b1) < min_matches:
-        return StepMotion(n_matches=len(b1), status="too_few_matches")
+        return StepMotion(n_matches=len(b1), status="too_few_matches"), None
     n_used = len(b1)
     if len(b1) > max_points:  # 150 well-spread rays fix 10 parameters; more only costs time
         sel = np.linspace(0, len(b1) - 1, max_points).astype(int)
@@ -253,12 +265,12 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
             sol = least_squares(residuals, p0, jac=lambda p: fun_jac(p)[1], loss="soft_l1", f_scale=2.0,
                                 x_scale=x_scale, max_nfev=200, method="trf")
         except (ValueError, np.linalg.LinAlgError):
-            return StepMotion(n_matches=len(b1), status="solver_failed")
+            return StepMotion(n_matches=len(b1), status="solver_failed"), None
         x, fval, J, cost = sol.x, sol.fun, sol.jac, float(sol.cost)
     else:
         raise ConfigError(f"solver must be 'lm' or 'trf', got {solver!r}")
     if not np.all(np.isfinite(x)):
-        return StepMotion(n_matches=len(b1), status="solver_failed")
+        return StepMotion(n_matches=len(b1), status="solver_failed"), None
     R, t = Rotation.from_rotvec(x[0:3]), x[3:6]
     # Uncertainty: Gauss-Newton covariance at the solution, scaled by the robust residual variance.
     m_res = len(fval) - 4
@@ -267,7 +279,7 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     try:
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
-        return StepMotion(n_matches=n_used, status="solver_failed")
+        return StepMotion(n_matches=n_used, status="solver_failed"), None
     d = t / max(np.linalg.norm(t), 1e-12) if np.linalg.norm(t) > 1e-6 else np.array([0.0, 0.0, 1.0])
     sig_d = float(np.sqrt(max(d @ cov[3:6, 3:6] @ d, 0.0)))
     sig_r = float(np.sqrt(max(np.linalg.eigvalsh(cov[0:3, 0:3]).max(), 0.0)))
@@ -275,5 +287,28 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
     out = replace(out, sigma_distance_m=sig_d, sigma_rotation_rad=sig_r)
     if sig_d > max_sigma_distance_m:
         return replace(StepMotion(n_matches=n_used, status="uncertain"), sigma_distance_m=sig_d,
-                       sigma_rotation_rad=sig_r)
-    return out
+                       sigma_rotation_rad=sig_r), x
+    return out, x
+
+
+def tube_predict(params: np.ndarray, pts1_px: np.ndarray, camera: CameraModel, radius_m: float,
+                 max_depth_m: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Where frame-1 pixels ``pts1_px (n, 2)`` land in frame 2 under the tube model ``params`` (the 10-vector of
+    :func:`fit_tube`): each ray meets the tube (depth capped at ``max_depth_m``, as in the fit), the point is
+    moved into frame 2 and projected. Returns ``(uv_px (n, 2), valid (n,))``."""
+    x = np.asarray(params, float)
+    b1, v1 = camera.unproject(pts1_px)
+    axis = np.array([x[6], x[7], 1.0])
+    axis /= np.linalg.norm(axis)
+    origin = np.array([x[8], x[9], 0.0])
+    w = np.cross(b1, axis)
+    u = np.cross(origin, axis)
+    ww = np.einsum("ij,ij->i", w, w)
+    wu = w @ u
+    disc = wu * wu - ww * (u @ u - radius_m * radius_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (wu + np.sqrt(np.maximum(disc, 0.0))) / ww
+    lam = np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth_m), max_depth_m)
+    X2 = (lam[:, None] * b1 - x[3:6]) @ _rotvec_to_matrix(x[None, 0:3])[0]  # rows: R^T (X - t)
+    uv, v2 = camera.project(X2)
+    return uv, v1 & v2

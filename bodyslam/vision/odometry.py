@@ -76,6 +76,8 @@ class MotionSettings:
     classify_px: int | None = None  # SRM working size for classification; None: classify_work_px (the model's)
     bridge_gaps: int = 15  # runs of up to this many steps without an estimate are bridged by matching their
     #                        end frames directly (0: off); see README "gap bridging"
+    rotation_steps: bool = True  # a step the tube fit fails on (too few matches, uncertain) gets its rotation by
+    #                              guided matching when it can (status rotation; bodyslam.vision.guided)
 
     def __post_init__(self) -> None:
         for name, allowed in (("match_mode", MATCH_MODES), ("estimator", ESTIMATORS), ("unroll_mode", UNROLL_MODES)):
@@ -144,32 +146,44 @@ class VisualOdometry:
             self.T_body_cam = (Rotation.from_quat(T_body_cam[0]), np.asarray(T_body_cam[1], float).reshape(3))
 
     # -- one pair ---------------------------------------------------------------------------------------------
-    def _estimate(self, m) -> StepMotion:
-        from bodyslam.vision.motion import estimate_thesis, estimate_tube
+    def _fit(self, m) -> tuple[StepMotion, np.ndarray | None]:
+        """The step from matches, and the tube fit's 10-vector where there was one."""
+        from bodyslam.vision.motion import estimate_thesis, fit_tube
 
         if self.settings.estimator == "tube":
-            return estimate_tube(m, self.camera, self.radius_m, min_matches=self.settings.min_matches)
-        return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches)
+            return fit_tube(m, self.camera, self.radius_m, min_matches=self.settings.min_matches)
+        return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches), None
 
-    def estimate_pair(self, f1, f2, estimate: Callable | None = None) -> StepMotion:
+    def estimate_pair(self, f1, f2, estimate: Callable | None = None, rotation: bool = True) -> StepMotion:
         """Match two frames' features and estimate the step; in fast mode a tracked pair (Lucas-Kanade) whose
         estimate fails (too few matches, uncertain) is matched again by descriptors, so tracking never costs
-        coverage. The step is in the body frame (:meth:`to_body`)."""
-        estimate = estimate or self._estimate
+        coverage. A step the tube fit still fails on gets its rotation by guided matching where it can (status
+        ``rotation``, :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off:
+        not tried). The step is in the body frame (:meth:`to_body`)."""
+        fit = self._fit if estimate is None else (lambda m: (estimate(m), None))
         m = self.matcher.match_features(f1, f2)
-        s = estimate(m)
+        s, x = fit(m)
         if not s.ok and m.method == "lk":
-            s = estimate(self.matcher.match_features(f1, f2, "descriptors"))
+            s, x = fit(self.matcher.match_features(f1, f2, "descriptors"))
+        if (rotation and self.settings.rotation_steps and self.settings.estimator == "tube"
+                and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)):
+            from bodyslam.vision.guided import estimate_rotation
+
+            s = estimate_rotation(self.matcher, f1, f2, self.camera, self.radius_m, start=x) or s
         return self.to_body(s)
 
     def to_body(self, s: StepMotion) -> StepMotion:
         """A step measured by this camera, as the motion of the capsule body (front camera) frame."""
-        if self.T_body_cam is None or not s.ok or s.R_c1_c2 is None:
+        if self.T_body_cam is None or not s.has_rotation:
             return s
         R_bc, t_bc = self.T_body_cam
         R = R_bc * Rotation.from_matrix(s.R_c1_c2) * R_bc.inv()
+        if s.t_c1_c2_m is None:  # a rotation step: the body turns by the same rotation, in its own axes
+            b = motion_from_transform(R, np.zeros(3))
+            return replace(s, roll_rad=b.roll_rad, pitch_rad=b.pitch_rad, yaw_rad=b.yaw_rad, tilt_rad=b.tilt_rad,
+                           R_c1_c2=R.as_matrix())
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
-        return motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad)
+        return motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad, s.status)
 
     def estimate_wall(self, f1, f2) -> StepMotion:
         """A step touching a frame that faces the wall. The dissertation drops it (its unrolling needs the lumen
@@ -241,7 +255,8 @@ class VisualOdometry:
             return None
         fa, fb = self.matcher.features(img_a), self.matcher.features(img_b)
         s = self.estimate_pair(fa, fb, lambda m: estimate_tube(m, self.camera, self.radius_m,
-                                                                min_matches=self.settings.min_matches))
+                                                                min_matches=self.settings.min_matches),
+                               rotation=False)
         return s if s.ok else None
 
 

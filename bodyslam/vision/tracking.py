@@ -9,8 +9,8 @@ transform of the previous orientation, not an accumulation: with it the orientat
 rotation commutes with it, so it is not used. The thesis estimator gives no translation direction, so its step
 is ``d`` along the first frame's optical axis and its rotation ``R_swing(pitch, yaw) R_z(roll)`` (the convention
 of :mod:`bodyslam.geometry`, which Eq. 3.18's matrix approximates for small angles). A step with no estimate
-(``status != ok``: facing the wall, too few matches) contributes no motion -- a capsule facing the wall is mostly
-stopped against it -- and is counted in the summary, never hidden.
+(too few matches, a dark frame) contributes no motion and is counted in the summary, never hidden; a
+``rotation`` step (only its rotation measured) turns without moving.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ SCALE_CORR_M = 0.2
 
 
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
-    if not (s.ok or s.has_estimate):
-        return Rotation.identity(), np.zeros(3)
+    if not (s.ok or s.has_estimate):  # a rotation step turns without moving (its translation is unknown)
+        return (Rotation.from_matrix(s.R_c1_c2) if s.has_rotation else Rotation.identity()), np.zeros(3)
     if s.R_c1_c2 is not None and s.t_c1_c2_m is not None:
         return Rotation.from_matrix(s.R_c1_c2), np.asarray(s.t_c1_c2_m, float)
     pitch = 0.0 if np.isnan(s.pitch_rad) else s.pitch_rad

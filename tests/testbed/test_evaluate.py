@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 
 def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     out = tmp_path / "eval"
@@ -118,3 +120,20 @@ def test_orientation_error_splits_into_the_optical_axis_and_the_roll_about_it():
     e = orientation_errors_deg(both, truth)
     np.testing.assert_allclose(e[1:], [[20, 20], [30, 30]], atol=1e-9)
     assert (e[0] > 30).all()
+
+
+def test_rotation_steps_are_summed_over_seeds_by_their_count():
+    """The seeds' rotation-step blocks become one, weighted by each seed's step count (a seed with one step
+    must not count as much as one with thirty), and the report page states it; no rotation steps, no line."""
+    from testbed.evaluate import _rotation_html, _rotation_summary
+
+    a = {"n_steps_scored": 30, "mean_true_roll_deg": 8.0, "mae_roll_deg": 2.0, "rms_roll_error_deg": 3.0,
+         "mean_true_tilt_deg": 5.0, "mae_tilt_deg": 2.0}
+    b = {"n_steps_scored": 1, "mean_true_roll_deg": 8.0, "mae_roll_deg": 33.0, "rms_roll_error_deg": 33.0,
+         "mean_true_tilt_deg": 5.0, "mae_tilt_deg": 2.0}
+    rot = _rotation_summary([a, b, {"n_steps_scored": 0}])
+    assert rot["n_steps_scored"] == 31
+    assert rot["mae_roll_deg"] == pytest.approx((30 * 2.0 + 33.0) / 31)
+    assert rot["rms_roll_error_deg"] == pytest.approx(((30 * 9.0 + 33.0**2) / 31) ** 0.5)
+    assert "31, roll error 3.00 deg mean" in _rotation_html(rot)
+    assert _rotation_summary([]) == {"n_steps_scored": 0} and _rotation_html({"n_steps_scored": 0}) == ""

@@ -455,3 +455,27 @@ def test_steps_carry_the_radius_uncertainty_and_the_filter_takes_it_back_out():
 
     w = with_lumen_uncertainty([s.with_status(StepStatus.WALL)], 0.2, 0.1)[0]
     assert w.sigma_distance_m == pytest.approx(np.sqrt(1e-4**2 + 8e-4**2 + (WALL_SIGMA_FACTOR * 4e-4)**2), rel=1e-9)
+
+
+def test_a_rotation_step_turns_the_filter_and_leaves_its_translation_unknown(demo):
+    """A step with only its rotation measured (status rotation): the dead reckoner and the filters apply that
+    rotation, with its own 1-sigma, and repeat the last translation with a missing step's 1-sigma."""
+    from bodyslam.fusion.body_slam import DeadReckoner
+    from bodyslam.fusion.ekf import MISSING_SIGMA_T_MIN_M, process_noise, step_rotation_matrices
+
+    steps, *_ = demo
+    steps = list(steps[:10])
+    R5 = Rotation.from_matrix(steps[5].R_c1_c2)
+    steps[5] = StepMotion(np.nan, 0.0, 0.0, 0.0, 0.0, 100, "rotation", R5.as_matrix(), None, np.nan, 0.07)
+    t_applied, sig_t, sig_r = process_noise(steps)
+    assert np.allclose(t_applied[5], steps[4].t_c1_c2_m)  # constant velocity: the last estimated step
+    assert sig_t[5] == pytest.approx(max(np.linalg.norm(steps[4].t_c1_c2_m), MISSING_SIGMA_T_MIN_M))
+    assert sig_r[5] == pytest.approx(0.07)  # its own rotation 1-sigma, not a missing step's 5 deg
+    assert np.allclose(step_rotation_matrices(steps)[5], R5.as_matrix())
+    dr, ref = DeadReckoner(), DeadReckoner()
+    for k, s in enumerate(steps):
+        dr.step(s)
+        ref.step(s if k != 5 else StepMotion.failed("too_few_matches"))
+    # the rotation step's turn is kept, not dropped: the two orientations differ by R5 seen through the later steps
+    assert R5.magnitude() > 0.01
+    assert (ref.R_w_c.inv() * dr.R_w_c).magnitude() == pytest.approx(R5.magnitude(), abs=1e-9)

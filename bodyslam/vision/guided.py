@@ -1,0 +1,147 @@
+"""The rotation of a fast step, by matching under motion hypotheses (status ``rotation``).
+
+A capsule that jumps ~1 cm in a frame interval (the realistic testbed's fast phases: most of a lumen radius)
+leaves frame 1's near wall out of frame 2: Lowe's ratio test over the whole
+image keeps ~12 verified matches, too few for the 10-parameter tube fit (status ``too_few_matches``), or a fit
+whose distance is uncertain (``uncertain``). Such steps held a fifth of the realistic steps and nearly half of the
+distance travelled, and each lost its ~8 degrees of roll, which RF cannot see.
+
+Guided matching: for motion hypotheses (forward steps of 4-16 mm, rolls of -16..16 degrees, the tube's axis on
+the optical axis; plus the fit of the ordinary matches when there was one), predict where each frame-1 keypoint
+lands in frame 2 (:func:`bodyslam.vision.motion.tube_predict`), keep its best descriptor neighbour within a
+window around the prediction when it passes a ratio test against the next one there, and verify by a RANSAC
+essential matrix. The hypothesis with the most verified matches is fitted by the tube estimator, and matching is
+repeated once around that fit with a narrower window.
+
+What it measures (tuning seeds 503-508 of ``realistic``, ``sift`` mode: 220 steps the tube fit failed on,
+``docs/RESULTS.md``): the rotation, not the distance. Under forward motion the epipolar lines run radially, so a
+forward hypothesis finds matches along them whatever the true distance: the distance comes out biased toward the
+hypotheses (mean error 0.48 cm of 0.83) and is not reported. The roll and tilt hold: with at least
+:data:`MIN_GUIDED_MATCHES` matches after the second pass (80 in ``sift`` mode: 140 of the 220 steps) the roll
+errs 2.4 deg at the 68th percentile (3.8 RMS) and the tilt 2.5, where those steps' true roll is ~11 deg RMS.
+The step is written with its rotation, ``distance_m`` NaN, and the 1-sigma :data:`ROTATION_SIGMA_RAD`; the
+filters apply the rotation and treat the translation as unknown (the last estimated step again, with a missing
+step's 1-sigma).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from bodyslam.camera import CameraModel
+from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
+from bodyslam.vision.matching import Matcher, Matches
+from bodyslam.vision.motion import fit_tube, tube_predict
+
+__all__ = ["estimate_rotation", "hypotheses", "guided_matches", "descriptor_distances", "MIN_GUIDED_MATCHES",
+           "ROTATION_SIGMA_RAD"]
+
+# fewer verified guided matches than this after the second pass: no estimate, per matcher mode (the count a wrong
+# hypothesis reaches along the radial epipolar lines grows with the keypoints). Chosen on the tuning seeds
+# (420x420 frames). ``sift`` (3000 keypoints; 220 failed steps): the roll error's RMS is 11.9 deg for counts of
+# 65-80 (74 steps; the true roll is ~11 deg RMS), 5.7 for 80-100 (58), 1.7 for 100-150 (52), 0.4 above (30).
+# ``fast`` (800 keypoints at 0.7 scale; 332 failed steps, FT/FL not classified): 14.9 deg for 30-40 (35), 10.9
+# for 40-50 (159), 4.7 for 50-65 (86), 0.3 above (51). ``asift`` keeps 3000 keypoints as ``sift`` does and takes
+# its threshold (not measured separately). Below these a step carries no information and would break the stated
+# 1-sigma
+MIN_GUIDED_MATCHES = {"sift": 80, "asift": 80, "fast": 50}
+# 1-sigma of a rotation step's rotation: on the tuning seeds the kept steps' roll error is 2.4 deg at the 68th
+# percentile and 3.8 deg RMS, the tilt's 2.5 at the 68th percentile
+ROTATION_SIGMA_RAD = math.radians(4.0)
+# windows around the prediction, as angles at the image centre (x the camera's pixels per radian): ~30 px and
+# ~12 px on the testbed's 420 px frames
+WINDOW_RAD, REFINE_WINDOW_RAD = 0.19, 0.08
+RATIO = 0.9  # Lowe's ratio against the next neighbour inside the window (the window already excludes most)
+
+
+def hypotheses(radius_m: float) -> list[np.ndarray]:
+    """Tube-model 10-vectors (:func:`bodyslam.vision.motion.fit_tube`) of the motion hypotheses: forward steps of
+    0.3-1.3 lumen radii (4-16 mm at the 12.5 mm prior) by rolls of -16, -8, 0, 8, 16 deg, axis on the optical axis."""
+    out = []
+    for d in np.array([0.32, 0.64, 0.96, 1.28]) * radius_m:
+        for roll in np.radians([-16.0, -8.0, 0.0, 8.0, 16.0]):
+            x = np.zeros(10)
+            x[2], x[5] = roll, d
+            out.append(x)
+    return out
+
+
+def descriptor_distances(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """Euclidean distances ``(n1, n2)`` between two sets of descriptors, float32 (one matrix product: 3000 x 3000
+    SIFT descriptors in ~0.1 s and 36 MB)."""
+    a, b = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
+    sq = (a * a).sum(axis=1)[:, None] + (b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)
+    return np.sqrt(np.maximum(sq, 0.0))
+
+
+def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray,
+                   params: np.ndarray, camera: CameraModel, radius_m: float, window_rad: float,
+                   min_sep_px: float = 2.0) -> Matches:
+    """Verified matches under the motion ``params``: each frame-1 keypoint (``pts1``) takes the nearest
+    descriptor (``dist12``: :func:`descriptor_distances`) among the frame-2 keypoints (``pts2``, in ``tree``)
+    within ``window_rad`` (x the camera's focal length in pixels) of its predicted position, if that passes the
+    ratio test against the next one there that is a different point (more than ``min_sep_px`` away)."""
+    uv, vis = tube_predict(params, pts1, camera, radius_m)
+    rows = np.nonzero(vis & np.isfinite(uv).all(axis=1))[0]
+    empty = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
+    if len(rows) < 8:
+        return empty
+    cands = tree.query_ball_point(uv[rows], window_rad * float(camera.fx))
+    n_c = np.fromiter((len(c) for c in cands), int, len(cands))
+    if n_c.sum() == 0:
+        return empty
+    i = np.repeat(rows, n_c)  # candidate pairs (frame-1 keypoint i, frame-2 keypoint j)
+    j = np.fromiter((x for c in cands for x in c), int, int(n_c.sum()))
+    dist = dist12[i, j]
+    order = np.lexsort((dist, i))  # by keypoint, nearest descriptor first
+    i, j, dist = i[order], j[order], dist[order]
+    starts = np.r_[0, np.nonzero(np.diff(i))[0] + 1]
+    best_j, best_d = j[starts], dist[starts]
+    # the next candidate of the same keypoint that is a different point: its descriptor distance
+    grp = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(i)]))
+    other = np.linalg.norm(pts2[j] - pts2[best_j[grp]], axis=1) > min_sep_px
+    second = np.full(len(starts), np.inf)
+    np.minimum.at(second, grp[other], dist[other])
+    good = best_d < RATIO * second
+    p1, p2 = pts1[i[starts][good]], pts2[best_j[good]]
+    if len(p1) < 8:
+        return empty
+    _, keep = np.unique(np.round(p2, 1), axis=0, return_index=True)  # one match per frame-2 point
+    keep = np.sort(keep)
+    return matcher.verify(p1[keep], p2[keep])
+
+
+def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: float,
+                      start: np.ndarray | None = None) -> StepMotion | None:
+    """The rotation of a step the ordinary matches could not fit (module docstring), as a step with status
+    ``rotation``; None when guided matching finds fewer than :data:`MIN_GUIDED_MATCHES` (the matcher mode's).
+    ``start``: the ordinary fit's 10-vector, when there was one (an ``uncertain`` step), tried beside the
+    hypotheses."""
+    min_matches = MIN_GUIDED_MATCHES[matcher.mode]
+    (pts1, d1), (pts2, d2) = matcher.keypoints(f1), matcher.keypoints(f2)
+    if d1 is None or d2 is None or len(pts1) < min_matches or len(pts2) < min_matches:
+        return None
+    tree, dist12 = cKDTree(pts2), descriptor_distances(d1, d2)
+
+    def matches(x, window_rad):
+        return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad)
+
+    starts = ([] if start is None else [np.asarray(start, float)]) + hypotheses(radius_m)
+    best = max((matches(x, WINDOW_RAD) for x in starts), key=len)
+    s, x = fit_tube(best, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf)
+    if x is None:
+        return None
+    refined = matches(x, REFINE_WINDOW_RAD)
+    if len(refined) < min_matches:
+        return None
+    s, x = fit_tube(refined, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf)
+    if x is None:
+        return None
+    R = Rotation.from_matrix(s.R_c1_c2)
+    rot = motion_from_transform(R, np.zeros(3), len(refined), status=StepStatus.ROTATION)
+    return StepMotion(math.nan, rot.roll_rad, rot.pitch_rad, rot.yaw_rad, rot.tilt_rad, len(refined),
+                      StepStatus.ROTATION, R.as_matrix(), None, math.nan, ROTATION_SIGMA_RAD)
