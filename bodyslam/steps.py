@@ -35,7 +35,7 @@ from enum import StrEnum
 import numpy as np
 
 __all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "WITH_ROTATION", "StepMotion", "motion_from_transform",
-           "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
+           "rotation_step", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -136,3 +136,10 @@ def motion_from_transform(R_c1_c2, t_c1_c2_m: np.ndarray, n_matches: int = 0, si
     dist = float(np.linalg.norm(t)) * (1.0 if t[2] >= 0 else -1.0)
     return StepMotion(dist, float(roll[0]), float(swing[0, 0]), float(swing[0, 1]), float(np.linalg.norm(swing[0])),
                       n_matches, StepStatus(status), R_c1_c2.as_matrix(), t, sigma_distance_m, sigma_rotation_rad)
+
+
+def rotation_step(R_c1_c2, n_matches: int, sigma_rotation_rad: float) -> StepMotion:
+    """A step with only its rotation measured (status ``rotation``, ``R_c1_c2``: scipy Rotation): roll, pitch, yaw
+    and tilt as :func:`motion_from_transform` gives them, distance and translation NaN / None."""
+    s = motion_from_transform(R_c1_c2, np.zeros(3), n_matches, NAN, sigma_rotation_rad, StepStatus.ROTATION)
+    return replace(s, distance_m=NAN, t_c1_c2_m=None)

@@ -31,12 +31,17 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
+def _angle_errors(tr: dict, es: dict, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(|roll error|, |tilt error|)`` (rad) of the steps ``idx``."""
+    return (np.abs(_wrap(es["roll_rad"][idx] - tr["roll_rad"][idx])),
+            np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx]))
+
+
 def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
     if len(idx) == 0:
         return {"n_steps_scored": 0}
     e_d = np.abs(es["distance_m"][idx] - tr["distance_m"][idx])
-    e_r = np.abs(_wrap(es["roll_rad"][idx] - tr["roll_rad"][idx]))
-    e_t = np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx])
+    e_r, e_t = _angle_errors(tr, es, idx)
     e_v = np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx])
     return {
         "n_steps_scored": int(len(idx)),
@@ -60,8 +65,7 @@ def _rotation_block(tr: dict, es: dict, idx: np.ndarray) -> dict:
     """Roll and tilt errors of steps that measured only their rotation (status ``rotation``; no distance)."""
     if len(idx) == 0:
         return {"n_steps_scored": 0}
-    e_r = np.abs(_wrap(es["roll_rad"][idx] - tr["roll_rad"][idx]))
-    e_t = np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx])
+    e_r, e_t = _angle_errors(tr, es, idx)
     return {"n_steps_scored": int(len(idx)),
             "mean_true_roll_deg": float(np.degrees(np.mean(np.abs(tr["roll_rad"][idx])))),
             "mae_roll_deg": float(np.degrees(np.mean(e_r))),

@@ -118,9 +118,9 @@ def _rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
     return R
 
 
-def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius: float, max_depth: float,
-                          noise_rad: float, prior_sigma: np.ndarray) -> np.ndarray:
-    """Residuals of the tube model for a batch of parameter vectors ``P (B, 10)`` -> ``(B, 3 n + 4)``."""
+def _tube_points_in_frame2(P: np.ndarray, b1: np.ndarray, radius: float, max_depth: float) -> np.ndarray:
+    """Where frame-1 rays ``b1 (n, 3)`` meet the tube, in frame 2's axes, for a batch of parameter vectors
+    ``P (B, 10)`` -> ``(B, n, 3)`` (depth capped at ``max_depth``)."""
     B = len(P)
     R = _rotvec_to_matrix(P[:, 0:3])
     t = P[:, 3:6]
@@ -140,7 +140,14 @@ def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius:
         lam = (wu + np.sqrt(np.maximum(disc, 0.0))) / ww
     lam = np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth), max_depth)
     X = lam[..., None] * b1[None] - t[:, None, :]
-    X2 = np.einsum("bij,bjk->bik", X, R)  # rows: R^T (X - t)
+    return np.einsum("bij,bjk->bik", X, R)  # rows: R^T (X - t)
+
+
+def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius: float, max_depth: float,
+                          noise_rad: float, prior_sigma: np.ndarray) -> np.ndarray:
+    """Residuals of the tube model for a batch of parameter vectors ``P (B, 10)`` -> ``(B, 3 n + 4)``."""
+    B = len(P)
+    X2 = _tube_points_in_frame2(P, b1, radius, max_depth)
     X2 /= np.sqrt(np.einsum("bij,bij->bi", X2, X2))[..., None]
     r = np.stack([b2[None, :, 1] * X2[..., 2] - b2[None, :, 2] * X2[..., 1],
                   b2[None, :, 2] * X2[..., 0] - b2[None, :, 0] * X2[..., 2],
@@ -296,19 +303,7 @@ def tube_predict(params: np.ndarray, pts1_px: np.ndarray, camera: CameraModel, r
     """Where frame-1 pixels ``pts1_px (n, 2)`` land in frame 2 under the tube model ``params`` (the 10-vector of
     :func:`fit_tube`): each ray meets the tube (depth capped at ``max_depth_m``, as in the fit), the point is
     moved into frame 2 and projected. Returns ``(uv_px (n, 2), valid (n,))``."""
-    x = np.asarray(params, float)
     b1, v1 = camera.unproject(pts1_px)
-    axis = np.array([x[6], x[7], 1.0])
-    axis /= np.linalg.norm(axis)
-    origin = np.array([x[8], x[9], 0.0])
-    w = np.cross(b1, axis)
-    u = np.cross(origin, axis)
-    ww = np.einsum("ij,ij->i", w, w)
-    wu = w @ u
-    disc = wu * wu - ww * (u @ u - radius_m * radius_m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (wu + np.sqrt(np.maximum(disc, 0.0))) / ww
-    lam = np.where(np.isfinite(lam) & (lam > 0), np.minimum(lam, max_depth_m), max_depth_m)
-    X2 = (lam[:, None] * b1 - x[3:6]) @ _rotvec_to_matrix(x[None, 0:3])[0]  # rows: R^T (X - t)
+    X2 = _tube_points_in_frame2(np.asarray(params, float).reshape(1, 10), b1, radius_m, max_depth_m)[0]
     uv, v2 = camera.project(X2)
     return uv, v1 & v2

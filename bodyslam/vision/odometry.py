@@ -40,7 +40,7 @@ from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import Frame, FrameSource
 from bodyslam.io import read_image
 from bodyslam.meta import read_meta
-from bodyslam.steps import MEASURED, StepMotion, StepStatus, motion_from_transform
+from bodyslam.steps import MEASURED, StepMotion, StepStatus, motion_from_transform, rotation_step
 
 log = logging.getLogger(__name__)
 
@@ -146,26 +146,28 @@ class VisualOdometry:
             self.T_body_cam = (Rotation.from_quat(T_body_cam[0]), np.asarray(T_body_cam[1], float).reshape(3))
 
     # -- one pair ---------------------------------------------------------------------------------------------
-    def _fit(self, m) -> tuple[StepMotion, np.ndarray | None]:
-        """The step from matches, and the tube fit's 10-vector where there was one."""
+    def _fit(self, m, estimator: str | None = None) -> tuple[StepMotion, np.ndarray | None]:
+        """The step from matches by ``estimator`` (default: the settings'), and the tube fit's 10-vector where
+        there was one."""
         from bodyslam.vision.motion import estimate_thesis, fit_tube
 
-        if self.settings.estimator == "tube":
+        if (estimator or self.settings.estimator) == "tube":
             return fit_tube(m, self.camera, self.radius_m, min_matches=self.settings.min_matches)
         return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches), None
 
-    def estimate_pair(self, f1, f2, estimate: Callable | None = None, rotation: bool = True) -> StepMotion:
+    def estimate_pair(self, f1, f2, estimator: str | None = None, rotation: bool = True) -> StepMotion:
         """Match two frames' features and estimate the step; in fast mode a tracked pair (Lucas-Kanade) whose
         estimate fails (too few matches, uncertain) is matched again by descriptors, so tracking never costs
         coverage. A step the tube fit still fails on gets its rotation by guided matching where it can (status
         ``rotation``, :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off:
-        not tried). The step is in the body frame (:meth:`to_body`)."""
-        fit = self._fit if estimate is None else (lambda m: (estimate(m), None))
+        not tried). ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). The
+        step is in the body frame (:meth:`to_body`)."""
+        estimator = estimator or self.settings.estimator
         m = self.matcher.match_features(f1, f2)
-        s, x = fit(m)
+        s, x = self._fit(m, estimator)
         if not s.ok and m.method == "lk":
-            s, x = fit(self.matcher.match_features(f1, f2, "descriptors"))
-        if (rotation and self.settings.rotation_steps and self.settings.estimator == "tube"
+            s, x = self._fit(self.matcher.match_features(f1, f2, "descriptors"), estimator)
+        if (rotation and self.settings.rotation_steps and estimator == "tube"
                 and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)):
             from bodyslam.vision.guided import estimate_rotation
 
@@ -179,9 +181,7 @@ class VisualOdometry:
         R_bc, t_bc = self.T_body_cam
         R = R_bc * Rotation.from_matrix(s.R_c1_c2) * R_bc.inv()
         if s.t_c1_c2_m is None:  # a rotation step: the body turns by the same rotation, in its own axes
-            b = motion_from_transform(R, np.zeros(3))
-            return replace(s, roll_rad=b.roll_rad, pitch_rad=b.pitch_rad, yaw_rad=b.yaw_rad, tilt_rad=b.tilt_rad,
-                           R_c1_c2=R.as_matrix())
+            return rotation_step(R, s.n_matches, s.sigma_rotation_rad)
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
         return motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad, s.status)
 
@@ -249,14 +249,10 @@ class VisualOdometry:
 
     def bridge(self, img_a: np.ndarray | None, img_b: np.ndarray | None) -> StepMotion | None:
         """The motion from frame ``a`` straight to frame ``b`` (a gap's ends, tube estimator), or None."""
-        from bodyslam.vision.motion import estimate_tube
-
         if img_a is None or img_b is None:
             return None
         fa, fb = self.matcher.features(img_a), self.matcher.features(img_b)
-        s = self.estimate_pair(fa, fb, lambda m: estimate_tube(m, self.camera, self.radius_m,
-                                                                min_matches=self.settings.min_matches),
-                               rotation=False)
+        s = self.estimate_pair(fa, fb, "tube", rotation=False)
         return s if s.ok else None
 
 
