@@ -78,11 +78,10 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
         t0 = time.perf_counter()
         for k in range(1, seq.n_frames):
             f = matcher.features(seq.frame(k))
-            m = matcher.match_features(prev, f)
-            tube = estimate_tube(m, seq.camera, seq.radius_m)
-            if not tube.ok and m.method == "lk":  # as bodyslam.vision.odometry.VisualOdometry.estimate_pair
-                m = matcher.match_features(prev, f, "descriptors")
+            for m in matcher.cascade(prev, f):  # as bodyslam.vision.odometry.VisualOdometry.estimate_pair
                 tube = estimate_tube(m, seq.camera, seq.radius_m)
+                if tube.ok:
+                    break
             prev = f
             steps["tube"].append(tube)
             steps["thesis"].append(estimate_thesis(m, un, seq.radius_m))

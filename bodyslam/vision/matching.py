@@ -11,9 +11,13 @@ Modes
   degrees per step: the extra rolls add keypoints, not matches); 20 seeds in the README.
 - ``sift``: plain SIFT, same matching (a middle ground).
 - ``fast`` (whole exams): pyramidal Lucas-Kanade tracking of up to 300 corners (forward-backward check,
-  specular highlights masked) first; when fewer than 60 tracks verify, SIFT detected on the frame scaled by
+  specular highlights masked) first; when fewer than 60 tracks verify, or the step's fit fails on them, SIFT
+  detected on the frame scaled by :data:`COARSE_SCALE` = 0.5, and when the fit fails on those too, by
   ``detect_scale`` = 0.7 (SIFT doubles its input, so most of its cost is the first octave: 0.7 halves the
-  detection time), at most 800 keypoints, at most 200 matches to verify. Cheaper detectors were measured on a thesis frame pair (420x420) and fail on capsule motion:
+  detection time), at most 800 keypoints, at most 200 matches to verify (:meth:`Matcher.cascade`). The 0.5 try
+  costs ~30 ms per pair against ~75 for 0.7 (both frames' detection, matching, fit; one core) and fits all 25 of the 250 first whole-exam pairs tracking fails on
+  (distance error 0.0067 cm against 0.0059); on thesis motion it fits fewer and 0.7 follows (README).
+  Cheaper detectors were measured on a thesis frame pair (420x420) and fail on capsule motion:
   ORB found 13-17 verified matches of 1500 keypoints; pyramidal Lucas-Kanade kept 44 of 600 corners in the image
   and 22 of 400 in the unrolled image (a capsule rolls ~8 degrees and the near wall's angular depth jumps by up to
   ~20 degrees per frame at 2 frames/s); SIFT on the half-resolution image verified 32. Dense DIS optical flow
@@ -40,6 +44,7 @@ verified matches, and how many candidates there were before verification.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -56,6 +61,8 @@ from bodyslam.choices import MATCH_MODES  # noqa: E402
 ASIFT_VIEWS = ("compact", "standard")
 # per mode: (detect_scale, max_features, max_matches); see the module docstring
 MODE_DEFAULTS = {"asift": (0.85, 3000, 400), "sift": (1.0, 3000, 400), "fast": (0.7, 800, 200)}
+# fast mode's first SIFT try: detection on the frame scaled by 0.5, before ``detect_scale`` (module docstring)
+COARSE_SCALE = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,6 +85,7 @@ class FrameFeatures:
     raw_gray: np.ndarray
     kp: tuple[np.ndarray, np.ndarray | None] | None = None
     corners: np.ndarray | None = None
+    kp_coarse: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's first SIFT try (COARSE_SCALE)
 
 
 MIN_OVERLAY_PIXELS = 16  # a constant blob inside the field smaller than this is a speck, not burned-in text
@@ -182,10 +190,8 @@ class Matcher:
             m8 = cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * border_px + 1,) * 2),
                            borderType=cv2.BORDER_CONSTANT, borderValue=0)
         self.mask = m8
-        self._mask_small = m8
-        if self.detect_scale < 1.0:
-            size = (max(1, round(m8.shape[1] * self.detect_scale)), max(1, round(m8.shape[0] * self.detect_scale)))
-            self._mask_small = cv2.resize(m8, size, interpolation=cv2.INTER_NEAREST)
+        self._mask_small = self._scaled_mask(self.detect_scale)
+        self._mask_coarse = self._scaled_mask(COARSE_SCALE) if mode == "fast" else None
         # contrastThreshold 0.01: rendered and real mucosa are low-contrast (OpenCV's 0.04 finds ~50 points)
         if mode == "asift":
             if asift_views not in ASIFT_VIEWS:
@@ -221,13 +227,25 @@ class Matcher:
             self.keypoints(f)
         return f
 
-    def keypoints(self, f: "FrameFeatures") -> tuple[np.ndarray, np.ndarray | None]:
-        if f.kp is not None:
-            return f.kp
+    def _scaled_mask(self, scale: float) -> np.ndarray:
+        if scale >= 1.0:
+            return self.mask
+        m8 = self.mask
+        size = (max(1, round(m8.shape[1] * scale)), max(1, round(m8.shape[0] * scale)))
+        return cv2.resize(m8, size, interpolation=cv2.INTER_NEAREST)
+
+    def keypoints(self, f: "FrameFeatures", coarse: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(pts_px (n, 2), descriptors)`` of a frame, detected once: on the frame scaled by ``detect_scale``,
+        or (``coarse``, fast mode) by :data:`COARSE_SCALE`."""
+        if coarse and self._mask_coarse is None:
+            raise ConfigError(f"coarse keypoints are fast mode's, this matcher is {self.mode!r}")
+        if (f.kp_coarse if coarse else f.kp) is not None:
+            return f.kp_coarse if coarse else f.kp
         gray = f.gray
-        if self.detect_scale < 1.0:
-            small = cv2.resize(gray, self._mask_small.shape[::-1], interpolation=cv2.INTER_AREA)
-            kp, desc = self._det.detectAndCompute(small, self._mask_small)
+        small_mask = self._mask_coarse if coarse else self._mask_small
+        if small_mask.shape != self.mask.shape:
+            small = cv2.resize(gray, small_mask.shape[::-1], interpolation=cv2.INTER_AREA)
+            kp, desc = self._det.detectAndCompute(small, small_mask)
             sx = self.mask.shape[1] / small.shape[1]
             sy = self.mask.shape[0] / small.shape[0]
             # pixel centres: full = (small + 0.5) * s - 0.5
@@ -246,12 +264,17 @@ class Matcher:
         if len(kp) > self.max_features:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
             keep = np.argsort([-k.response for k in kp], kind="stable")[: self.max_features]
             kp, desc = [kp[i] for i in keep], desc[keep]
-        f.kp = (np.array([k.pt for k in kp], np.float64).reshape(-1, 2), desc)
-        return f.kp
+        out = (np.array([k.pt for k in kp], np.float64).reshape(-1, 2), desc)
+        if coarse:
+            f.kp_coarse = out
+        else:
+            f.kp = out
+        return out
 
     def match_features(self, f1: "FrameFeatures", f2: "FrameFeatures", method: str | None = None) -> Matches:
-        """Verified matches from frame 1 to frame 2. ``method``: ``"lk"`` (tracking), ``"descriptors"``, or
-        ``None``: the mode's first choice (fast: tracking, then descriptors when tracking verifies too few)."""
+        """Verified matches from frame 1 to frame 2. ``method``: ``"lk"`` (tracking), ``"descriptors"``,
+        ``"coarse"`` (fast mode: descriptors detected at :data:`COARSE_SCALE`), or ``None``: the mode's first
+        choice (fast: tracking, then descriptors when tracking verifies too few)."""
         if method is None:
             if self.mode == "fast":
                 m = self._track(f1, f2)
@@ -260,9 +283,10 @@ class Matcher:
             method = "descriptors"
         if method == "lk":
             return self._track(f1, f2)
-        if method != "descriptors":
-            raise ConfigError(f"match method must be 'lk' or 'descriptors', got {method!r}")
-        (pts1, d1), (pts2, d2) = self.keypoints(f1), self.keypoints(f2)
+        if method not in ("descriptors", "coarse"):
+            raise ConfigError(f"match method must be 'lk', 'coarse' or 'descriptors', got {method!r}")
+        coarse = method == "coarse"
+        (pts1, d1), (pts2, d2) = self.keypoints(f1, coarse), self.keypoints(f2, coarse)
         if d1 is None or d2 is None or len(pts1) < 2 or len(pts2) < 2:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
         q, t = self._ratio_matches(d1, d2, pts2)
@@ -278,6 +302,19 @@ class Matcher:
         n_cand = len(p1)
         inl = self._verify(p1, p2)
         return Matches(p1[inl], p2[inl], n_cand)
+
+    def cascade(self, f1: "FrameFeatures", f2: "FrameFeatures") -> Iterator[Matches]:
+        """The matches to try for a pair, cheapest first; the caller stops at the first its estimator accepts.
+        Fast mode: the Lucas-Kanade tracks (when at least ``lk_min_matches`` verify), then descriptors detected
+        at :data:`COARSE_SCALE`, then at ``detect_scale`` (module docstring); other modes: their descriptors."""
+        if self.mode != "fast":
+            yield self.match_features(f1, f2, "descriptors")
+            return
+        m = self._track(f1, f2)
+        if len(m) >= self.lk_min_matches:
+            yield m
+        yield self.match_features(f1, f2, "coarse")
+        yield self.match_features(f1, f2, "descriptors")
 
     def match(self, rgb1: np.ndarray, rgb2: np.ndarray) -> Matches:
         return self.match_features(self.features(rgb1), self.features(rgb2))

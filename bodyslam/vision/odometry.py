@@ -156,17 +156,18 @@ class VisualOdometry:
         return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches), None
 
     def estimate_pair(self, f1, f2, estimator: str | None = None, rotation: bool = True) -> StepMotion:
-        """Match two frames' features and estimate the step; in fast mode a tracked pair (Lucas-Kanade) whose
-        estimate fails (too few matches, uncertain) is matched again by descriptors, so tracking never costs
-        coverage. A step the tube fit still fails on gets its rotation by guided matching where it can (status
+        """Match two frames' features and estimate the step from the first matches of the matcher's cascade
+        (:meth:`~bodyslam.vision.matching.Matcher.cascade`) the estimate succeeds on: in fast mode tracking, then
+        coarse descriptors, then descriptors, so the cheap tries never cost coverage. A step the tube fit still
+        fails on gets its rotation by guided matching where it can (status
         ``rotation``, :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off:
         not tried). ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). The
         step is in the body frame (:meth:`to_body`)."""
         estimator = estimator or self.settings.estimator
-        m = self.matcher.match_features(f1, f2)
-        s, x = self._fit(m, estimator)
-        if not s.ok and m.method == "lk":
-            s, x = self._fit(self.matcher.match_features(f1, f2, "descriptors"), estimator)
+        for m in self.matcher.cascade(f1, f2):
+            s, x = self._fit(m, estimator)
+            if s.ok:
+                break
         if (rotation and self.settings.rotation_steps and estimator == "tube"
                 and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)):
             from bodyslam.vision.guided import estimate_rotation

@@ -52,8 +52,11 @@ def test_ctrl_c_stops_a_pool_cleanly(tmp_path):
     import time
 
     (tmp_path / "job.py").write_text(SCRIPT)
+    # SIGINT back to its default in the job: a shell without job control starts background commands with SIGINT
+    # ignored, and a Python started so inherits that and never raises KeyboardInterrupt (a suite run with `&`)
     p = subprocess.Popen([sys.executable, str(tmp_path / "job.py")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, start_new_session=True)
+                         text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert p.stdout.readline().strip() == "started"
     time.sleep(3.0)  # the two workers are spawned and sleeping in their task
     os.killpg(p.pid, signal.SIGINT)

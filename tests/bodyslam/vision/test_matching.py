@@ -69,3 +69,36 @@ def test_features_avoid_a_given_mask():
     assert len(pts) > 20 and (pts[:, 0] >= 100 - 0.5).all()
     with pytest.raises(ConfigError, match="mask is"):
         Matcher(cam, "sift", mask=np.ones((10, 10), bool))
+
+
+def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
+    from pathlib import Path
+
+    from bodyslam.io import read_image
+    from bodyslam.meta import read_meta
+    from bodyslam.vision.matching import COARSE_SCALE
+
+    demo = Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0"
+    cam = read_meta(demo).camera_model()
+    f1, f2 = (read_image(demo / "frames" / f"{k:06d}.png") for k in (3, 4))
+    mt = Matcher(cam, "fast")
+    mt.lk_min_matches = 0  # (thesis motion: tracking verifies few tracks on this pair) offer them anyway
+    a, b = mt.features(f1), mt.features(f2)
+    tries = list(mt.cascade(a, b))
+    assert [m.method for m in tries] == ["lk", "descriptors", "descriptors"]
+    # the coarse try detects on the frame scaled by COARSE_SCALE (fewer keypoints), in full-frame pixels
+    (pc, _), (pf, _) = a.kp_coarse, a.kp
+    assert 20 < len(pc) < len(pf)
+    assert pc.max() > COARSE_SCALE * cam.width  # not left in the small image's pixels
+    ij = np.rint(pc).astype(int)
+    assert (mt.mask[ij[:, 1], ij[:, 0]] > 0).all()
+    assert len(tries[1]) < 20 <= len(tries[2])  # a thesis-motion pair that needs the full-scale try
+    # tracking that verifies too few is not offered; a cascade stopped early detects nothing it did not need
+    mt.lk_min_matches = len(tries[0]) + 1
+    c, d = mt.features(f1), mt.features(f2)
+    first = next(mt.cascade(c, d))
+    assert first.method == "descriptors" and c.kp_coarse is not None and c.kp is None
+    sift = Matcher(cam, "sift")
+    assert len(list(sift.cascade(sift.features(f1), sift.features(f2)))) == 1
+    with pytest.raises(ConfigError, match="coarse"):
+        sift.keypoints(sift.features(f1), coarse=True)

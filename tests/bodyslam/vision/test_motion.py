@@ -111,3 +111,35 @@ def test_thesis_tilt_fit_recovers_a_small_tilt():
     assert est.yaw_rad == pytest.approx(-0.04, abs=0.002)
     literal = estimate_thesis(m, Unroller(CAM), R_TUBE, literal_signs=True)
     assert abs(literal.tilt_rad - 0.05) > 0.5  # Eq. 3.20 as printed: a ratio near 2, not the 0.05 rad tilt
+
+
+def test_tube_residuals_are_the_geometry_they_state():
+    # the fit's residuals (written on coordinate arrays for speed) against the model computed point by point:
+    # each frame-1 ray meets the tube at X (solved as a quadratic), X seen from frame 2 is R^T (X - t), and the
+    # residual is the sine vector between it and the frame-2 ray, over the noise
+    from bodyslam.vision.motion import _tube_residuals_batch
+
+    rng = np.random.default_rng(8)
+    b1 = rng.normal(size=(30, 3))
+    b1[:, 2] = np.abs(b1[:, 2]) + 0.2
+    b1 /= np.linalg.norm(b1, axis=1)[:, None]
+    b2 = b1 + rng.normal(0, 0.05, b1.shape)
+    b2 /= np.linalg.norm(b2, axis=1)[:, None]
+    P = np.c_[rng.normal(0, 0.2, (3, 3)), rng.normal(0, 0.004, (3, 3)), rng.normal(0, 0.2, (3, 2)),
+              rng.normal(0, 0.004, (3, 2))]
+    prior = np.array([0.35, 0.35, 0.006, 0.006])
+    got = _tube_residuals_batch(P, b1, b2, R_TUBE, 0.3, 0.003, prior)
+    for p, row in zip(P, got):
+        R = Rotation.from_rotvec(p[0:3]).as_matrix()
+        a = np.array([p[6], p[7], 1.0]) / np.linalg.norm([p[6], p[7], 1.0])
+        o = np.array([p[8], p[9], 0.0])
+        want = []
+        for b, c in zip(b1, b2):
+            # |(lam b - o) - ((lam b - o) . a) a| = R: a quadratic in lam, the far root
+            bp, op = b - (b @ a) * a, o - (o @ a) * a
+            qa, qb, qc = bp @ bp, -2 * bp @ op, op @ op - R_TUBE**2
+            lam = min((-qb + math.sqrt(qb * qb - 4 * qa * qc)) / (2 * qa), 0.3)
+            X2 = R.T @ (lam * b - p[3:6])
+            want.extend(np.cross(c, X2 / np.linalg.norm(X2)) / 0.003)
+        np.testing.assert_allclose(row[:-4], want, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(row[-4:], p[6:10] / prior)
