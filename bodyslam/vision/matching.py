@@ -15,8 +15,9 @@ Modes
   detected on the frame scaled by :data:`COARSE_SCALE` = 0.5, and when the fit fails on those too, by
   ``detect_scale`` = 0.7 (SIFT doubles its input, so most of its cost is the first octave: 0.7 halves the
   detection time), at most 800 keypoints, at most 200 matches to verify (:meth:`Matcher.cascade`). The 0.5 try
-  costs ~30 ms per pair against ~75 for 0.7 (both frames' detection, matching, fit; one core) and fits all 25 of the 250 first whole-exam pairs tracking fails on
-  (distance error 0.0067 cm against 0.0059); on thesis motion it fits fewer and 0.7 follows (README).
+  costs ~30 ms per pair against ~75 for 0.7 (both frames' detection, matching, fit; one core) and fits all 25
+  of the 250 first whole-exam pairs tracking fails on (distance error 0.0067 cm against 0.0059); on thesis
+  motion it fits fewer and 0.7 follows (README).
   Cheaper detectors were measured on a thesis frame pair (420x420) and fail on capsule motion:
   ORB found 13-17 verified matches of 1500 keypoints; pyramidal Lucas-Kanade kept 44 of 600 corners in the image
   and 22 of 400 in the unrolled image (a capsule rolls ~8 degrees and the near wall's angular depth jumps by up to
