@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodyslam.errors import InputError
+from bodyslam.geometry import matrix_to_rotvec, rotvec_to_matrix
 from bodyslam.steps import StepMotion, StepStatus
 
 __all__ = [
@@ -49,6 +50,7 @@ __all__ = [
     "write_motion_csv",
     "read_motion_steps",
     "csv_rows",
+    "csv_table",
 ]
 
 FRAME_INDEX_DIGITS = 6
@@ -278,7 +280,7 @@ _FULL_STEP = ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_dista
 def motion_row(frame: int, t_s: float, s: StepMotion) -> list:
     """One ``motion.csv`` row (:data:`MOTION_COLUMNS`) for the step into ``frame`` (plain Python numbers)."""
     t = s.t_c1_c2_m if s.t_c1_c2_m is not None else np.full(3, np.nan)
-    rv = Rotation.from_matrix(s.R_c1_c2).as_rotvec() if s.R_c1_c2 is not None else np.full(3, np.nan)
+    rv = matrix_to_rotvec(s.R_c1_c2) if s.R_c1_c2 is not None else np.full(3, np.nan)
     return [int(frame), float(t_s), float(s.distance_m), float(s.roll_rad), float(s.pitch_rad), float(s.yaw_rad),
             float(s.tilt_rad), int(s.n_matches), str(s.status), *map(float, t), *map(float, rv),
             float(s.sigma_distance_m), float(s.sigma_rotation_rad)]
@@ -297,7 +299,7 @@ def step_from_row(row: dict) -> StepMotion:
     vals = [row.get(c, math.nan) for c in _FULL_STEP]
     R = t = None
     if np.isfinite(vals[3:6]).all():  # a rotation step has its rotation and no translation
-        R = Rotation.from_rotvec(vals[3:6]).as_matrix()
+        R = rotvec_to_matrix(vals[3:6])
     if R is not None and np.isfinite(vals[:3]).all():
         t = np.array(vals[:3], float)
     return StepMotion(row["distance_m"], row["roll_rad"], row["pitch_rad"], row["yaw_rad"], row["tilt_rad"],
@@ -326,6 +328,21 @@ def csv_rows(path: str | os.PathLike, required: Sequence[str]) -> Iterator[Itera
     InputError
         Missing file, or a header without the ``required`` columns (file and header are named).
     """
+    with _open_csv(path, required, csv.DictReader) as (path, r, _):
+        yield _checked_rows(path, r)
+
+
+@contextlib.contextmanager
+def csv_table(path: str | os.PathLike, required: Sequence[str]) -> Iterator[tuple[list[str], Iterator]]:
+    """:func:`csv_rows` with each row a list of cells: yields ``(header, iterator of (line number, cells))``,
+    a short row has fewer cells than the header. For long files (rf.csv: a row per reading): no dict per row."""
+    with _open_csv(path, required, csv.reader) as (path, r, fields):
+        yield fields, _checked_rows(path, r)
+
+
+@contextlib.contextmanager
+def _open_csv(path, required: Sequence[str], reader):
+    """``(path, reader past the header, header)``; the errors of :func:`csv_rows`."""
     path = Path(path)
     try:
         f = path.open(newline="", encoding="utf-8")
@@ -334,15 +351,15 @@ def csv_rows(path: str | os.PathLike, required: Sequence[str]) -> Iterator[Itera
     except OSError as exc:  # a directory, no permission ...
         raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     with f:
-        r = csv.DictReader(f)
+        r = reader(f)
         try:
-            fields = r.fieldnames
+            fields = r.fieldnames if isinstance(r, csv.DictReader) else next(r, None)
         except (UnicodeDecodeError, csv.Error) as exc:
             raise InputError(f"{path}: not a CSV text file ({_decode_reason(exc)})") from None
         missing = [c for c in required if c not in (fields or [])]
         if missing:
             raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {fields}")
-        yield _checked_rows(path, r)
+        yield path, r, fields
 
 
 def _decode_reason(exc: Exception) -> str:
@@ -351,11 +368,14 @@ def _decode_reason(exc: Exception) -> str:
     return str(exc)
 
 
-def _checked_rows(path: Path, r: csv.DictReader) -> Iterator[tuple[int, dict]]:
-    """``(line number, row)`` of a CSV; a file that stops being text is an error naming the line."""
+def _checked_rows(path: Path, r) -> Iterator[tuple[int, Any]]:
+    """``(line number, row)`` of a CSV (the reader's own count of lines read: right after blank lines, which
+    ``csv.DictReader`` skips, and quoted fields that span lines); a file that stops being text is an error
+    naming the line."""
     k = 1
     try:
-        for k, row in enumerate(r, start=2):
+        for row in r:
+            k = r.line_num
             yield k, row
     except (UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}:{k + 1}: not CSV text ({_decode_reason(exc)})") from None

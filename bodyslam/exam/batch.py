@@ -38,8 +38,8 @@ uninterrupted run's. A plan that differs from the one in ``OUT`` (other inputs o
 Memory
 ------
 Workers hold one chunk's frames at a time; the coordinator streams chunk files into the outputs and keeps a few
-numbers per frame (positions and path lengths for the marks and plots: ~100 bytes per frame). With RF, fusion
-and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per frame).
+numbers per frame (pose, covariance and path length for the marks and plots: ~200 bytes per frame). With RF,
+fusion and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per frame).
 
 Gaps, dead reckoning and path length
 ------------------------------------
@@ -810,7 +810,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
-    acc = _Track(n_expected)  # ~150 bytes per frame, preallocated
+    acc = _Track(n_expected)  # ~200 bytes per frame, preallocated
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
     bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
@@ -848,7 +848,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                 eof = ch["eof"]
                 break
     n = acc.n
-    t, P, Q = acc.t[:n], acc.pos[:n], acc.quat[:n]
+    t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
     frame_idx = acc.frame[:n].tolist()
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
@@ -918,20 +918,20 @@ class _Track:
         self.frame = np.zeros(n, np.int64)
         self.t, self.sd_heading, self.length, self.length_var = (np.zeros(n) for _ in range(4))
         self.pos = np.zeros((n, 3))
-        self.quat = np.zeros((n, 4))
+        self.rot = np.zeros((n, 3, 3))
         self.cov = np.zeros((n, 3, 3))
 
     def record(self, row: list, dr, classes: dict, length_var: tuple[float, float]) -> None:
         k = self.n
         if k >= len(self.t):  # more frames than planned (cannot happen for folders; a video may say less)
-            for name in ("frame", "t", "sd_heading", "length", "length_var", "pos", "quat", "cov"):
+            for name in ("frame", "t", "sd_heading", "length", "length_var", "pos", "rot", "cov"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.zeros_like(a[: max(len(a), 16)])]))
         self.frame[k] = int(row[0])
         self.t[k] = float(row[2])
         classes[row[3]] = classes.get(row[3], 0) + 1
         self.pos[k] = dr.p_w_m
-        self.quat[k] = dr.R_w_c.as_quat()
+        self.rot[k] = dr.R_w_c_matrix
         self.cov[k] = dr.P[:3, :3]
         self.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
         self.length[k], self.length_var[k] = length_var

@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.choices import FUSION_MODES
 from bodyslam.errors import InputError
 from bodyslam.fusion.rf import Fix, PathLossModel
+from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import StepMotion
 from bodyslam.vision.tracking import SCALE_CORR_M
 
@@ -61,6 +62,9 @@ SIGMA_T_FLOOR_M, SIGMA_R_FLOOR_RAD = 3e-4, np.radians(0.2)
 MISSING_SIGMA_T_MIN_M, MISSING_SIGMA_R_RAD = 3e-3, np.radians(5.0)
 
 
+_I3, _I6 = np.eye(3), np.eye(6)
+
+
 def _skew(v):
     """``[v]x`` of a vector (3,), or of many (..., 3) at once."""
     v = np.asarray(v, float)
@@ -74,12 +78,12 @@ def process_model(R_w_c: np.ndarray, t_s_m: np.ndarray, R_s: np.ndarray, sigma_t
     """``(F, Q)`` of one step (module docstring) for orientations ``R_w_c (C, 3, 3)``: ``(C, 6, 6)`` each."""
     R_w_c = np.asarray(R_w_c, float).reshape(-1, 3, 3)
     C = len(R_w_c)
-    F = np.repeat(np.eye(6)[None], C, axis=0)
+    F = np.broadcast_to(_I6, (C, 6, 6)).copy()
     F[:, :3, 3:] = -R_w_c @ _skew(np.asarray(t_s_m, float))
     F[:, 3:, 3:] = np.asarray(R_s, float).T
     Q = np.zeros((C, 6, 6))
-    Q[:, :3, :3] = R_w_c @ (np.eye(3) * sigma_t_m**2) @ R_w_c.transpose(0, 2, 1)
-    Q[:, 3:, 3:] = np.eye(3) * sigma_r_rad**2
+    Q[:, :3, :3] = _I3 * sigma_t_m**2  # R (s^2 I) R^T: isotropic, the same in any axes
+    Q[:, 3:, 3:] = _I3 * sigma_r_rad**2
     return F, Q
 
 
@@ -294,8 +298,7 @@ class ErrorStateEkf:
                 H[:, np.arange(len(idx)), 6 + self.n_scale + idx] = 1.0
                 y = y - self.b[:, self.n_scale + idx]
                 sigma = np.sqrt(np.maximum(sigma**2 - self.bias_sd_db**2, 1.0))
-            S = H @ P @ H.transpose(0, 2, 1) + sigma[:, :, None] ** 2 * np.eye(len(y[0]))[None]
-            dS = np.diagonal(S, axis1=1, axis2=2)
+            dS = np.sum((H @ P) * H, axis=2) + sigma**2  # the innovations' variances (the diagonal of S)
             z2 = y * y / dS
             nll = nll + 0.5 * np.sum(np.minimum(z2, Z_GATE_999**2) + np.log(dS), axis=1)
             keep = z2 < Z_GATE_999**2  # per-reading 99.9% gate
@@ -303,22 +306,25 @@ class ErrorStateEkf:
             bad = keep.mean(axis=1) < 0.5  # most readings disagree with the prediction
             streak = np.where(bad, streak + 1, 0)
             guard = bad & (streak >= self.max_rejections)
-            P = P.copy()
-            P[guard, :3, :3] += np.eye(3) * GUARD_RSS_SIGMA_M**2
-            P[guard, 3:6, 3:6] += np.eye(3) * GUARD_THETA_RAD**2
+            if guard.any():
+                P = P.copy()
+                P[guard, :3, :3] += _I3 * GUARD_RSS_SIGMA_M**2
+                P[guard, 3:6, 3:6] += _I3 * GUARD_THETA_RAD**2
             keep[guard] = True
             streak = np.where(guard, 0, streak)
             do = keep.sum(axis=1) >= 1
             # readings outside the gate: rows of H and y zeroed and unit variance -- exactly the update without them
             H = H * keep[..., None]
             y = y * keep
-            Rm = np.where(keep, sigma**2, 1.0)[:, :, None] * np.eye(len(y[0]))[None]
+            Rm = np.zeros(H.shape[:2] + (H.shape[1],))
+            diag = np.arange(H.shape[1])
+            Rm[:, diag, diag] = np.where(keep, sigma**2, 1.0)
         S = H @ P @ H.transpose(0, 2, 1) + Rm
         K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
         dx = (K @ y[..., None])[..., 0]
-        IKH = np.eye(self.D)[None] - K @ H
+        IKH = np.eye(self.D) - K @ H
         P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
-        R_new = R @ Rotation.from_rotvec(dx[:, 3:6]).as_matrix()
+        R_new = R @ rotvec_to_matrix(dx[:, 3:6])
         if self.m_extra:
             self.b = np.where(do[:, None], self.b + dx[:, 6:], self.b)
         self.p = np.where(do[:, None], p + dx[:, :3], p)

@@ -5,7 +5,8 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 1. :meth:`RfInput.read`: sensors (``sensors.csv``), readings (``rf.csv``, malformed lines skipped and listed) and
    the path-loss calibration (``meta.json``'s ``rf.pathloss``; default Table 2.2);
 2. readings per frame (:func:`bodyslam.fusion.rf.rss_per_frame`: nearest within half a frame interval);
-3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml_frames`: every frame in one vectorised solve),
+3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml_frames`: vectorised over frames; solved in blocks
+   where first read, :class:`bodyslam.fusion.rf.FixesOnDemand` -- the raw-RSS fusion reads its start window's),
    which start the filter;
 4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
 5. their covariances scaled by the readings' measured correlation (:mod:`bodyslam.fusion.channel`: the smoother's
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +35,7 @@ from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
 from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, inflate, normalised_residuals,
                                      residual_correlation)
 from bodyslam.io import write_csv, write_image, write_tum
-from bodyslam.fusion.rf import Fix, PathLossModel, locate_ml_frames, read_rf, read_sensors, rss_per_frame
+from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion
 from bodyslam.vision.tracking import path_travelled
 
@@ -70,7 +72,7 @@ class Localization:
     stamps_s: np.ndarray  # (n,)
     filtered: FusionResult  # the online (causal after its start window) filter
     smoothed: FusionResult  # RTS
-    fixes: list[Fix]  # ML fixes per frame
+    fixes: Sequence[Fix]  # ML fixes per frame (FixesOnDemand: solved when read)
     rss_dbm: np.ndarray  # (n, m) the readings of each frame (NaN: none)
     path_m: np.ndarray  # (n,) path travelled from the first frame
     path_var_m2: np.ndarray  # (n,)
@@ -99,9 +101,14 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     if len(stamps_s) != len(steps) + 1:
         raise ValueError(f"{len(steps)} steps need {len(steps) + 1} frame stamps, got {len(stamps_s)}")
     rss = rss_per_frame(rf.stamps_s, rf.rss_dbm, stamps_s, frame_rate_hz)
-    fixes = locate_ml_frames(rf.sensors_w_m, rf.normals_w, rss, rf.pathloss)
-    if sum(f.status == "ok" for f in fixes) < 3:
-        raise InputError(f"RF not usable: {sum(f.status == 'ok' for f in fixes)} frame(s) with an RF fix, "
+    fixes = FixesOnDemand(rf.sensors_w_m, rf.normals_w, rss, rf.pathloss)  # solved where the fusion reads them
+    n_ok = 0
+    for f in fixes:  # (stops at the third: usually within the first block)
+        n_ok += f.status == "ok"
+        if n_ok == 3:
+            break
+    if n_ok < 3:
+        raise InputError(f"RF not usable: {n_ok} frame(s) with an RF fix, "
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel)
     smoothed = rts_smooth(ekf)

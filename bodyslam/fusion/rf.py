@@ -32,16 +32,17 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from bodyslam.errors import InputError
-from bodyslam.io import csv_rows
+from bodyslam.io import csv_rows, csv_table
 
 __all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "read_rf_columns", "rss_per_frame", "rss_to_range",
-           "locate_lls", "locate_nls", "locate_ml", "locate_ml_frames", "RF_METHODS"]
+           "locate_lls", "locate_nls", "locate_ml", "locate_ml_frames", "FixesOnDemand", "RF_METHODS"]
 
 RF_METHODS = ("lls", "nls", "ml")
 
@@ -153,21 +154,24 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
     index = {n: j for j, n in enumerate(sensor_names)}
     problems: list[str] = []
     data: dict[float, dict[int, list[float]]] = {}
-    with csv_rows(path, ("t", "sensor", *columns)) as lines:
+    with csv_table(path, ("t", "sensor", *columns)) as (header, lines):
+        it, js, jc = header.index("t"), header.index("sensor"), [header.index(c) for c in columns]
         for lineno, row in lines:
-            try:
-                t, v = float(row["t"]), [float(row[c]) for c in columns]
-            except (TypeError, ValueError):
-                problems.append(f"{path}:{lineno}: not a number ({row})")
+            if not row:  # a blank line (as csv.DictReader skips them)
                 continue
-            if row["sensor"] not in index:
-                problems.append(f"{path}:{lineno}: unknown sensor {row['sensor']!r}")
+            try:
+                t, v, name = float(row[it]), [float(row[j]) for j in jc], row[js]
+            except (IndexError, ValueError):
+                problems.append(f"{path}:{lineno}: not a number ({dict(zip(header, row))})")
+                continue
+            if name not in index:
+                problems.append(f"{path}:{lineno}: unknown sensor {name!r}")
                 continue
             bad = [f"{c}={x}" for c, x in zip(columns, v) if not math.isfinite(x)] + ([] if math.isfinite(t) else [f"t={t}"])
             if bad:  # nan/inf parse as numbers: a reading that is not one is listed, not silently lost
                 problems.append(f"{path}:{lineno}: not a finite reading ({', '.join(bad)})")
                 continue
-            data.setdefault(t, {})[index[row["sensor"]]] = v
+            data.setdefault(t, {})[index[name]] = v
     stamps = np.array(sorted(data))
     out = {c: np.full((len(stamps), len(sensor_names)), np.nan) for c in columns}
     for k, t in enumerate(stamps):
@@ -359,6 +363,47 @@ def locate_ml_frames(sensors_w_m: np.ndarray, normals_w: np.ndarray, rss_dbm: np
     for k0 in range(0, len(rss_dbm), block):
         out.extend(_ml_block(sensors_w_m, normals_w, rss_dbm[k0:k0 + block], pl, gate_sigma))
     return out
+
+
+class FixesOnDemand(Sequence):
+    """:func:`locate_ml_frames` of every frame, as a sequence whose fixes are solved when first read, ``block``
+    frames at a time (each frame's solve is its own: the same fixes as one call for all). A fusion on the raw
+    readings reads the fixes of its start window only (and of no frame after it), so a whole exam does not pay
+    for ~1 ms of solving per frame it never uses (issue 17: "compute only the fixes the filter needs")."""
+
+    def __init__(self, sensors_w_m: np.ndarray, normals_w: np.ndarray, rss_dbm: np.ndarray, pl: PathLossModel,
+                 block: int = 512):
+        self._args = (sensors_w_m, normals_w, np.asarray(rss_dbm, float), pl)
+        self._block = int(block)
+        self._done: dict[int, list[Fix]] = {}
+
+    def __len__(self) -> int:
+        return len(self._args[2])
+
+    def _fix(self, k: int) -> Fix:
+        b = k // self._block
+        if b not in self._done:
+            s, nrm, rss, pl = self._args
+            self._done[b] = locate_ml_frames(s, nrm, rss[b * self._block:(b + 1) * self._block], pl)
+        return self._done[b][k - b * self._block]
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self._fix(i) for i in range(*k.indices(len(self)))]
+        k = int(k)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(f"frame {k} of {len(self)}")
+        return self._fix(k)
+
+    def __iter__(self):
+        return (self._fix(k) for k in range(len(self)))
+
+    @property
+    def n_solved(self) -> int:
+        """Frames whose fixes have been solved so far."""
+        return sum(len(v) for v in self._done.values())
 
 
 def _lls_frames(s: np.ndarray, rss: np.ndarray, ok: np.ndarray, pl: PathLossModel) -> np.ndarray:

@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.camera import CameraModel
 from bodyslam.errors import ConfigError
+from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.vision.matching import Matches
 from bodyslam.steps import StepMotion, motion_from_transform  # noqa: F401  (re-exported)
 from bodyslam.vision.unroll import Unroller
@@ -98,32 +99,12 @@ def estimate_thesis(m: Matches, unroller: Unroller, radius_m: float, min_matches
     return StepMotion(distance, roll, float(pitch), float(yaw), float(math.hypot(pitch, yaw)), int(ok.sum()), "ok")
 
 
-def _rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
-    """Rodrigues for a batch of rotation vectors ``(B, 3)`` -> ``(B, 3, 3)``."""
-    th = np.linalg.norm(rv, axis=1)
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    k = rv / ths[:, None]
-    K = np.zeros((len(rv), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
-    R = np.eye(3) + s * K + (1 - c) * (K @ K)
-    if small.any():  # first order for tiny angles
-        v = rv[small]
-        Ks = np.zeros((len(v), 3, 3))
-        Ks[:, 0, 1], Ks[:, 0, 2], Ks[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-        Ks[:, 1, 0], Ks[:, 2, 0], Ks[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-        R[small] = np.eye(3) + Ks
-    return R
-
-
 def _tube_points_xyz(P: np.ndarray, b1: np.ndarray, radius: float, max_depth: float) -> tuple[np.ndarray, ...]:
     """Where frame-1 rays ``b1 (n, 3)`` meet the tube, in frame 2's axes, for a batch of parameter vectors
     ``P (B, 10)``: the coordinates ``(x, y, z)``, each ``(B, n)`` (depth capped at ``max_depth``). Written on
     coordinate arrays, not 3-vectors: the fit evaluates it ~20 times on ~11 x 150 rays, where numpy's per-call
     cost, not arithmetic, is the time (3x faster than the same algebra with stacked vectors and einsum)."""
-    R = _rotvec_to_matrix(P[:, 0:3])
+    R = rotvec_to_matrix(P[:, 0:3])
     ax, ay = P[:, 6:7], P[:, 7:8]
     inv = 1.0 / np.sqrt(ax * ax + ay * ay + 1.0)
     ax, ay, az = ax * inv, ay * inv, inv  # the axis direction (ax, ay, 1), normalised, (B, 1) each

@@ -53,3 +53,17 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("killed")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_csv_rows_and_tables_number_the_lines_of_the_file(tmp_path):
+    # csv.DictReader skips blank lines: counting the rows it gives put every later line number one short
+    from bodyslam.io import csv_rows, csv_table
+
+    p = tmp_path / "x.csv"
+    p.write_text('a,b\n1,2\n\n3,4\n"five\nlines",6\n7,8\n')
+    with csv_rows(p, ("a", "b")) as rows:
+        assert [(k, r["a"]) for k, r in rows] == [(2, "1"), (4, "3"), (6, "five\nlines"), (7, "7")]
+    with csv_table(p, ("a",)) as (header, rows):
+        assert header == ["a", "b"]
+        assert [(k, r) for k, r in rows if r] == [(2, ["1", "2"]), (4, ["3", "4"]), (6, ["five\nlines", "6"]),
+                                                 (7, ["7", "8"])]

@@ -1,6 +1,7 @@
 """RF fixes for many frames at once (bodyslam.fusion.rf.locate_ml_frames) against the per-frame scipy solves."""
 
 import numpy as np
+import pytest
 
 from bodyslam.fusion.rf import PathLossModel, locate_ml, locate_ml_frames
 
@@ -46,3 +47,25 @@ def test_vectorised_fixes_reach_the_per_frame_minima():
     for k in agree:
         np.testing.assert_allclose(got[k].cov_m2, ref[k].cov_m2, rtol=1e-3, atol=1e-12)
     assert len(agree) >= 10  # measured 22-30
+
+
+def test_fixes_on_demand_are_the_same_fixes_solved_only_where_read():
+    from testbed.rf import SensorLayout, emulate_rf
+
+    from bodyslam.fusion.rf import FixesOnDemand
+
+    rng = np.random.default_rng(5)
+    layout, pl = SensorLayout.thesis_grids(), PathLossModel()
+    truth = rng.uniform([-0.1, -0.08, -0.1], [0.1, 0.08, 0.1], (130, 3))
+    rss = emulate_rf(truth, layout, pl, rng=6)["rss_dbm"]
+    lazy = FixesOnDemand(layout.positions_w_m, layout.normals_w, rss, pl, block=50)
+    assert len(lazy) == 130 and lazy.n_solved == 0
+    window = lazy[:40]  # a fusion's start window: one block solved, not the exam
+    assert len(window) == 40 and lazy.n_solved == 50
+    all_at_once = locate_ml_frames(layout.positions_w_m, layout.normals_w, rss, pl)
+    for a, b in zip(list(lazy), all_at_once):  # blocks do not change a frame's fix
+        assert a.status == b.status and np.array_equal(a.position_w_m, b.position_w_m)
+    assert lazy.n_solved == 130
+    assert lazy[-1] is lazy[129] and window[3] is lazy[3]
+    with pytest.raises(IndexError):
+        lazy[130]
