@@ -45,6 +45,7 @@ verified matches, and how many candidates there were before verification.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -147,6 +148,29 @@ def field_of_view(frames: list[np.ndarray], circle: np.ndarray) -> tuple[np.ndar
         return None, f"the image circle (the detected field agrees: {100 * left_out:.1f}% left out)"
     return m, (f"detected from {len(frames)} frame(s): {100 * left_out:.0f}% of the image circle left out, "
                f"{100 * added:.0f}% added (a field stop or overlay)")
+
+
+def _masked_percentiles_u8(gray: np.ndarray, mask: np.ndarray, percents) -> list[float] | None:
+    """``np.percentile(gray[mask > 0], percents)`` (its default linear method, the same floating-point steps, so
+    the same numbers) from the masked 256-bin histogram: ~0.05 ms a frame instead of ~0.5 for the selection and
+    partial sort. None for an empty mask."""
+    counts = cv2.calcHist([gray], [0], mask, [256], [0, 256]).ravel()
+    cum = np.cumsum(counts.astype(np.int64))
+    n = int(cum[-1])
+    if n == 0:
+        return None
+    out = []
+    for p in percents:
+        q = float(p) / 100.0
+        virtual = (n - 1) * q  # numpy's virtual index for its linear method
+        prev = math.floor(virtual)
+        nxt = min(prev + 1, n - 1)
+        t = virtual - prev
+        a = int(np.searchsorted(cum, prev, side="right"))  # the value at rank prev of the sorted pixels
+        b = int(np.searchsorted(cum, nxt, side="right"))
+        d = b - a  # numpy's _lerp
+        out.append(float(b - d * (1.0 - t)) if t >= 0.5 else float(a + d * t))
+    return out
 
 
 class Matcher:
@@ -400,10 +424,10 @@ class Matcher:
         SIFT's contrast threshold is absolute: a capsule's light control dims a frame when the wall is near,
         and the same mucosa then yields a tenth of the keypoints (measured: 155 vs 1585 on testbed frames).
         """
-        vals = gray[self.mask > 0]
-        if vals.size == 0:
+        lo_hi = _masked_percentiles_u8(gray, self.mask, (1.0, 99.0))
+        if lo_hi is None:
             return gray
-        lo, hi = np.percentile(vals, (1, 99))
+        lo, hi = lo_hi
         if hi - lo < 8:  # a flat (black, saturated) frame: nothing to stretch
             return gray
         lut = np.clip((np.arange(256) - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)

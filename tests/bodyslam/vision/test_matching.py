@@ -102,3 +102,17 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
     assert len(list(sift.cascade(sift.features(f1), sift.features(f2)))) == 1
     with pytest.raises(ConfigError, match="coarse"):
         sift.keypoints(sift.features(f1), coarse=True)
+
+
+def test_brightness_percentiles_from_the_histogram_are_numpys():
+    # the normalisation's 1st / 99th percentiles come from a masked histogram; they must be np.percentile's numbers
+    # exactly (the 8-bit lookup table truncates: a last-digit difference could change a pixel)
+    from bodyslam.vision.matching import _masked_percentiles_u8
+
+    rng = np.random.default_rng(1)
+    for trial in range(400):
+        h, w = rng.integers(1, 40, 2)
+        g = (rng.integers(0, 256, (h, w)) if trial % 2 else rng.normal(120, 25, (h, w)).clip(0, 255)).astype(np.uint8)
+        m = (rng.random((h, w)) < rng.random()).astype(np.uint8) * 255
+        want = [float(x) for x in np.percentile(g[m > 0], (1, 99))] if (m > 0).any() else None
+        assert _masked_percentiles_u8(g, m, (1.0, 99.0)) == want
