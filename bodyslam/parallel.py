@@ -10,11 +10,12 @@ cores. (The testbed's renderer runs its own pool: :mod:`testbed.simulate`.)
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 from typing import Callable, Iterator, Sequence, TypeVar
 
-__all__ = ["available_cores", "imap_tasks"]
+__all__ = ["available_cores", "imap_tasks", "shared_pool"]
 
 T = TypeVar("T")
 
@@ -35,26 +36,65 @@ def _ignore_ctrl_c() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None, ordered: bool = True) -> Iterator[T]:
-    """``func(task)`` for every task, in order (or as they finish with ``ordered=False``); in this process when
-    one job suffices, else in a spawned pool of ``jobs`` (default: one per available core) workers, closed when
-    the iteration ends."""
-    jobs = available_cores() if jobs is None else int(jobs)
-    jobs = max(1, min(jobs, len(tasks)))
-    if jobs == 1:
-        yield from map(func, tasks)
-        return
+def _spawn_pool(jobs: int):
     # the workers read these when they load BLAS: set for the spawn only (a user's own setting is kept)
     saved = {v: os.environ.get(v) for v in _THREAD_VARS}
     for v in _THREAD_VARS:
         os.environ.setdefault(v, "1")
     try:
-        pool = mp.get_context("spawn").Pool(jobs, initializer=_ignore_ctrl_c)
+        return mp.get_context("spawn").Pool(jobs, initializer=_ignore_ctrl_c)
     finally:
         for v, x in saved.items():
             if x is None:
                 os.environ.pop(v, None)
             else:
                 os.environ[v] = x
-    with pool:
+
+
+class _Shared:
+    """The pool a :func:`shared_pool` block lends to :func:`imap_tasks`, started on first use."""
+
+    def __init__(self, jobs: int):
+        self.jobs, self.pool = jobs, None
+
+    def get(self):
+        if self.pool is None:
+            self.pool = _spawn_pool(self.jobs)
+        return self.pool
+
+
+_SHARED: list[_Shared] = []
+
+
+@contextlib.contextmanager
+def shared_pool(jobs: int | None = None) -> Iterator[None]:
+    """Inside the block, :func:`imap_tasks` calls with as many jobs run on one pool of ``jobs`` workers (default:
+    one per core), started at the first call and stopped when the block ends (also on an error or Ctrl-C). A
+    run's phases then share their workers: a pool takes ~0.4 s to start, and what a worker builds once per
+    process (the visual engine) stays built."""
+    shared = _Shared(available_cores() if jobs is None else int(jobs))
+    _SHARED.append(shared)
+    try:
+        yield
+    finally:
+        _SHARED.pop()
+        if shared.pool is not None:
+            shared.pool.terminate()
+            shared.pool.join()
+
+
+def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None, ordered: bool = True) -> Iterator[T]:
+    """``func(task)`` for every task, in order (or as they finish with ``ordered=False``); in this process when
+    one job suffices, else in a spawned pool of ``jobs`` (default: one per available core) workers, closed when
+    the iteration ends -- or the enclosing :func:`shared_pool`'s when it has that many workers."""
+    jobs = available_cores() if jobs is None else int(jobs)
+    jobs = max(1, min(jobs, len(tasks)))
+    if jobs == 1:
+        yield from map(func, tasks)
+        return
+    if _SHARED and _SHARED[-1].jobs == jobs:
+        pool = _SHARED[-1].get()
+        yield from (pool.imap if ordered else pool.imap_unordered)(func, tasks)
+        return
+    with _spawn_pool(jobs) as pool:
         yield from (pool.imap if ordered else pool.imap_unordered)(func, tasks)

@@ -55,6 +55,7 @@ the frame order), with the steps' variances summed.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
@@ -75,6 +76,7 @@ from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
 from bodyslam.io import MOTION_COLUMNS, atomic_path, csv_rows, motion_row, read_json, step_from_row, write_csv, write_image, write_json
+from bodyslam.parallel import shared_pool
 from bodyslam.vision.odometry import MotionSettings, chunk_bounds, write_mask
 
 log = logging.getLogger(__name__)
@@ -677,19 +679,21 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     if progress:
         progress(done_frames, total)
     by_key = {(t["exam"], t["chunk"]): t for t in tasks}
-    for res in _run_tasks(process_chunk, tasks, jobs, scheduler):
-        task = by_key[(res["exam"], res["chunk"])]
-        # the JSON text of a result is the checkpoint; it is read back the same way on resume
-        path = out / task["exam"] / "chunks" / f"chunk_{task['chunk']:06d}.json"
-        with atomic_path(path) as tmp:
-            tmp.write_text(json.dumps(res), encoding="utf-8")
-        done_frames += task["last"] - task["first"] + (task["first"] == 0)
-        if progress:
-            progress(done_frames, total)
     exams = usable
-    for e in exams:
-        _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
-        _consistency_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
+    # one pool of local workers for the chunks, the gap bridges and the k-step check (not for a Dask cluster)
+    with contextlib.nullcontext() if scheduler else shared_pool(jobs):
+        for res in _run_tasks(process_chunk, tasks, jobs, scheduler):
+            task = by_key[(res["exam"], res["chunk"])]
+            # the JSON text of a result is the checkpoint; it is read back the same way on resume
+            path = out / task["exam"] / "chunks" / f"chunk_{task['chunk']:06d}.json"
+            with atomic_path(path) as tmp:
+                tmp.write_text(json.dumps(res), encoding="utf-8")
+            done_frames += task["last"] - task["first"] + (task["first"] == 0)
+            if progress:
+                progress(done_frames, total)
+        for e in exams:
+            _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
+            _consistency_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
     summaries, all_problems = [], list(study_problems)
     for e in exams:
         s, probs = _finalize(e, out / e.name, settings)

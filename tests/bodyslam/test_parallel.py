@@ -62,3 +62,29 @@ def test_ctrl_c_stops_a_pool_cleanly(tmp_path):
     os.killpg(p.pid, signal.SIGINT)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+
+
+def worker_pid(_):
+    import time
+
+    time.sleep(0.05)  # long enough that both workers take tasks
+    return os.getpid()
+
+
+def test_a_shared_pool_serves_every_call_in_its_block_and_stops_after_it():
+    from bodyslam.parallel import shared_pool
+
+    with shared_pool(2):
+        first = set(imap_tasks(worker_pid, range(6), jobs=2))
+        second = set(imap_tasks(worker_pid, range(6), jobs=2))
+        assert list(imap_tasks(worker_pid, [0], jobs=2)) == [os.getpid()]  # one task: in this process, as ever
+    assert len(first) == 2 and second == first and os.getpid() not in first
+    for pid in first:  # the block's end stopped its workers
+        try:
+            os.kill(pid, 0)
+            alive = True
+        except ProcessLookupError:
+            alive = False
+        assert not alive
+    # outside a block every call starts its own workers
+    assert set(imap_tasks(worker_pid, range(4), jobs=2)).isdisjoint(first)
