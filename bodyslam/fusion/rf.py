@@ -368,8 +368,8 @@ def locate_ml_frames(sensors_w_m: np.ndarray, normals_w: np.ndarray, rss_dbm: np
 class FixesOnDemand(Sequence):
     """:func:`locate_ml_frames` of every frame, as a sequence whose fixes are solved when first read, ``block``
     frames at a time (each frame's solve is its own: the same fixes as one call for all). A fusion on the raw
-    readings reads the fixes of its start window only (and of no frame after it), so a whole exam does not pay
-    for ~1 ms of solving per frame it never uses (issue 17: "compute only the fixes the filter needs")."""
+    readings reads the fixes of its start window only, so a whole exam does not pay ~0.2 ms of solving per frame
+    it never uses (10,000 frames: 2.3 s; issue 17: "compute only the fixes the filter needs")."""
 
     def __init__(self, sensors_w_m: np.ndarray, normals_w: np.ndarray, rss_dbm: np.ndarray, pl: PathLossModel,
                  block: int = 512):

@@ -152,8 +152,8 @@ def field_of_view(frames: list[np.ndarray], circle: np.ndarray) -> tuple[np.ndar
 
 def _masked_percentiles_u8(gray: np.ndarray, mask: np.ndarray, percents) -> list[float] | None:
     """``np.percentile(gray[mask > 0], percents)`` (its default linear method, the same floating-point steps, so
-    the same numbers) from the masked 256-bin histogram: ~0.05 ms a frame instead of ~0.5 for the selection and
-    partial sort. None for an empty mask."""
+    the same numbers) from the masked 256-bin histogram: 0.09 ms on a 320x320 frame instead of 0.95 for the
+    selection and partial sort. None for an empty mask."""
     counts = cv2.calcHist([gray], [0], mask, [256], [0, 256]).ravel()
     cum = np.cumsum(counts.astype(np.int64))
     n = int(cum[-1])
@@ -264,8 +264,9 @@ class Matcher:
         or (``coarse``, fast mode) by :data:`COARSE_SCALE`."""
         if coarse and self._mask_coarse is None:
             raise ConfigError(f"coarse keypoints are fast mode's, this matcher is {self.mode!r}")
-        if (f.kp_coarse if coarse else f.kp) is not None:
-            return f.kp_coarse if coarse else f.kp
+        cached = f.kp_coarse if coarse else f.kp
+        if cached is not None:
+            return cached
         gray = f.gray
         small_mask = self._mask_coarse if coarse else self._mask_small
         if small_mask.shape != self.mask.shape:

@@ -159,10 +159,10 @@ class VisualOdometry:
         """Match two frames' features and estimate the step from the first matches of the matcher's cascade
         (:meth:`~bodyslam.vision.matching.Matcher.cascade`) the estimate succeeds on: in fast mode tracking, then
         coarse descriptors, then descriptors, so the cheap tries never cost coverage. A step the tube fit still
-        fails on gets its rotation by guided matching where it can (status
-        ``rotation``, :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off:
-        not tried). ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). The
-        step is in the body frame (:meth:`to_body`)."""
+        fails on gets its rotation by guided matching where it can (status ``rotation``,
+        :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off: not tried).
+        ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). The step is in the
+        body frame (:meth:`to_body`)."""
         estimator = estimator or self.settings.estimator
         for m in self.matcher.cascade(f1, f2):
             s, x = self._fit(m, estimator)
