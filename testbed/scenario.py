@@ -324,6 +324,14 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
                  float(told_shape))
 
 
+def rf_channel(scn: dict):
+    """The scenario's ``[rf.channel]`` as a :class:`testbed.rf.ChannelModel` (ideal when absent): what the real
+    channel departs from the calibration by. For scoring only (the bound under it); the pipeline is never told."""
+    from testbed.rf import ChannelModel
+
+    return _dataclass_from(ChannelModel, section(section(scn, "rf"), "channel"), "rf.channel")
+
+
 def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:
     """RF emulation settings; on by default with the thesis sensor grids (``[rf] enabled = false`` turns it off)."""
     from testbed.rf import ChannelModel, PathLossModel, TOAModel, layout_from_config

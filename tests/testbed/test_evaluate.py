@@ -3,6 +3,9 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
+
+import numpy as np
 
 import pytest
 
@@ -137,3 +140,33 @@ def test_rotation_steps_are_summed_over_seeds_by_their_count():
     assert rot["rms_roll_error_deg"] == pytest.approx(((30 * 9.0 + 33.0**2) / 31) ** 0.5)
     assert "31, roll error 3.00 deg mean" in _rotation_html(rot)
     assert _rotation_summary([]) == {"n_steps_scored": 0} and _rotation_html({"n_steps_scored": 0}) == ""
+
+
+def test_the_true_channel_changes_the_bound_and_nothing_the_pipeline_does(tmp_path):
+    """``evaluate_sequence`` with the scenario's real channel: the bounds grow (less information) while every
+    estimate stays the same -- the channel is used for scoring only, the pipeline is never told."""
+    import shutil
+
+    from bodyslam.io import read_tum, write_motion_csv
+    from bodyslam.steps import StepMotion
+    from testbed.evaluate import evaluate_sequence
+    from testbed.rf import ChannelModel
+
+    demo = Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0"
+    d = tmp_path / "seq"
+    d.mkdir()
+    for name in ("meta.json", "rf.csv", "sensors.csv", "groundtruth.tum", "motion_truth.csv"):
+        shutil.copy(demo / name, d / name)
+    t, gt, grot = read_tum(d / "groundtruth.tum")
+    steps = []
+    for k in range(1, len(gt)):  # the true steps, as a perfect vision would give them
+        R = (grot[k - 1].inv() * grot[k]).as_matrix()
+        tc = grot[k - 1].inv().apply(gt[k] - gt[k - 1])
+        steps.append(StepMotion(float(np.linalg.norm(tc)), 0.0, 0.0, 0.0, 0.0, 100, "ok", R, tc, 1e-4, 1e-3))
+    write_motion_csv(d / "motion.csv", range(1, len(gt)), t[1:], steps)
+    ideal = evaluate_sequence(d)
+    real = evaluate_sequence(d, ChannelModel(shadowing_corr_m=0.03, pl0_sd_db=2.0, alpha_sd=0.3))
+    for a in ideal["estimates"]:
+        assert np.array_equal(ideal["estimates"][a], real["estimates"][a], equal_nan=True)
+    assert np.all(real["pcrb_m2"] > ideal["pcrb_m2"])
+    assert np.all(real["smoothing_bound_m2"] > ideal["smoothing_bound_m2"])
