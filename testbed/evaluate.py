@@ -397,7 +397,9 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
                       f"sqrt(mean PCRB) = {report['sqrt_mean_pcrb_cm']:.2f} cm; mean error of a causal filter that attains "
                       f"the bound: {report['pcrb_mean_error_cm']:.2f} cm; the smoothing bound: sqrt(mean) "
                       f"{report['smoothing_bound']['sqrt_mean_cm']:.2f} cm, a smoother at it "
-                      f"{report['smoothing_bound']['mean_error_cm']:.2f} cm mean. {report['notes']}.", body,
+                      f"{report['smoothing_bound']['mean_error_cm']:.2f} cm mean (the RTS smoother's RMSE is "
+                      f"{report['smoothing_bound']['rts_rmse_over_sqrt_bound']:.2f} x its square root; the table's "
+                      f"last column is against the PCRB). {report['notes']}.", body,
                       PLOT_FILES)
 
 

@@ -57,9 +57,19 @@ class FusionSettings:
     init_search: bool = True  # check the alignment against other orientations
     search_frames: int = 80  # the window of a search (its decision lag)
     regap_steps: int | None = 5  # search again after this many steps without an estimate (None: never)
+    # search again once the start's decision window has passed, from the filter's own pose then, and turn only if
+    # another orientation explains the next window's readings better by more than recheck_min_nll nats once the
+    # readings' measured correlation is taken out (the margin over kappa, bodyslam.fusion.channel): a start
+    # committed far off is otherwise never revisited. The margin: re-decisions on the tuning seeds gained at most
+    # 19 nats on thesis 502-507 (kappa ~1; they turned good starts 10-70 deg) and 2.3 over kappa on realistic
+    # 503-509 (46 nats, kappa 20); a start put 150 deg off in a synthetic run gains 54, and the one gross failure
+    # seen on the testbed (thesis reporting seed 707, strictly causal, committed 142 deg off) 320
+    recheck_start: bool = True
+    recheck_min_nll: float = 30.0
     # strictly causal start: no alignment to the first window's fixes (which uses fixes up to frame 40-80 for
     # frame 0); every orientation is searched from frame 0's RF fix, and the output until the decision is the
-    # candidates' mixture on the readings so far -- frame k uses frames 0..k only
+    # candidates' mixture on the readings so far -- frame k's position uses frames 0..k only (its orientation is
+    # the committed run's, whose decisions are made at the ends of the windows)
     causal_start: bool = False
     # per-sensor RSS bias states (bodyslam.fusion.ekf): correlation distance along the path (0: off) and stationary
     # 1-sigma (dB) of the persistent part of each sensor's readings
@@ -262,33 +272,82 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         alignment = init
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
     gap_ends = set(_gap_ends(steps, cfg.regap_steps)) if cfg.regap_steps else set()
+    recheck_at = searches[0].frames[1] if cfg.recheck_start and searches and searches[0].frames[1] < n - 1 else None
+    # a recheck whose margin passed at some frame: its search, the run without a turn, the frames that passed, and
+    # the orientation it started from
+    rechecked: dict[int, tuple[SearchResult, np.ndarray, np.ndarray, np.ndarray, Rotation]] = {}
 
     def decide(k_end, p_b, R_b, P_b, bias_b):
-        """At the end of a long gap: search the orientation from the predicted pose (position kept)."""
-        if k_end not in gap_ends:
+        """At the end of a long gap, or of the start's window (a recheck): search the orientation from the
+        predicted pose (position kept)."""
+        if k_end not in gap_ends and k_end != recheck_at:
             return None
         R_b = Rotation.from_matrix(R_b)
         sig = max(float(np.sqrt(np.trace(P_b[3:6, 3:6]) / 3)), np.radians(30.0))
         found = search_orientation(searcher, k_end, min(n, k_end + cfg.search_frames), R_b, lambda R: p_b,
                                    with_orientation_sigma(P_b, sig), [], bias_b)
+        if k_end not in gap_ends:  # the recheck
+            k1 = k_end + len(found.lead_nll)
+            margin = found.lead_nll / _window_inflation(rss, found.mixture_positions_w_m, k_end, sensors_w_m,
+                                                        normals_w, pl)
+            passed = margin > cfg.recheck_min_nll
+            if not passed.any():
+                return None  # the start stands, and the output is the committed run's
+            # the output inside the window must not depend on the decision (made on its last frame): frame by
+            # frame, the committed run without the turn until the margin on the readings so far passes the
+            # threshold, the candidates' mixture from then on -- whichever way the decision goes
+            cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
+            rechecked[k_end] = (found, cont[0][0], cont[2][0], passed, R_b)
+            if not passed[-1]:
+                return None  # the start stands after the window
         searches.append(found)
         return found.R, sig
 
     resets: dict = {}
     pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0, n,
                                        keep=True, resets=resets, decide=decide)
+    if recheck_at in rechecked and rechecked[recheck_at][3][-1]:
+        # The recheck turned the start: the error was there from frame 0 (nothing turned the capsule at the
+        # window's end), so the committed run starts again from the start turned the same way -- the smoother
+        # then sees one consistent run instead of a reset that cuts the orientation's link to the frames before
+        # it. Frames up to the recheck's end keep the online output above (decided on the readings so far).
+        found, *_, R_before = rechecked[recheck_at]
+        turn = found.R * R_before.inv()  # in the world frame: new = turn * old
+        searches[:] = [s for s in searches if s.frames[0] in (0, recheck_at)]  # the gaps are searched again
+        R0, recheck_at = turn * R0, None
+        resets = {}
+        pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0,
+                                           n, keep=True, resets=resets, decide=decide)
     res = FusionResult(pos[0], Rotation.from_matrix(rot[0]), cov[0], int(ekf.n_rejected[0]),
                        int(ekf.n_updates[0]), passes, (R0, np.asarray(p0, float)), alignment, P, dr, searches,
                        {k: (v[0] if isinstance(v[0], Rotation) else Rotation.from_matrix(v[0]))
                         for k, v in resets.items()}, pos[0].copy())
     if ekf.n_scale:
         res.scale, res.scale_sd = passes.post_b[:, 0].copy(), np.sqrt(passes.post_P[:, 6, 6])
-    # Online output: inside each decision window the candidates' mixture on the readings so far
+    # Online output: inside each decision window the candidates' mixture on the readings so far; inside a
+    # recheck's, frame by frame as its margin so far decides (a gap's window that overlaps it comes after)
+    for k0, (found, pos_k, cov_k, passed, _) in rechecked.items():
+        k1 = k0 + len(passed)
+        res.positions_w_m[k0:k1] = np.where(passed[:, None], found.mixture_positions_w_m, pos_k)
+        res.cov[k0:k1] = np.where(passed[:, None, None], found.mixture_cov, cov_k)
     for found in searches:
         k0, k1 = found.frames
-        res.positions_w_m[k0:k1] = found.mixture_positions_w_m
-        res.cov[k0:k1] = found.mixture_cov
+        if k0 not in rechecked:
+            res.positions_w_m[k0:k1] = found.mixture_positions_w_m
+            res.cov[k0:k1] = found.mixture_cov
     return res
+
+
+def _window_inflation(rss, positions_w_m, k0, sensors_w_m, normals_w, pl) -> np.ndarray:
+    """Per frame of a search window starting at ``k0``: the readings' variance inflation factor ``kappa`` on
+    frames ``k0 .. k`` at the window's online positions (:func:`bodyslam.fusion.channel.causal_inflation`); 1
+    without readings (fix mode)."""
+    from bodyslam.fusion.channel import causal_inflation, normalised_residuals
+
+    if rss is None or sensors_w_m is None or pl is None:
+        return np.ones(len(positions_w_m))
+    z = normalised_residuals(np.asarray(rss)[k0:k0 + len(positions_w_m)], positions_w_m, sensors_w_m, normals_w, pl)
+    return causal_inflation(z)
 
 
 def _gap_ends(steps: list[StepMotion], min_len: int) -> list[int]:

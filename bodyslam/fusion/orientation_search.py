@@ -38,6 +38,9 @@ class SearchResult:
     nll_best: float
     mixture_positions_w_m: np.ndarray  # (k1 - k0, 3): the online output while the decision is open
     mixture_cov: np.ndarray  # (k1 - k0, 6, 6)
+    # per frame, on the readings so far: how far the leading candidate's negative log-likelihood is below the
+    # centre's (nats, >= 0); its last value is nll_centre - nll_best
+    lead_nll: np.ndarray | None = None
 
 
 def _cube_axes() -> np.ndarray:
@@ -84,4 +87,4 @@ def search_orientation(ekf: ErrorStateEkf, k0: int, k1: int, R_centre: Rotation,
     best = int(np.argmin(nll_k[:, -1]))
     R, p = pool[best][0], pool[best][1]
     return SearchResult(R, p, (k0, k1), len(pool), float(np.degrees((R_centre.inv() * R).magnitude())),
-                        float(nll_k[0, -1]), float(nll_k[best, -1]), mix_pos, mix_cov)
+                        float(nll_k[0, -1]), float(nll_k[best, -1]), mix_pos, mix_cov, nll_k[0] - nll_k.min(axis=0))
