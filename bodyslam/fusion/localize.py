@@ -32,8 +32,8 @@ import numpy as np
 
 from bodyslam.errors import InputError
 from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
-from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, inflate, normalised_residuals,
-                                     residual_correlation)
+from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, filter_memory, inflate,
+                                     normalised_residuals, residual_correlation)
 from bodyslam.io import write_csv, write_image, write_tum
 from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion
@@ -125,9 +125,10 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
 
 
 def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput) -> np.ndarray:
-    """Per frame ``k``, the correlation factor of the readings of frames ``0 .. k`` at an online run's positions
-    (:func:`bodyslam.fusion.channel.causal_inflation`)."""
-    return causal_inflation(normalised_residuals(rss, res.positions_w_m, rf.sensors_w_m, rf.normals_w, rf.pathloss))
+    """Per frame ``k``, the correlation factor of the readings of frames ``0 .. k`` at an online run's positions,
+    over the filter's own memory (:func:`bodyslam.fusion.channel.causal_inflation`, :func:`filter_memory`)."""
+    return causal_inflation(normalised_residuals(rss, res.positions_w_m, rf.sensors_w_m, rf.normals_w, rf.pathloss),
+                            memory=filter_memory(res))
 
 
 def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2: np.ndarray,

@@ -84,3 +84,29 @@ def test_correlated_shadowing_is_measured_and_the_stated_sigma_becomes_honest():
     steps, fixes, rss, pos, nrm, pl, gt = correlated_run(0, 0.0)
     s = rts_smooth(fuse(steps, fixes, rss, pos, nrm, pl, mode="rss"))
     assert residual_correlation(normalised_residuals(rss, s.positions_w_m, pos, nrm, pl)).kappa == 1.0
+
+
+def test_the_online_factor_over_the_filters_memory_is_an_exponential_averages_inflation():
+    """An exponentially weighted mean (weight ``a^i`` on the reading ``i`` frames back: a filter that keeps a share
+    ``a`` of its information each frame) of AR(1) residuals has ``1 + 2 sum rho^l a^l`` times the variance it has on
+    white ones. With the memory given, the online factor is that, measured on the residuals: here within 3% of the
+    simulated ratio (measured: within 0.5% on these three cases, 4000 frames x 16 sensors)."""
+    from bodyslam.fusion.channel import filter_memory
+
+    for rho, a in ((0.8, 0.8), (0.9, 0.85), (0.5, 0.9)):
+        z, white = ar1(rho, n=4000, seed=1), ar1(0.0, n=4000, seed=2)
+
+        def ew_var(x):
+            y = np.zeros_like(x)
+            for k in range(1, len(x)):
+                y[k] = a * y[k - 1] + (1 - a) * x[k]
+            return y[200:].var()
+
+        got = causal_inflation(z, memory=np.full(len(z), a))[-1]
+        assert abs(got / (ew_var(z) / ew_var(white)) - 1) < 0.03, (rho, a, got)
+        assert got < causal_inflation(z)[-1]  # a short memory counts fewer of the correlated lags
+    z = ar1(0.8, seed=2)  # no decay: every lag in full, as without the memory
+    assert np.array_equal(causal_inflation(z, memory=np.ones(len(z))), causal_inflation(z))
+    steps, fixes, rss, pos, nrm, pl, gt = correlated_run(0, 0.03, n=60)
+    mem = filter_memory(fuse(steps, fixes, rss, pos, nrm, pl, mode="rss"))
+    assert mem.shape == (60,) and np.all((mem > 0.5) & (mem <= 1.0))  # measured 0.96-0.98 after the start
