@@ -399,7 +399,7 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
                       f"{report['smoothing_bound']['sqrt_mean_cm']:.2f} cm, a smoother at it "
                       f"{report['smoothing_bound']['mean_error_cm']:.2f} cm mean (the RTS smoother's RMSE is "
                       f"{report['smoothing_bound']['rts_rmse_over_sqrt_bound']:.2f} x its square root; the table's "
-                      f"last column is against the PCRB). {report['notes']}.", body,
+                      f"last column is against the PCRB). {report['notes'][:1].upper() + report['notes'][1:]}.", body,
                       PLOT_FILES)
 
 
