@@ -176,7 +176,8 @@ def _parser() -> argparse.ArgumentParser:
     lo.add_argument("--rf", default=None, help="rf.csv (default: the sequence's rf.csv)")
     lo.add_argument("--sensors", default=None, help="sensors.csv (default: the sequence's sensors.csv)")
     lo.add_argument("--out", required=True, help="output directory")
-    lo.add_argument("--motion", default=None, help="reuse a motion.csv instead of estimating motion again")
+    lo.add_argument("--motion", default=None, help="reuse a motion.csv instead of estimating motion again (the "
+                    "frames are then not read: meta.json and the RF files suffice)")
     lo.add_argument("--fusion", default="rss", choices=FUSION_MODES,
                     help="rss: EKF on the raw RSS readings (default); fix: EKF on ML position fixes")
     lo.add_argument("--force", action="store_true", help="write into a non-empty output directory")
@@ -505,24 +506,27 @@ def _localize(args) -> int:
     from bodyslam.vision.odometry import Sequence, sequence_motion
 
     seq_dir = Path(args.seqdir)
-    seq = Sequence.open(seq_dir, args.radius_m)
-    rf_meta = read_meta(seq_dir).rf
+    meta = read_meta(seq_dir)
+    rf_meta = meta.rf
     rf_path = Path(args.rf) if args.rf else seq_dir / (rf_meta.file if rf_meta else "rf.csv")
     sensors_path = Path(args.sensors) if args.sensors else seq_dir / (rf_meta.sensors if rf_meta else "sensors.csv")
     rf = RfInput.read(rf_path, sensors_path, rf_meta.pathloss if rf_meta else None)
     prepare_output_dir(args.out, args.force, create=False)  # refused now, not after the work
-    n = seq.n_frames
-    frames = np.arange(n)
-    stamps = frames / seq.frame_rate_hz
     problems: list = []
     fov: list = []
-    if args.motion:
+    if args.motion:  # the steps are given: meta.json is all that is read of the sequence (no frames needed)
+        n, rate = meta.n_frames, meta.frame_rate_hz
+        told = meta.tube_radius_m if args.radius_m is None else None  # a radius on the command line has no spread
+        radius_sd_rel = meta.tube_radius_sd_m / told if told else 0.0
         steps = read_motion_steps(args.motion, range(1, n))
     else:
+        seq = Sequence.open(seq_dir, args.radius_m)
+        n, rate, radius_sd_rel = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
                                 progress=Progress("motion"), problems=problems, fov_used=fov)
-    loc = localize(steps, stamps, rf, seq.frame_rate_hz, frames, mode=args.fusion,
-                   radius_sd_rel=seq.radius_sd_rel)
+    frames = np.arange(n)
+    stamps = frames / rate
+    loc = localize(steps, stamps, rf, rate, frames, mode=args.fusion, radius_sd_rel=radius_sd_rel)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
         from bodyslam.vision.odometry import write_mask
