@@ -68,8 +68,8 @@ class FusionSettings:
     recheck_min_nll: float = 30.0
     # strictly causal start: no alignment to the first window's fixes (which uses fixes up to frame 40-80 for
     # frame 0); every orientation is searched from frame 0's RF fix, and the output until the decision is the
-    # candidates' mixture on the readings so far -- frame k's position uses frames 0..k only (its orientation is
-    # the committed run's, whose decisions are made at the ends of the windows)
+    # candidates' mixture on the readings so far (the leading candidate's orientation) -- frame k uses frames 0..k
+    # only
     causal_start: bool = False
     # per-sensor RSS bias states (bodyslam.fusion.ekf): correlation distance along the path (0: off) and stationary
     # 1-sigma (dB) of the persistent part of each sensor's readings
@@ -273,9 +273,9 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
     gap_ends = set(_gap_ends(steps, cfg.regap_steps)) if cfg.regap_steps else set()
     recheck_at = searches[0].frames[1] if cfg.recheck_start and searches and searches[0].frames[1] < n - 1 else None
-    # a recheck whose margin passed at some frame: its search, the run without a turn, the frames that passed, and
-    # the orientation it started from
-    rechecked: dict[int, tuple[SearchResult, np.ndarray, np.ndarray, np.ndarray, Rotation]] = {}
+    # a recheck whose margin passed at some frame: its search, the run without a turn (positions, covariances), the
+    # frames that passed, the orientation it started from, and the run's orientations
+    rechecked: dict[int, tuple] = {}
 
     def decide(k_end, p_b, R_b, P_b, bias_b):
         """At the end of a long gap, or of the start's window (a recheck): search the orientation from the
@@ -297,7 +297,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
             # frame, the committed run without the turn until the margin on the readings so far passes the
             # threshold, the candidates' mixture from then on -- whichever way the decision goes
             cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
-            rechecked[k_end] = (found, cont[0][0], cont[2][0], passed, R_b)
+            rechecked[k_end] = (found, cont[0][0], cont[2][0], passed, R_b, cont[1][0])
             if not passed[-1]:
                 return None  # the start stands after the window
         searches.append(found)
@@ -311,7 +311,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         # window's end), so the committed run starts again from the start turned the same way -- the smoother
         # then sees one consistent run instead of a reset that cuts the orientation's link to the frames before
         # it. Frames up to the recheck's end keep the online output above (decided on the readings so far).
-        found, *_, R_before = rechecked[recheck_at]
+        found, R_before = rechecked[recheck_at][0], rechecked[recheck_at][4]
         turn = found.R * R_before.inv()  # in the world frame: new = turn * old
         searches[:] = [s for s in searches if s.frames[0] in (0, recheck_at)]  # the gaps are searched again
         R0, recheck_at = turn * R0, None
@@ -324,17 +324,22 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
                         for k, v in resets.items()}, pos[0].copy())
     if ekf.n_scale:
         res.scale, res.scale_sd = passes.post_b[:, 0].copy(), np.sqrt(passes.post_P[:, 6, 6])
-    # Online output: inside each decision window the candidates' mixture on the readings so far; inside a
-    # recheck's, frame by frame as its margin so far decides (a gap's window that overlaps it comes after)
-    for k0, (found, pos_k, cov_k, passed, _) in rechecked.items():
+    # Online output: inside each decision window the candidates' mixture on the readings so far, with the leading
+    # candidate's orientation; inside a recheck's, frame by frame as its margin so far decides (a gap's window that
+    # overlaps it comes after). Frame k's output then depends on readings 0..k only.
+    rot_out = rot[0].copy()
+    for k0, (found, pos_k, cov_k, passed, _, rot_k) in rechecked.items():
         k1 = k0 + len(passed)
         res.positions_w_m[k0:k1] = np.where(passed[:, None], found.mixture_positions_w_m, pos_k)
         res.cov[k0:k1] = np.where(passed[:, None, None], found.mixture_cov, cov_k)
+        rot_out[k0:k1] = np.where(passed[:, None, None], found.leader_rotations, rot_k)
     for found in searches:
         k0, k1 = found.frames
         if k0 not in rechecked:
             res.positions_w_m[k0:k1] = found.mixture_positions_w_m
             res.cov[k0:k1] = found.mixture_cov
+            rot_out[k0:k1] = found.leader_rotations
+    res.rotations_w_c = Rotation.from_matrix(rot_out)
     return res
 
 

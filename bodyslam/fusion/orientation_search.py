@@ -41,6 +41,9 @@ class SearchResult:
     # per frame, on the readings so far: how far the leading candidate's negative log-likelihood is below the
     # centre's (nats, >= 0); its last value is nll_centre - nll_best
     lead_nll: np.ndarray | None = None
+    # per frame, the orientation of the candidate leading on the readings so far (k1 - k0, 3, 3): the online
+    # orientation while the decision is open (a mixture of rotations is not one)
+    leader_rotations: np.ndarray | None = None
 
 
 def _cube_axes() -> np.ndarray:
@@ -57,14 +60,14 @@ def search_orientation(ekf: ErrorStateEkf, k0: int, k1: int, R_centre: Rotation,
     covariance ``P`` (6 x 6, or the filter's whole state) and the RSS bias states ``bias`` (default zero)."""
     group = Rotation.create_group("I")
     cands = [R_centre] + [R_centre * g for g in group if g.magnitude() > 1e-6] + list(extra)
-    pool = []  # (R, p, cumulative nll per frame, positions, covariances, first frame it may be used)
+    pool = []  # (R, p, cumulative nll per frame, positions, covariances, first frame it may be used, rotations)
 
     def add(Rs, first):
         ps = np.array([position_of(R) for R in Rs])
-        pos, _, covs, nll_k, _ = ekf.run(ps, np.array([R.as_matrix() for R in Rs]),
-                                         np.repeat(P[None], len(Rs), axis=0), k0, k1,
-                                         b=None if bias is None else np.repeat(bias[None], len(Rs), axis=0))
-        pool.extend((R, pr, nk, x, c, first) for R, pr, nk, x, c in zip(Rs, ps, nll_k, pos, covs))
+        pos, rot, covs, nll_k, _ = ekf.run(ps, np.array([R.as_matrix() for R in Rs]),
+                                           np.repeat(P[None], len(Rs), axis=0), k0, k1,
+                                           b=None if bias is None else np.repeat(bias[None], len(Rs), axis=0))
+        pool.extend((R, pr, nk, x, c, first, o) for R, pr, nk, x, c, o in zip(Rs, ps, nll_k, pos, covs, rot))
 
     add(cands, k0)
     for frac, step_deg in ((0.25, 20.0), (0.5, 10.0)):
@@ -86,5 +89,8 @@ def search_orientation(ekf: ErrorStateEkf, k0: int, k1: int, R_centre: Rotation,
     mix_cov[:, :3, :3] += np.einsum("cf,cfi,cfj->fij", wgt, d, d)
     best = int(np.argmin(nll_k[:, -1]))
     R, p = pool[best][0], pool[best][1]
+    leader = np.argmin(nll_k, axis=0)
+    lead_rot = np.array([pool[c][6][i] for i, c in enumerate(leader)])
     return SearchResult(R, p, (k0, k1), len(pool), float(np.degrees((R_centre.inv() * R).magnitude())),
-                        float(nll_k[0, -1]), float(nll_k[best, -1]), mix_pos, mix_cov, nll_k[0] - nll_k.min(axis=0))
+                        float(nll_k[0, -1]), float(nll_k[best, -1]), mix_pos, mix_cov, nll_k[0] - nll_k.min(axis=0),
+                        lead_rot)

@@ -309,6 +309,7 @@ def test_start_search_recovers_a_wrong_alignment_and_the_online_output_is_causal
     rss2[90:] += 6.0
     moved = fuse(steps, fixes, rss2, pos, nrm, pl, mode="rss")
     assert np.array_equal(ref.positions_w_m[:90], moved.positions_w_m[:90])
+    assert np.array_equal(ref.rotations_w_c[:90].as_matrix(), moved.rotations_w_c[:90].as_matrix())
     assert not np.allclose(ref.positions_w_m[90:], moved.positions_w_m[90:])
 
 
@@ -369,6 +370,8 @@ def test_the_strictly_causal_start_uses_no_later_reading():
     causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True)
     causal2 = fuse(steps, fixes2, rss2, pos, nrm, pl, mode="rss", causal_start=True)
     assert np.array_equal(causal.positions_w_m[:20], causal2.positions_w_m[:20])
+    # its orientation too (the leading candidate's on the readings so far, not the one decided at frame 80)
+    assert np.array_equal(causal.rotations_w_c[:20].as_matrix(), causal2.rotations_w_c[:20].as_matrix())
     ahead = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss")
     ahead2 = fuse(steps, fixes2, rss2, pos, nrm, pl, mode="rss")
     assert not np.allclose(ahead.positions_w_m[:20], ahead2.positions_w_m[:20])  # the look-ahead start does see them
@@ -533,4 +536,5 @@ def test_a_start_committed_far_off_is_turned_by_the_recheck_and_the_output_stays
     rss2[120:] += 6.0  # later readings: nothing before frame 120 may move
     moved = run(rss2)
     assert np.array_equal(on.positions_w_m[:120], moved.positions_w_m[:120])
+    assert np.array_equal(on.rotations_w_c[:120].as_matrix(), moved.rotations_w_c[:120].as_matrix())
     assert not np.allclose(on.positions_w_m[120:], moved.positions_w_m[120:])
