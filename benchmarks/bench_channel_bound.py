@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bodyslam.errors import BodySlamError
 from bodyslam.fusion.localize import RfInput
 from bodyslam.io import read_motion_steps, read_tum
 from bodyslam.meta import read_meta
@@ -41,7 +42,10 @@ def main() -> None:
     ap.add_argument("--perfect-steps", nargs=2, type=float, metavar=("SD_M", "SD_DEG"),
                     help="every step's 1-sigma per axis instead of the vision's measured errors")
     args = ap.parse_args()
-    full = rf_channel(load_scenario(args.scenario))
+    try:
+        full = rf_channel(load_scenario(args.scenario))
+    except BodySlamError as exc:  # an unknown scenario or a bad [rf.channel]: one line, not a traceback
+        raise SystemExit(f"error: {exc}") from None
     cases = {"calibration's model (ideal)": ChannelModel()}
     for name, keys in PARTS.items():
         cases[f"{name} only"] = ChannelModel(**{k: getattr(full, k) for k in keys})

@@ -269,7 +269,8 @@ def channel_bounds(positions_w_m: np.ndarray, rotations_w_c: Rotation, sigma_t_m
     M[:6, :6] = np.linalg.inv(P0) + np.pad(meas[0]["cc"], ((0, 3), (0, 3)))
     M[:3, 6:] = meas[0]["cn"]
     M[6:, :3] = meas[0]["cn"].T
-    M[6:, 6:] = _nuisance_prior(channel, len(sensors_w_m)) + meas[0]["nn"] if m else M[6:, 6:]
+    if m:
+        M[6:, 6:] = _nuisance_prior(channel, len(sensors_w_m)) + meas[0]["nn"]
     filt[0] = np.linalg.inv(M)[:6, :6]
     for k in range(n - 1):
         A, Qi = steps[k]

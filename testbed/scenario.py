@@ -334,7 +334,7 @@ def rf_channel(scn: dict):
 
 def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:
     """RF emulation settings; on by default with the thesis sensor grids (``[rf] enabled = false`` turns it off)."""
-    from testbed.rf import ChannelModel, PathLossModel, TOAModel, layout_from_config
+    from testbed.rf import PathLossModel, TOAModel, layout_from_config
 
     if not sec.get("enabled", True):
         return None
@@ -342,4 +342,4 @@ def _rf_from(sec: dict, base_dir: Path | None) -> dict | None:
     return {"layout": layout_from_config(sec, base_dir),
             "pathloss": _dataclass_from(PathLossModel, pl, "rf.pathloss"),
             "toa": _dataclass_from(TOAModel, sec.get("toa", {}), "rf.toa"),
-            "channel": _dataclass_from(ChannelModel, sec.get("channel", {}), "rf.channel")}
+            "channel": rf_channel({"rf": sec})}

@@ -30,6 +30,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -79,6 +80,17 @@ class FusionSettings:
     # and the distance along the path over which the radius changes
     scale_sd_rel: float = 0.0
     scale_corr_m: float = SCALE_CORR_M
+
+
+class _Recheck(NamedTuple):
+    """A recheck of the start whose margin passed at some frame of its window (:func:`fuse`)."""
+
+    found: SearchResult
+    passed: np.ndarray  # (f,) bool: frames whose margin on the readings so far passed the threshold
+    R_from: Rotation  # the orientation the search started from (the committed run's, predicted)
+    positions_w_m: np.ndarray  # (f, 3): the committed run without a turn over the window
+    rotations: np.ndarray  # (f, 3, 3)
+    cov: np.ndarray  # (f, 6, 6)
 
 
 @dataclass
@@ -273,9 +285,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         P = np.diag([1e-4] * 3 + [np.radians(5.0) ** 2] * 3)
     gap_ends = set(_gap_ends(steps, cfg.regap_steps)) if cfg.regap_steps else set()
     recheck_at = searches[0].frames[1] if cfg.recheck_start and searches and searches[0].frames[1] < n - 1 else None
-    # a recheck whose margin passed at some frame: its search, the run without a turn (positions, covariances), the
-    # frames that passed, the orientation it started from, and the run's orientations
-    rechecked: dict[int, tuple] = {}
+    rechecked: dict[int, _Recheck] = {}  # the rechecks whose margin passed at some frame
 
     def decide(k_end, p_b, R_b, P_b, bias_b):
         """At the end of a long gap, or of the start's window (a recheck): search the orientation from the
@@ -297,7 +307,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
             # frame, the committed run without the turn until the margin on the readings so far passes the
             # threshold, the candidates' mixture from then on -- whichever way the decision goes
             cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
-            rechecked[k_end] = (found, cont[0][0], cont[2][0], passed, R_b, cont[1][0])
+            rechecked[k_end] = _Recheck(found, passed, R_b, cont[0][0], cont[1][0], cont[2][0])
             if not passed[-1]:
                 return None  # the start stands after the window
         searches.append(found)
@@ -306,13 +316,13 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
     resets: dict = {}
     pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0, n,
                                        keep=True, resets=resets, decide=decide)
-    if recheck_at in rechecked and rechecked[recheck_at][3][-1]:
+    if recheck_at in rechecked and rechecked[recheck_at].passed[-1]:
         # The recheck turned the start: the error was there from frame 0 (nothing turned the capsule at the
         # window's end), so the committed run starts again from the start turned the same way -- the smoother
         # then sees one consistent run instead of a reset that cuts the orientation's link to the frames before
         # it. Frames up to the recheck's end keep the online output above (decided on the readings so far).
-        found, R_before = rechecked[recheck_at][0], rechecked[recheck_at][4]
-        turn = found.R * R_before.inv()  # in the world frame: new = turn * old
+        rc = rechecked[recheck_at]
+        turn = rc.found.R * rc.R_from.inv()  # in the world frame: new = turn * old
         searches[:] = [s for s in searches if s.frames[0] in (0, recheck_at)]  # the gaps are searched again
         R0, recheck_at = turn * R0, None
         resets = {}
@@ -328,11 +338,11 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
     # candidate's orientation; inside a recheck's, frame by frame as its margin so far decides (a gap's window that
     # overlaps it comes after). Frame k's output then depends on readings 0..k only.
     rot_out = rot[0].copy()
-    for k0, (found, pos_k, cov_k, passed, _, rot_k) in rechecked.items():
-        k1 = k0 + len(passed)
-        res.positions_w_m[k0:k1] = np.where(passed[:, None], found.mixture_positions_w_m, pos_k)
-        res.cov[k0:k1] = np.where(passed[:, None, None], found.mixture_cov, cov_k)
-        rot_out[k0:k1] = np.where(passed[:, None, None], found.leader_rotations, rot_k)
+    for k0, rc in rechecked.items():
+        k1, on = k0 + len(rc.passed), rc.passed
+        res.positions_w_m[k0:k1] = np.where(on[:, None], rc.found.mixture_positions_w_m, rc.positions_w_m)
+        res.cov[k0:k1] = np.where(on[:, None, None], rc.found.mixture_cov, rc.cov)
+        rot_out[k0:k1] = np.where(on[:, None, None], rc.found.leader_rotations, rc.rotations)
     for found in searches:
         k0, k1 = found.frames
         if k0 not in rechecked:

@@ -281,6 +281,11 @@ class ErrorStateEkf:
             streak = np.where(do, 0, streak)
             H = np.repeat(np.hstack([np.eye(3), np.zeros((3, self.D - 3))])[None], C, axis=0)
             Rm = np.repeat(f.cov_m2[None], C, axis=0)
+            S = H @ P @ H.transpose(0, 2, 1) + Rm
+            K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
+            dx = (K @ y[..., None])[..., 0]
+            IKH = np.eye(self.D) - K @ H
+            P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
         else:
             r = self.rss[k]
             ok = np.isfinite(r)
@@ -319,23 +324,13 @@ class ErrorStateEkf:
             # Information form: the readings are independent given the state (diagonal noise), so the update is
             # P' = (P^-1 + H^T W H)^-1, dx = P' H^T W y with W = 1 / sigma^2 -- 0 for a reading outside the gate,
             # exactly the update without it. The same posterior as the Kalman form, with D x D inverses instead of
-            # an m x m one per frame (m = 32 sensors, D = 6-7: 3x faster, and the searches run 90 candidates).
+            # an m x m one per frame (m = 32 sensors, D = 6-7; the searches run 90 candidates at once).
             W = np.where(keep, 1.0 / sigma**2, 0.0)
             HtW = H.transpose(0, 2, 1) * W[:, None, :]
             P_new = np.linalg.inv(np.linalg.inv(P) + HtW @ H)
             P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
             dx = (P_new @ (HtW @ y[..., None]))[..., 0]
-            self._apply(dx, P_new, do, p, R, P, nll, streak)
-            return
-        S = H @ P @ H.transpose(0, 2, 1) + Rm
-        K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
-        dx = (K @ y[..., None])[..., 0]
-        IKH = np.eye(self.D) - K @ H
-        P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ Rm @ K.transpose(0, 2, 1)  # Joseph form
-        self._apply(dx, P_new, do, p, R, P, nll, streak)
-
-    def _apply(self, dx, P_new, do, p, R, P, nll, streak) -> None:
-        """Commit an update's correction ``dx`` and covariance for the candidates ``do``; the others keep theirs."""
+        # commit the correction and covariance for the candidates that updated; the others keep theirs
         R_new = R @ rotvec_to_matrix(dx[:, 3:6])
         if self.m_extra:
             self.b = np.where(do[:, None], self.b + dx[:, 6:], self.b)
