@@ -70,6 +70,7 @@ class SensorNoise:
 class RenderResult:
     rgb: np.ndarray
     range_m: np.ndarray
+    exposure: float = 1.0  # the automatic light control's gain on this frame (Lighting.auto_exposure_percentile)
 
 
 def encode_range(range_m: np.ndarray) -> np.ndarray:
@@ -105,9 +106,17 @@ class TubeRenderer:
         self._rays_c = rays_c.reshape(-1, 3)[self._pix]
         self._led = (np.clip(self._rays_c[:, 2], 0.0, 1.0) ** lighting.led_exponent).astype(np.float32)
         self._pix_angle = self._pixel_angle(camera, valid).astype(np.float32)
-        # per-vertex (s_m, phi_rad, nx, ny, nz) in float32: one gather per triangle corner when shading
-        m = self.mesh
-        self._attr = np.ascontiguousarray(np.c_[m.s_m, m.phi_rad, m.normals_w], dtype=np.float32)
+        self._attr = self._attributes(self.mesh)
+
+    @staticmethod
+    def _attributes(m: TubeMesh) -> np.ndarray:
+        """Per-vertex ``(s_m, phi_rad, nx, ny, nz)`` in float32: one gather per triangle corner when shading."""
+        return np.ascontiguousarray(np.c_[m.s_m, m.phi_rad, m.normals_w], dtype=np.float32)
+
+    def set_mesh(self, mesh: TubeMesh) -> None:
+        """Render from now on against ``mesh`` (a moving wall, :mod:`testbed.motility`: one mesh per frame)."""
+        self.mesh = mesh
+        self._attr = self._attributes(mesh)
 
     @staticmethod
     def _pixel_angle(camera: CameraModel, valid: np.ndarray) -> np.ndarray:
@@ -138,6 +147,7 @@ class TubeRenderer:
         h, w = cam.height, cam.width
         rgb = np.zeros((h * w, 3), np.uint8)
         range_img = np.full(h * w, np.nan, np.float32)
+        exposure = 1.0
         if len(hit):
             attr = self._attr
             tri = self.mesh.faces[prim[hit]]
@@ -162,12 +172,13 @@ class TubeRenderer:
             if L.auto_exposure_percentile > 0:
                 level = float(np.percentile(col.max(axis=1), L.auto_exposure_percentile))
                 if level > L.auto_exposure_level:
-                    col *= np.float32(L.auto_exposure_level / level)
+                    exposure = L.auto_exposure_level / level
+                    col *= np.float32(exposure)
             np.clip(col, 0.0, 1.0, out=col)
             np.power(col, np.float32(1.0 / L.gamma), out=col)
             rgb[self._pix[hit]] = np.rint(col * np.float32(255.0)).astype(np.uint8)
             range_img[self._pix[hit]] = t
-        return RenderResult(rgb.reshape(h, w, 3), range_img.reshape(h, w))
+        return RenderResult(rgb.reshape(h, w, 3), range_img.reshape(h, w), float(exposure))
 
 
 class RaycastRenderer(TubeRenderer):
@@ -184,16 +195,23 @@ class RaycastRenderer(TubeRenderer):
 
     def __init__(self, tube: Tube, texture: Texture, camera: CameraModel, lighting: Lighting = Lighting(),
                  mesh: TubeMesh | None = None):
+        super().__init__(tube, texture, camera, lighting, mesh)
+        self._build_scene()
+
+    def _build_scene(self) -> None:
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
 
-        super().__init__(tube, texture, camera, lighting, mesh)
         self._scene = rtcore_scene.EmbreeScene()
         self._tm = TriangleMesh(
             self._scene,
             np.ascontiguousarray(self.mesh.vertices_w - self._origin, dtype=np.float32),
             np.ascontiguousarray(self.mesh.faces, dtype=np.int32),
         )
+
+    def set_mesh(self, mesh: TubeMesh) -> None:
+        super().set_mesh(mesh)
+        self._build_scene()
 
     def cast(self, origins_w: np.ndarray, dirs_w: np.ndarray):
         """Cast rays; returns ``(range_m (n,), prim (n,) int, u (n,), v (n,))`` with ``prim = -1`` on a miss."""

@@ -143,6 +143,10 @@ class PyrenderRenderer(TubeRenderer):
         self._gl = _offscreen(pyrender, self.face_px)
         self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.SKIP_CULL_FACES
 
+    def set_mesh(self, mesh: TubeMesh) -> None:
+        raise ConfigError("a moving wall ([motility]) needs the raycast backend: the pyrender backend uploads its "
+                          "mesh once")
+
     def _visible(self, R_w_c: np.ndarray, t_w_c: np.ndarray, dirs_w: np.ndarray):
         n_rays = len(dirs_w)
         n = self.face_px

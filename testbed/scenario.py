@@ -24,6 +24,8 @@ import numpy as np
 from bodyslam.camera import CameraModel, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from testbed.centerline import Centerline, procedural_centerline
+from testbed.content import Debris, Fluid, LumenContent
+from testbed.motility import Peristalsis
 from testbed.motion import MotionConfig
 from testbed.artifacts import Bubbles, CameraOptics
 from testbed.render import RENDER_BACKENDS, Lighting, SensorNoise
@@ -67,7 +69,7 @@ def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict
 
 # Keys the world reads from its plain sections with a default (so a scenario file may leave them out), with their
 # kind: what ``--set`` may add there besides the keys the scenario already has. Sections read into dataclasses
-# (lighting, noise, motion, artifacts, optics, rf.pathloss, rf.toa, rf.channel) and [texture] (keyword arguments)
+# (lighting, noise, motion, motility, fluid, debris, artifacts, optics, rf.pathloss, rf.toa, rf.channel) and [texture] (keyword arguments)
 # are checked by those when the world is built; the other papers' systems read their own sections, where an
 # override may only replace a key the scenario has.
 _NUM, _INT, _BOOL, _STR, _LIST, _TABLE = "a number", "an integer", "true or false", "a string", "a list", "a table"
@@ -89,8 +91,8 @@ OPTIONAL_KEYS: dict[str, dict[str, str]] = {
     "rf": {"enabled": _BOOL, "layout": _STR, "file": _STR, "n_side": _INT, "width_m": _NUM, "plane_y_m": _NUM,
            "both_sides": _BOOL, "size_m": _LIST, "pathloss": _TABLE, "toa": _TABLE, "channel": _TABLE},
 }
-_CHECKED_ELSEWHERE = {"lighting", "noise", "motion", "artifacts", "optics", "texture", "rf.pathloss", "rf.toa",
-                      "rf.channel"}
+_CHECKED_ELSEWHERE = {"lighting", "noise", "motion", "motility", "fluid", "debris", "artifacts", "optics", "texture", "rf.pathloss",
+                      "rf.toa", "rf.channel"}
 
 
 def _kind_of(value) -> str:
@@ -190,6 +192,8 @@ class World:
     radius_in_meta_m: float | None = None
     radius_sd_in_meta_m: float = 0.0  # ... and its stated 1-sigma (0: exact, the ideal world)
     shape_sd_in_meta_rel: float = 0.0  # the lumen's stated departure from a cylinder (meta.json lumen_shape_sd_rel)
+    motility: Peristalsis = Peristalsis()  # contractions travelling along the gut ([motility]; off by default)
+    content: LumenContent | None = None  # fluid and debris in the lumen ([fluid], [debris]; None: none)
 
 
 def _radius_fn(sec: dict, rng: np.random.Generator):
@@ -231,7 +235,9 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     if not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
     ss = np.random.SeedSequence(seed)
-    rngs = dict(zip(("path", "texture", "motion", "noise", "rf"), (np.random.default_rng(s) for s in ss.spawn(5))))
+    # (a stream added at the end leaves the others as they were: SeedSequence children depend on their index only)
+    rngs = dict(zip(("path", "texture", "motion", "noise", "rf", "motility", "content"),
+                    (np.random.default_rng(s) for s in ss.spawn(7))))
     seq = section(scn, "sequence")
     n = int(n_frames if n_frames is not None else seq.get("frames", 100))
     if n < 2:
@@ -319,9 +325,21 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     told_shape = tube_sec.get("shape_sd_in_meta_rel", 0.0)
     if isinstance(told_shape, bool) or not (isinstance(told_shape, (int, float)) and 0.0 <= told_shape < 1.0):
         raise ConfigError(f"[tube] shape_sd_in_meta_rel must be a fraction in 0-1, got {told_shape!r}")
+    if "stretches" in section(scn, "motility"):
+        raise ConfigError("[motility] stretches are drawn per seed, not set")
+    motility = _dataclass_from(Peristalsis, section(scn, "motility"), "motility")
+    motility = motility.drawn(cl.length_m, rngs["motility"])
+    if motility.active and backend != "raycast":
+        raise ConfigError("[motility] (a moving wall) needs the raycast backend: pyrender uploads its mesh once")
+    for name in ("fluid", "debris"):
+        if "stretches" in section(scn, name):
+            raise ConfigError(f"[{name}] stretches are drawn per seed, not set")
+    content = LumenContent.draw(_dataclass_from(Fluid, section(scn, "fluid"), "fluid"),
+                                _dataclass_from(Debris, section(scn, "debris"), "debris"), cl.length_m,
+                                rngs["content"])
     return World(scn, seed, n, camera, tube, texture, lighting, noise, motion, bool(out.get("depth", True)), rngs,
                  backend, rear_baseline, bubbles, rf, optics, None if told is None else float(told), float(told_sd),
-                 float(told_shape))
+                 float(told_shape), motility, content if content.active else None)
 
 
 def rf_channel(scn: dict):

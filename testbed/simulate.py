@@ -9,7 +9,8 @@ What only scoring may read (ground truth):
     labels.csv          per-frame FT/FL label and phase
     centerline.csv      the path's centre line (the "map")
     truth.json          sequence statistics of the truth
-    depth/NNNNNN.png    optional: range along each pixel's ray, uint16 in 0.1 mm (0 = no wall)
+    depth/NNNNNN.png    optional: range along each pixel's ray, uint16 in 0.1 mm (0 = no wall): to the wall as it
+                        is at that frame's time ([motility] moves it), not to fluid or debris (testbed.content)
 
 ``meta.json`` is written last, so a run that was killed leaves no ``meta.json`` and is visibly incomplete.
 Frames render in parallel worker processes (``jobs``), each with its own renderer, pinned to its own core and
@@ -85,9 +86,17 @@ def _render_one(k: int) -> int:
     traj: CapsuleTrajectory = _W["traj"]
     out: Path = _W["out"]
     R_w_c, p_w_c = traj.rotations_w_c[k], traj.positions_w_m[k]
+    mot = w.motility
+    if mot.active:  # the wall as it is at this frame's time, around the capsule (testbed.motility)
+        s_cap, t_k = float(traj.s_m[k]), float(traj.stamps_s[k])
+        _W["renderer"].set_mesh(w.tube.mesh_window(s_cap - mot.window_m, s_cap + mot.window_m,
+                                                   lambda s: mot.radius_factor(s, t_k, s_cap)))
     res = _W["renderer"].render(R_w_c, p_w_c)
     rng = np.random.default_rng([w.seed, 7919, k])  # per-frame noise stream: same output for any job count
     rgb = res.rgb
+    if w.content is not None:  # fluid and debris in the lumen (testbed.content), in 3-D behind/in front of the wall
+        rgb = w.content.apply(rgb, res.range_m, _W["renderer"], R_w_c.as_matrix(), p_w_c, float(traj.stamps_s[k]),
+                              float(traj.s_m[k]), res.exposure)
     if w.bubbles.bubble_prob > 0:
         rgb = w.bubbles.apply(rgb, np.random.default_rng([w.seed, 7919, k, 2]), _W["fov"])
     write_image(out / "frames" / frame_name(k), w.optics.apply(w.noise.apply(rgb, rng)))

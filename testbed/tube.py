@@ -104,13 +104,33 @@ class Tube:
         radial = np.cos(phi)[:, None] * R[:, :, 0] + np.sin(phi)[:, None] * R[:, :, 1]
         return p + rho[:, None] * radial
 
+    def ring_s(self) -> np.ndarray:
+        """Arc lengths of the mesh's rings (``ring_spacing_m`` apart, both ends included)."""
+        n_rings = int(math.floor(self.centerline.length_m / self.ring_spacing_m)) + 1
+        return np.linspace(0.0, self.centerline.length_m, n_rings)
+
     def mesh(self) -> TubeMesh:
-        cl = self.centerline
-        n_rings = int(math.floor(cl.length_m / self.ring_spacing_m)) + 1
-        s = np.linspace(0.0, cl.length_m, n_rings)
+        return self._grid_mesh(self.ring_s())
+
+    def mesh_window(self, s_lo_m: float, s_hi_m: float, radius_factor=None) -> TubeMesh:
+        """The mesh's rings with ``s_lo_m <= s <= s_hi_m`` (the same rings as :meth:`mesh`), each wall point pulled
+        toward its centre-line point by ``radius_factor(s_m (n_rings,)) -> (n_rings, sections + 1)`` (or
+        ``(n_rings,)``) when given: a moving wall (:mod:`testbed.motility`). Normals from the deformed grid."""
+        s = self.ring_s()
+        s = s[(s >= s_lo_m) & (s <= s_hi_m)]
+        if len(s) < 2:
+            raise ConfigError(f"no tube between s = {s_lo_m:.3f} and {s_hi_m:.3f} m")
+        return self._grid_mesh(s, radius_factor)
+
+    def _grid_mesh(self, s: np.ndarray, radius_factor=None) -> TubeMesh:
+        n_rings = len(s)
         phi = np.linspace(0.0, 2 * math.pi, self.sections + 1)
         S, PHI = np.meshgrid(s, phi, indexing="ij")
         V = self.surface_point(S.ravel(), PHI.ravel()).reshape(n_rings, self.sections + 1, 3)
+        if radius_factor is not None:
+            c = self.centerline.frame_at(s)[0][:, None, :]
+            f = np.asarray(radius_factor(s), dtype=np.float64)
+            V = c + (V - c) * (f[:, :, None] if f.ndim == 2 else f[:, None, None])
         # Normals from the grid: with n x b = t, dP/ds x dP/dphi = t x (r e_phi) = -r e_radial points into the lumen.
         dPds = np.gradient(V, s, axis=0)
         dPdphi = np.gradient(V, phi, axis=1)
