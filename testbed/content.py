@@ -104,6 +104,9 @@ class Fluid:
 
 @dataclass(frozen=True)
 class Debris:
+    """Scenario section ``[debris]`` (module docstring); the particles themselves are drawn per seed
+    (:meth:`LumenContent.draw`)."""
+
     per_m: float = 0.0  # 0: no debris (the default)
     size_m: tuple[float, float] = (0.0003, 0.0025)
     drift_m_s: tuple[float, float] = (0.0005, 0.001)  # mean aboral drift, per-particle spread
@@ -154,6 +157,7 @@ class LumenContent:
             return np.zeros((0, 3)), rows
         P = P[rows]
         w = self.debris.wander_m
+        # a slow wander of ~w along the gut and around it (w over a ~1 cm radius, in radians), periods of 15-20 s
         s = np.clip(s[rows] + w * np.sin(0.4 * t_s + P[:, 5]), 0.0, tube.centerline.length_m)
         phi = P[:, 2] + (w / 0.01) * np.sin(0.3 * t_s + 2 * P[:, 5])
         c, R, r = tube.centerline.frame_at(s)

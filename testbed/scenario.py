@@ -69,9 +69,9 @@ def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict
 
 # Keys the world reads from its plain sections with a default (so a scenario file may leave them out), with their
 # kind: what ``--set`` may add there besides the keys the scenario already has. Sections read into dataclasses
-# (lighting, noise, motion, motility, fluid, debris, artifacts, optics, rf.pathloss, rf.toa, rf.channel) and [texture] (keyword arguments)
-# are checked by those when the world is built; the other papers' systems read their own sections, where an
-# override may only replace a key the scenario has.
+# (lighting, noise, motion, motility, fluid, debris, artifacts, optics, rf.pathloss, rf.toa, rf.channel) and
+# [texture] (keyword arguments) are checked by those when the world is built; the other papers' systems read their
+# own sections, where an override may only replace a key the scenario has.
 _NUM, _INT, _BOOL, _STR, _LIST, _TABLE = "a number", "an integer", "true or false", "a string", "a list", "a table"
 OPTIONAL_KEYS: dict[str, dict[str, str]] = {
     "sequence": {"frames": _INT, "frame_rate_hz": _NUM, "duration_s": _NUM, "interval_s": _NUM},
@@ -91,8 +91,8 @@ OPTIONAL_KEYS: dict[str, dict[str, str]] = {
     "rf": {"enabled": _BOOL, "layout": _STR, "file": _STR, "n_side": _INT, "width_m": _NUM, "plane_y_m": _NUM,
            "both_sides": _BOOL, "size_m": _LIST, "pathloss": _TABLE, "toa": _TABLE, "channel": _TABLE},
 }
-_CHECKED_ELSEWHERE = {"lighting", "noise", "motion", "motility", "fluid", "debris", "artifacts", "optics", "texture", "rf.pathloss",
-                      "rf.toa", "rf.channel"}
+_CHECKED_ELSEWHERE = {"lighting", "noise", "motion", "motility", "fluid", "debris", "artifacts", "optics", "texture",
+                      "rf.pathloss", "rf.toa", "rf.channel"}
 
 
 def _kind_of(value) -> str:
@@ -325,15 +325,13 @@ def build_world(scn: dict[str, Any], seed: int, n_frames: int | None = None) -> 
     told_shape = tube_sec.get("shape_sd_in_meta_rel", 0.0)
     if isinstance(told_shape, bool) or not (isinstance(told_shape, (int, float)) and 0.0 <= told_shape < 1.0):
         raise ConfigError(f"[tube] shape_sd_in_meta_rel must be a fraction in 0-1, got {told_shape!r}")
-    if "stretches" in section(scn, "motility"):
-        raise ConfigError("[motility] stretches are drawn per seed, not set")
+    for name in ("motility", "fluid"):
+        if "stretches" in section(scn, name):
+            raise ConfigError(f"[{name}] stretches are drawn per seed, not set")
     motility = _dataclass_from(Peristalsis, section(scn, "motility"), "motility")
     motility = motility.drawn(cl.length_m, rngs["motility"])
     if motility.active and backend != "raycast":
         raise ConfigError("[motility] (a moving wall) needs the raycast backend: pyrender uploads its mesh once")
-    for name in ("fluid", "debris"):
-        if "stretches" in section(scn, name):
-            raise ConfigError(f"[{name}] stretches are drawn per seed, not set")
     content = LumenContent.draw(_dataclass_from(Fluid, section(scn, "fluid"), "fluid"),
                                 _dataclass_from(Debris, section(scn, "debris"), "debris"), cl.length_m,
                                 rngs["content"])
