@@ -104,9 +104,14 @@ def _render_one(k: int) -> int:
         write_image(out / "depth" / frame_name(k), encode_range(res.range_m))
     if w.rear_baseline_m is not None:
         R_c_r, t_c_r = rear_extrinsics(w.rear_baseline_m)
-        rear = _W["renderer"].render(R_w_c * R_c_r, p_w_c + R_w_c.apply(t_c_r))
+        R_w_r, p_w_r = R_w_c * R_c_r, p_w_c + R_w_c.apply(t_c_r)
+        rear = _W["renderer"].render(R_w_r, p_w_r)
+        rgb_rear = rear.rgb
+        if w.content is not None:  # the same fluid and particles, seen from the rear lens
+            rgb_rear = w.content.apply(rgb_rear, rear.range_m, _W["renderer"], R_w_r.as_matrix(), p_w_r,
+                                       float(traj.stamps_s[k]), float(traj.s_m[k]), rear.exposure)
         rng = np.random.default_rng([w.seed, 7919, k, 1])
-        write_image(out / "frames_rear" / frame_name(k), w.optics.apply(w.noise.apply(rear.rgb, rng)))
+        write_image(out / "frames_rear" / frame_name(k), w.optics.apply(w.noise.apply(rgb_rear, rng)))
     return k
 
 

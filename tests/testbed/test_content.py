@@ -91,3 +91,18 @@ def test_particles_persist_and_drift_between_frames(straight):
     p1, _ = c.particle_points_w(tube, 4.0, 0.12)
     assert p1[0, 2] - p0[0, 2] == pytest.approx(0.002, abs=1e-9)  # 0.5 mm/s along the gut (wander off)
     assert np.hypot(*p0[0, :2]) == pytest.approx(0.006, abs=1e-6)  # half the 12 mm radius from the axis
+
+
+@pytest.mark.render
+def test_the_rear_camera_sees_the_same_content(tmp_path):
+    from bodyslam.io import read_image
+    from testbed.simulate import simulate
+
+    base = ["rear_camera.enabled=true", "fluid.wet_frac=1.0", "fluid.fill_max=1.0", "debris.per_m=2000"]
+    simulate(load_scenario("realistic", base), 9, tmp_path / "on", n_frames=2, jobs=1)
+    simulate(load_scenario("realistic", base + ["fluid.wet_frac=0", "debris.per_m=0"]), 9, tmp_path / "off",
+             n_frames=2, jobs=1)
+    for cam in ("frames", "frames_rear"):
+        on = read_image(tmp_path / "on" / cam / "000001.png").astype(int)
+        off = read_image(tmp_path / "off" / cam / "000001.png").astype(int)
+        assert np.mean(np.abs(on - off) > 10) > 0.01  # fluid and particles change >1% of either camera's pixels
