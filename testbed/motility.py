@@ -25,7 +25,8 @@ The radius at ``(s, t)`` is the resting one times
   Contractions can occlude the lumen; 0.5 (stated choice) halves it at a ring's crest.
 
 Frames are rendered from the moved wall by rebuilding the mesh around the capsule (``window_m`` either side)
-per frame (:meth:`testbed.tube.Tube.mesh_window`); the FT/FL labels are computed on the wall at rest.
+per frame (:meth:`testbed.tube.Tube.mesh_window`), and the FT/FL truth's occlusion test sees that wall too
+(:func:`testbed.simulate.moving_wall_cast`).
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ from testbed.scenario import World, build_world
 
 log = logging.getLogger(__name__)
 
-__all__ = ["simulate", "prepare_output_dir"]
+__all__ = ["simulate", "prepare_output_dir", "wall_at", "moving_wall_cast"]
 
 _W: dict = {}  # per-process state of render workers (set before fork / in the initializer)
 
@@ -81,16 +81,38 @@ def rear_extrinsics(baseline_m: float) -> tuple[Rotation, np.ndarray]:
     return Rotation.from_rotvec([0.0, np.pi, 0.0]), np.array([0.0, 0.0, -baseline_m])
 
 
+def wall_at(world: World, traj: CapsuleTrajectory, k: int):
+    """The moving wall's mesh around the capsule at frame ``k``'s time (:mod:`testbed.motility`)."""
+    mot = world.motility
+    s_cap, t_k = float(traj.s_m[k]), float(traj.stamps_s[k])
+    return world.tube.mesh_window(s_cap - mot.window_m, s_cap + mot.window_m,
+                                  lambda s: mot.radius_factor(s, t_k, s_cap))
+
+
+def moving_wall_cast(world: World, traj: CapsuleTrajectory, renderer: RaycastRenderer):
+    """The ray caster :func:`testbed.motion.label_frames` gets when the wall moves: it casts one ray per frame, in
+    frame order, and frame k's ray meets the wall as it is at frame k's time -- the truth's FT/FL occlusion test
+    sees a ring that closes the lumen ahead."""
+
+    def cast(origins_w: np.ndarray, dirs_w: np.ndarray):
+        if len(origins_w) != len(traj.s_m):
+            raise ValueError(f"one ray per frame expected ({len(traj.s_m)}), got {len(origins_w)}")
+        range_m = np.full(len(origins_w), np.nan)
+        for k in range(len(origins_w)):
+            renderer.set_mesh(wall_at(world, traj, k))
+            range_m[k] = renderer.cast(origins_w[k:k + 1], dirs_w[k:k + 1])[0][0]
+        return (range_m,)
+
+    return cast
+
+
 def _render_one(k: int) -> int:
     w: World = _W["world"]
     traj: CapsuleTrajectory = _W["traj"]
     out: Path = _W["out"]
     R_w_c, p_w_c = traj.rotations_w_c[k], traj.positions_w_m[k]
-    mot = w.motility
-    if mot.active:  # the wall as it is at this frame's time, around the capsule (testbed.motility)
-        s_cap, t_k = float(traj.s_m[k]), float(traj.stamps_s[k])
-        _W["renderer"].set_mesh(w.tube.mesh_window(s_cap - mot.window_m, s_cap + mot.window_m,
-                                                   lambda s: mot.radius_factor(s, t_k, s_cap)))
+    if w.motility.active:  # the wall as it is at this frame's time, around the capsule (testbed.motility)
+        _W["renderer"].set_mesh(wall_at(w, traj, k))
     res = _W["renderer"].render(R_w_c, p_w_c)
     rng = np.random.default_rng([w.seed, 7919, k])  # per-frame noise stream: same output for any job count
     rgb = res.rgb
@@ -131,7 +153,8 @@ def simulate(
     traj = generate_motion(world.tube, world.n_frames, world.motion, world.rngs["motion"])
     mesh = world.tube.mesh()
     labeller = RaycastRenderer(world.tube, world.texture, world.camera, world.lighting, mesh=mesh)
-    labels = label_frames(world.tube, traj, world.camera.fov_deg, labeller.cast)
+    cast = moving_wall_cast(world, traj, labeller) if world.motility.active else labeller.cast
+    labels = label_frames(world.tube, traj, world.camera.fov_deg, cast)
     del labeller
     (out / "frames").mkdir(exist_ok=True)
     if world.write_depth:

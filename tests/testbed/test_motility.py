@@ -108,3 +108,26 @@ def test_a_window_of_the_resting_mesh_is_the_mesh_itself():
     assert len(win.faces) == 60 * 2 * w.tube.sections
     # normals agree inside (np.gradient is one-sided at a window's first and last ring)
     assert np.allclose(win.normals_w[n:-n], full.normals_w[101 * n:160 * n], atol=1e-12)
+
+
+@pytest.mark.render
+def test_the_truths_occlusion_test_sees_the_moved_wall():
+    """FT/FL truth casts a ray per frame toward the centre line ahead (testbed.motion.label_frames). Rings only
+    close the lumen, so against the moved wall no such ray gets further than against the resting one, and where a
+    ring stands in the way it stops short."""
+    from testbed.motion import generate_motion
+    from testbed.simulate import moving_wall_cast
+
+    w = build_world(load_scenario("realistic", ["motility.amplitude_frac=0.8", "motility.active_frac=1.0"]), 5, 40)
+    traj = generate_motion(w.tube, w.n_frames, w.motion, w.rngs["motion"])
+    cl = w.tube.centerline
+    ahead, _, _ = cl.frame_at(np.clip(traj.s_m + 0.03, 0.0, cl.length_m))  # 3 cm down the lumen
+    u = ahead - traj.positions_w_m
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = RaycastRenderer(w.tube, w.texture, w.camera, w.lighting)
+    rest = np.nan_to_num(r.cast(traj.positions_w_m, u)[0], nan=1.0)
+    moved = np.nan_to_num(moving_wall_cast(w, traj, r)(traj.positions_w_m, u)[0], nan=1.0)
+    assert np.all(moved <= rest + 1e-6)
+    assert np.sum(moved < rest - 0.002) >= 3  # rings stop some rays at least 2 mm short
+    with pytest.raises(ValueError, match="one ray per frame"):
+        moving_wall_cast(w, traj, r)(traj.positions_w_m[:3], u[:3])
