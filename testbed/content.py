@@ -25,7 +25,7 @@ front of the wall. Stated choices, no source: debris load varies widely between 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -64,7 +64,7 @@ class Fluid:
             return self
         spans = draw_stretches(length_m, self.wet_length_m, self.wet_frac, rng)
         fills = rng.uniform(0.1 * self.fill_max, self.fill_max, size=len(spans))
-        return Fluid(**{**self.__dict__, "stretches": tuple((a, b, float(f)) for (a, b), f in zip(spans, fills))})
+        return replace(self, stretches=tuple((a, b, float(f)) for (a, b), f in zip(spans, fills)))
 
     def fill_at(self, s_m: float) -> float:
         for a, b, f in self.stretches:

@@ -32,7 +32,7 @@ per frame (:meth:`testbed.tube.Tube.mesh_window`), and the FT/FL truth's occlusi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.special import erf
@@ -97,8 +97,7 @@ class Peristalsis:
         ``active_length_m`` and ``active_length_m (1 - active_frac) / active_frac``, over ``length_m``."""
         if not self.active:
             return self
-        stretches = draw_stretches(length_m, self.active_length_m, self.active_frac, rng)
-        return Peristalsis(**{**self.__dict__, "stretches": tuple(stretches)})
+        return replace(self, stretches=tuple(draw_stretches(length_m, self.active_length_m, self.active_frac, rng)))
 
     def envelope(self, s_m: np.ndarray) -> np.ndarray:
         """Where waves run, in [0, 1]: the active stretches' indicator smoothed by a Gaussian of sigma 2 mm."""

@@ -106,6 +106,17 @@ def moving_wall_cast(world: World, traj: CapsuleTrajectory, renderer: RaycastRen
     return cast
 
 
+def _with_content(res, R_w_c: Rotation, p_w_c: np.ndarray, k: int) -> np.ndarray:
+    """A camera's rendered colour with the lumen's fluid and debris drawn in (testbed.content), when there are
+    any: in 3-D, in front of or hidden by the wall, lit at that frame's exposure."""
+    w: World = _W["world"]
+    if w.content is None:
+        return res.rgb
+    traj: CapsuleTrajectory = _W["traj"]
+    return w.content.apply(res.rgb, res.range_m, _W["renderer"], R_w_c.as_matrix(), p_w_c, float(traj.stamps_s[k]),
+                           float(traj.s_m[k]), res.exposure)
+
+
 def _render_one(k: int) -> int:
     w: World = _W["world"]
     traj: CapsuleTrajectory = _W["traj"]
@@ -115,10 +126,7 @@ def _render_one(k: int) -> int:
         _W["renderer"].set_mesh(wall_at(w, traj, k))
     res = _W["renderer"].render(R_w_c, p_w_c)
     rng = np.random.default_rng([w.seed, 7919, k])  # per-frame noise stream: same output for any job count
-    rgb = res.rgb
-    if w.content is not None:  # fluid and debris in the lumen (testbed.content), in 3-D behind/in front of the wall
-        rgb = w.content.apply(rgb, res.range_m, _W["renderer"], R_w_c.as_matrix(), p_w_c, float(traj.stamps_s[k]),
-                              float(traj.s_m[k]), res.exposure)
+    rgb = _with_content(res, R_w_c, p_w_c, k)
     if w.bubbles.bubble_prob > 0:
         rgb = w.bubbles.apply(rgb, np.random.default_rng([w.seed, 7919, k, 2]), _W["fov"])
     write_image(out / "frames" / frame_name(k), w.optics.apply(w.noise.apply(rgb, rng)))
@@ -127,11 +135,7 @@ def _render_one(k: int) -> int:
     if w.rear_baseline_m is not None:
         R_c_r, t_c_r = rear_extrinsics(w.rear_baseline_m)
         R_w_r, p_w_r = R_w_c * R_c_r, p_w_c + R_w_c.apply(t_c_r)
-        rear = _W["renderer"].render(R_w_r, p_w_r)
-        rgb_rear = rear.rgb
-        if w.content is not None:  # the same fluid and particles, seen from the rear lens
-            rgb_rear = w.content.apply(rgb_rear, rear.range_m, _W["renderer"], R_w_r.as_matrix(), p_w_r,
-                                       float(traj.stamps_s[k]), float(traj.s_m[k]), rear.exposure)
+        rgb_rear = _with_content(_W["renderer"].render(R_w_r, p_w_r), R_w_r, p_w_r, k)
         rng = np.random.default_rng([w.seed, 7919, k, 1])
         write_image(out / "frames_rear" / frame_name(k), w.optics.apply(w.noise.apply(rgb_rear, rng)))
     return k

@@ -114,8 +114,8 @@ class Tube:
 
     def mesh_window(self, s_lo_m: float, s_hi_m: float, radius_factor=None) -> TubeMesh:
         """The mesh's rings with ``s_lo_m <= s <= s_hi_m`` (the same rings as :meth:`mesh`), each wall point pulled
-        toward its centre-line point by ``radius_factor(s_m (n_rings,)) -> (n_rings, sections + 1)`` (or
-        ``(n_rings,)``) when given: a moving wall (:mod:`testbed.motility`). Normals from the deformed grid."""
+        toward its centre-line point by ``radius_factor(s_m (n_rings,)) -> (n_rings,)`` when given: a moving wall
+        (:mod:`testbed.motility`). Normals from the deformed grid."""
         s = self.ring_s()
         s = s[(s >= s_lo_m) & (s <= s_hi_m)]
         if len(s) < 2:
@@ -129,8 +129,7 @@ class Tube:
         V = self.surface_point(S.ravel(), PHI.ravel()).reshape(n_rings, self.sections + 1, 3)
         if radius_factor is not None:
             c = self.centerline.frame_at(s)[0][:, None, :]
-            f = np.asarray(radius_factor(s), dtype=np.float64)
-            V = c + (V - c) * (f[:, :, None] if f.ndim == 2 else f[:, None, None])
+            V = c + (V - c) * np.asarray(radius_factor(s), dtype=np.float64)[:, None, None]
         # Normals from the grid: with n x b = t, dP/ds x dP/dphi = t x (r e_phi) = -r e_radial points into the lumen.
         dPds = np.gradient(V, s, axis=0)
         dPdphi = np.gradient(V, phi, axis=1)
