@@ -58,7 +58,8 @@ def ideal_look(seed: int, li: float, r: float, fd: float) -> tuple[str, int, dic
 
 def realistic_look(seed: int) -> tuple[str, int, dict]:
     """One `classifier_realistic` sequence with its look drawn from the seed (stated ranges: PillCam-like casts
-    around (1, 0.82, 0.62), no cast, and stronger ones; the small bowel's 0.8-1.6 cm lumen)."""
+    around (1, 0.82, 0.62), no cast, and stronger ones; the small bowel's 0.8-1.6 cm lumen; peristalsis on or off,
+    pooled fluid over 0-60% of the gut, 0-400 debris particles per metre)."""
     g = np.random.default_rng([seed, 16])
     stop = str(g.choice(["octagon", "octagon", "circle", "none"]))
     sets = {
@@ -74,6 +75,11 @@ def realistic_look(seed: int) -> tuple[str, int, dict]:
         "tube.lobes": int(g.choice([0, 3, 4, 5, 6])),
         "tube.lobe_depth_frac": round(float(g.uniform(0.1, 0.35)), 3),
         "artifacts.bubble_prob": round(float(g.uniform(0.0, 0.5)), 2),
+        # drawn after the rest, so that the looks above stay those of the sessions before these were added
+        "motility.amplitude_frac": round(float(g.choice([0.0, g.uniform(0.2, 0.6)])), 2),
+        "fluid.wet_frac": round(float(g.uniform(0.0, 0.6)), 2),
+        "fluid.kappa_per_m": round(float(g.uniform(20.0, 80.0)), 1),
+        "debris.per_m": round(float(g.uniform(0.0, 400.0)), 0),
     }
     return ("classifier_realistic", seed, sets)
 
@@ -224,6 +230,9 @@ def main() -> None:
         out = ROOT / "bodyslam" / "vision" / "models" / "tunnel_svm.npz"
         best[3].save(out)
         print(f"saved as {out}")
+    if args.keep:  # the chosen model beside the renders, to look at before shipping it
+        best[3].save(root / "chosen_model.npz")
+        print(f"chosen model kept as {root / 'chosen_model.npz'}")
     with tempfile.TemporaryDirectory() as tmp:  # throughput of the whole classify process
         d = Path(tmp) / "seq"
         simulate(load_scenario("classifier"), 200, d, n_frames=200, force=True)
