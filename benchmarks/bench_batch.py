@@ -7,10 +7,13 @@ its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole pr
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
     .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
-        [--jobs 1,2] [--dask 2]
+        [--jobs 1,2] [--dask 2] [--repeat 3]
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
 so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85).
+
+``--repeat N``: each exam N times (with ``--rf`` the runs without and with RF alternated), then the median and
+range of frames/s and of the ratio: one run on a machine whose speed drifts is not a measurement of a target.
 
 ``--dask N``: also the same frames on a Dask ``LocalCluster`` of N single-threaded worker processes started by
 this script (``bodyslam batch --scheduler ADDRESS``): frames/s of the whole batch process, and whether its
@@ -33,6 +36,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 
 def tree_rss_bytes(pid: int) -> int:
@@ -110,9 +115,14 @@ def main() -> None:
     ap.add_argument("--jobs", default=None,
                     help="comma-separated worker counts (e.g. 1,2,4,8,16): frames/s against jobs for each length, "
                          "and whether every count gives byte-identical motion.csv / trajectory.tum")
+    ap.add_argument("--repeat", type=int, default=1, metavar="N",
+                    help="run each exam N times (with --rf: without and with RF alternated) and print the median and "
+                         "range: this machine's speed drifts by 10-20%% between runs")
     ap.add_argument("--dask", type=int, default=0, metavar="N",
                     help="also run on a Dask LocalCluster of N worker processes and compare with the local run")
     args = ap.parse_args()
+    if args.repeat < 1:
+        raise SystemExit(f"--repeat {args.repeat}: give at least 1 run")
     if args.dask < 0:
         raise SystemExit(f"--dask {args.dask}: give a number of Dask worker processes (0: no Dask run)")
     if args.dask and importlib.util.find_spec("distributed") is None:  # checked before any exam is run
@@ -153,28 +163,49 @@ def main() -> None:
                 print(f"  --jobs {j}: {n / el_j:.1f} frames/s ({n / el_j / base:.2f}x the first), peak "
                       f"{peak_j / 2**20:.0f} MiB, outputs identical to the first: {same}", flush=True)
             res.setdefault(n, {})["jobs"] = scaling
-        el, peak, rc = run_measured(cmd)
-        summ = json.loads((out / "summary.json").read_text())["exams"][0]
-        res.setdefault(n, {}).update({"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20,
-                                      "rc": rc, "steps": summ["steps"], "path_m": summ["path_travelled_m"]})
-        print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
-              f"(whole process, 2 cores); peak memory (process tree) {peak / 2**20:.0f} MiB; steps {summ['steps']}",
-              flush=True)
-        if args.dask:
-            res[n]["dask"] = run_on_dask(cmd, out, args.dask, n, folder.name)
-        if args.rf:
-            out_rf = args.keep / f"out_{args.mode}_{n}_rf"
-            shutil.rmtree(out_rf, ignore_errors=True)
-            el_rf, peak_rf, rc_rf = run_measured([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out",
-                                                  str(out_rf), "--mode", args.mode])
-            traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
-            res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,
-                          rf_rc=rc_rf, rf_over_no_rf=el / el_rf)
-            print(f"  with RF ({traj}): {el_rf:.1f} s = {n / el_rf:.1f} frames/s, peak {peak_rf / 2**20:.0f} MiB; "
-                  f"throughput with RF / without: {el / el_rf:.2f}", flush=True)
+        runs = []  # (seconds without RF, seconds with RF or None), alternated --repeat times
+        for rep in range(args.repeat):
+            tag = f" (run {rep + 1}/{args.repeat})" if args.repeat > 1 else ""
+            shutil.rmtree(out, ignore_errors=True)
+            el, peak, rc = run_measured(cmd)
+            summ = json.loads((out / "summary.json").read_text())["exams"][0]
+            if rep == 0:
+                res.setdefault(n, {}).update({"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20,
+                                              "rc": rc, "steps": summ["steps"], "path_m": summ["path_travelled_m"]})
+            print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
+                  f"(whole process, 2 cores){tag}; peak memory (process tree) {peak / 2**20:.0f} MiB; steps "
+                  f"{summ['steps']}", flush=True)
+            if args.dask and rep == 0:
+                res[n]["dask"] = run_on_dask(cmd, out, args.dask, n, folder.name)
+            el_rf = None
+            if args.rf:
+                out_rf = args.keep / f"out_{args.mode}_{n}_rf"
+                shutil.rmtree(out_rf, ignore_errors=True)
+                el_rf, peak_rf, rc_rf = run_measured([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out",
+                                                      str(out_rf), "--mode", args.mode])
+                traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
+                if rep == 0:
+                    res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,
+                                  rf_rc=rc_rf, rf_over_no_rf=el / el_rf)
+                print(f"  with RF ({traj}){tag}: {el_rf:.1f} s = {n / el_rf:.1f} frames/s, peak {peak_rf / 2**20:.0f} "
+                      f"MiB; throughput with RF / without: {el / el_rf:.2f}", flush=True)
+            runs.append((el, el_rf))
+        if args.repeat > 1:  # a machine whose speed drifts: the spread says how far one run can be trusted
+            fps = np.array([n / a for a, _ in runs])
+            line = (f"  {args.repeat} runs without RF: median {np.median(fps):.1f} frames/s "
+                    f"({fps.min():.1f}-{fps.max():.1f})")
+            res[n]["repeat"] = {"frames_per_s": fps.tolist()}
+            if args.rf:
+                fps_rf = np.array([n / b for _, b in runs])
+                ratio = np.array([a / b for a, b in runs])
+                line += (f"; with RF: median {np.median(fps_rf):.1f} ({fps_rf.min():.1f}-{fps_rf.max():.1f}); ratio "
+                         f"median {np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f})")
+                res[n]["repeat"].update(rf_frames_per_s=fps_rf.tolist(), rf_over_no_rf=ratio.tolist())
+            print(line, flush=True)
     if len(lengths) > 1:
         a, b = res[min(lengths)], res[max(lengths)]
-        print(f"peak memory {max(lengths)} vs {min(lengths)} frames: {b['peak_tree_rss_mib'] / a['peak_tree_rss_mib']:.3f}x")
+        print(f"peak memory {max(lengths)} vs {min(lengths)} frames: "
+              f"{b['peak_tree_rss_mib'] / a['peak_tree_rss_mib']:.3f}x")
     if args.json:
         args.json.write_text(json.dumps(res, indent=1))
 
