@@ -50,3 +50,22 @@ def test_rotation_steps_are_scored_for_their_rotation_only(tmp_path):
     assert rot["mae_roll_deg"] == pytest.approx(math.degrees(0.03))
     assert rot["mae_tilt_deg"] == pytest.approx(math.degrees(0.02))
     assert "steps with only their rotation (2)" in format_table(rep)
+
+
+def test_a_run_whose_distances_are_all_off_by_one_scale_scores_zero_once_scale_aligned(tmp_path):
+    """Every step 1.2 cm for a true 1 cm (the radius told 20% too large): the raw error is 2 mm a step, the
+    scale-aligned one 0 at the factor 1/1.2; an error that no single factor explains stays, and the aligned error
+    is never above the raw one (the factor 1 is a candidate)."""
+    _write(tmp_path, [f"{k},{k * 0.5},0.012,0,0,0,0,50,ok,0.002" for k in range(1, 9)])
+    a = score_motion(tmp_path, tmp_path / "motion.csv")["all"]
+    assert a["mae_distance_cm"] == pytest.approx(0.2)
+    assert a["mae_distance_scale_aligned_cm"] == pytest.approx(0.0, abs=1e-12)
+    assert a["distance_scale"] == pytest.approx(1 / 1.2)
+    rows = [f"{k},{k * 0.5},{0.012 if k % 2 else 0.008},0,0,0,0,50,ok,0.002" for k in range(1, 9)]
+    _write(tmp_path, rows)
+    a = score_motion(tmp_path, tmp_path / "motion.csv")["all"]
+    # least |s e - t|: the |e|-weighted median of t / e = 1/1.2 (weight 1.2 x 4) or 1/0.8 (0.8 x 4): 1/1.2
+    assert a["distance_scale"] == pytest.approx(1 / 1.2)
+    assert a["mae_distance_scale_aligned_cm"] == pytest.approx(0.5 * (1 - 0.8 / 1.2))
+    assert a["mae_distance_scale_aligned_cm"] < a["mae_distance_cm"] == pytest.approx(0.2)
+    assert "scale-aligned" in format_table(score_motion(tmp_path, tmp_path / "motion.csv"))
