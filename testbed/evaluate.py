@@ -318,8 +318,9 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
             "rts_rmse_over_sqrt_bound": float(np.sqrt(np.mean(np.concatenate(errs["ekf_rss_rts"]) ** 2))
                                               / np.sqrt(np.concatenate(sm).mean()))},
         # Table 4.1, and whether the per-step 1-sigma holds (distance_within_1sigma: 0.683 if honest)
+        # (distance_scale: each run's best factor, testbed.score; its mean over the runs)
         "table_4_1": {k: float(np.nanmean([m.get(k, np.nan) for m in motion])) for k in motion[0]
-                      if k.endswith(("_cm", "_deg", "sigma"))},
+                      if k.endswith(("_cm", "_deg", "sigma")) or k == "distance_scale"},
         # what became of every step over all seeds (bodyslam.steps.StepStatus), and the fractions with an estimate:
         # measured from the pair (ok, wall), with the bridged gaps' shares, and with the rotation steps
         "step_status_counts": dict(sorted(step_counts.items())),
