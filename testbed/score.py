@@ -47,12 +47,12 @@ def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
         return {"n_steps_scored": 0}
     d_est, d_true = es["distance_m"][idx], tr["distance_m"][idx]
     e_d = np.abs(d_est - d_true)
-    e_r, e_t = _angle_errors(tr, es, idx)
     scale = _l1_scale(d_est, d_true)
+    e_r, e_t = _angle_errors(tr, es, idx)
     e_v = np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx])
     return {
         "n_steps_scored": int(len(idx)),
-        "mean_true_distance_cm": float(np.mean(np.abs(tr["distance_m"][idx])) * 100),
+        "mean_true_distance_cm": float(np.mean(np.abs(d_true)) * 100),
         "mae_distance_cm": float(np.mean(e_d) * 100),
         "mae_distance_scale_aligned_cm": float(np.mean(np.abs(scale * d_est - d_true)) * 100),
         "distance_scale": scale,

@@ -63,9 +63,10 @@ def test_a_run_whose_distances_are_all_off_by_one_scale_scores_zero_once_scale_a
     assert a["distance_scale"] == pytest.approx(1 / 1.2)
     rows = [f"{k},{k * 0.5},{0.012 if k % 2 else 0.008},0,0,0,0,50,ok,0.002" for k in range(1, 9)]
     _write(tmp_path, rows)
-    a = score_motion(tmp_path, tmp_path / "motion.csv")["all"]
+    rep = score_motion(tmp_path, tmp_path / "motion.csv")
+    a = rep["all"]
     # least |s e - t|: the |e|-weighted median of t / e = 1/1.2 (weight 1.2 x 4) or 1/0.8 (0.8 x 4): 1/1.2
     assert a["distance_scale"] == pytest.approx(1 / 1.2)
     assert a["mae_distance_scale_aligned_cm"] == pytest.approx(0.5 * (1 - 0.8 / 1.2))
     assert a["mae_distance_scale_aligned_cm"] < a["mae_distance_cm"] == pytest.approx(0.2)
-    assert "scale-aligned" in format_table(score_motion(tmp_path, tmp_path / "motion.csv"))
+    assert "scale-aligned" in format_table(rep)
