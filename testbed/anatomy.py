@@ -20,13 +20,20 @@ it is tuned on the data it is scored on; see ``benchmarks/bench_centerline.py``.
 Meshes that are not watertight (issue 15: real segmentations come in open pieces with holes of several cm): every
 boundary loop -- a hole in the wall or the open end of a piece -- is capped by a fan of triangles from the loop's
 centroid (:func:`cap_boundaries`), which closes the voxelised shell so the fill finds each piece's inside. Each
-piece is skeletonised on its own (pieces that touch must not merge) and gives its own end-to-end path (the same
-spanning tree and loop repair); the paths are chained end to end (:func:`_chain_pieces`: greedy matching of piece
-ends, the cheapest gap first, a gap counted longer the more either end would have to turn to meet it; the gap
-limit doubled for what is left), and gaps are bridged by a cubic Hermite curve along the two end tangents, its
-radius interpolated. Pieces shorter than ``min_piece_mm`` (debris) and pieces no chain reaches are left out, with
-a warning. A watertight mesh takes none of these steps: its figure
-is unchanged. Scored on the CT gut cut open (``benchmarks/bench_centerline.py --open``).
+piece is skeletonised on its own (pieces that touch must not merge). Its skeleton tree (the same spanning tree)
+is split into branches at its junctions (:func:`_piece_branches`), after leaf branches shorter than ``SPUR_MM``
+are pruned (the spurs a thinning leaves toward a cap's rim), and ends are trimmed where the lumen radius falls
+below half the piece's median (:func:`_trim_spurs`). Splitting matters where two loops of bowel touch inside one
+open piece: its skeleton is an X, and one end-to-end path would run from one loop into the other and leave
+half of each out (session 17; before it, pieces gave their longest path only). All branches of all pieces are
+chained end to end (:func:`_chain_pieces`: greedy matching of ends, the cheapest gap first, a gap counted longer
+the more either end would have to turn to meet it, plus ``TURN_MM`` per unit of that turn so that arms meeting at
+one junction pair straight on; the gap limit doubled for what is left; a branch shorter than ``SHORT_MM`` joins
+only across ``SHORT_GAP_MM`` or less, so loose spurs are not strung in), and gaps are bridged by a cubic Hermite
+curve along the two end tangents, its radius interpolated. Pieces shorter than ``min_piece_mm`` (debris) and
+branches no chain reaches are left out, with a warning. A watertight mesh takes none of these steps: its figure is
+unchanged. Scored on the CT gut cut open (``benchmarks/bench_centerline.py --open``; the constants were chosen on
+cuts 0-9, docs/RESULTS.md).
 
 Data form: returns a :class:`~testbed.centerline.Centerline` in metres (mesh frame scaled to mm, then to m).
 """
@@ -45,6 +52,14 @@ from bodyslam.errors import InputError
 from testbed.centerline import Centerline
 
 log = logging.getLogger(__name__)
+
+# Open pieces (module docstring), chosen on the CT gut's development cuts 0-9 (docs/RESULTS.md): a thinned tube's
+# spurs toward a cap's rim are ~one lumen radius (5-8 mm) long and thin; 22 mm pruned real arms (coverage 0.87-0.96
+# against 0.90-0.96 at 15); short branches strung in across any gap made the line 30-45% longer than the gut
+TRIM_FRAC, TRIM_MAX_MM = 0.5, 15.0
+SPUR_MM = 15.0
+SHORT_MM, SHORT_GAP_MM = 30.0, 10.0
+TURN_MM = 5.0  # mm of gap one unit of turn costs (0: the turn only scales the gap's length, nothing at a junction)
 
 __all__ = ["load_mesh", "extract_centerline", "load_reference_csv", "score_centerline", "cap_boundaries"]
 
@@ -137,23 +152,25 @@ def extract_centerline(
         capped, nl, sp = cap_boundaries(part)
         n_loops, span = n_loops + nl, max(span, sp)
         try:
-            p_mm, r_mm, _ = _piece_path(capped, pitch_mm, min_gain_mm)
+            branches = _piece_branches(capped, pitch_mm)
         except InputError:
             continue  # encloses nothing at this pitch
-        if _length_mm(p_mm) >= min_piece_mm:
-            pieces.append((p_mm, r_mm))
+        if sum(_length_mm(p) for p, _ in branches) < min_piece_mm:
+            continue
+        pieces.extend(_trim_spurs(p_mm, r_mm) for p_mm, r_mm in branches)
     if not pieces:
         raise InputError(f"mesh is in {len(parts)} open piece(s), none enclosing a tube of {min_piece_mm:.0f} mm "
                          "or more at this pitch")
     pts_mm, r_mm, n_used = _chain_pieces(pieces, max_gap_mm)
     log.warning("mesh is not watertight: %d piece(s), %d open boundaries capped (the largest %.0f mm across); "
-                "centre line chained from %d piece(s) over %d gap(s)", len(parts), n_loops, span, n_used, n_used - 1)
+                "centre line chained from %d skeleton branch(es) over %d gap(s)", len(parts), n_loops, span, n_used,
+                n_used - 1)
     return Centerline.from_points(pts_mm / 1000.0, r_mm / 1000.0, ds_m=1e-3, smoothing_m=sm / 1000.0)
 
 
-def _piece_path(mesh_mm, pitch_mm: float, min_gain_mm: float):
-    """``(points (k, 3) mm, radius (k,) mm, skeleton components)``: the end-to-end path of a closed mesh's
-    voxelised inside (module docstring), in the largest skeleton component."""
+def _skeleton_tree(mesh_mm, pitch_mm: float):
+    """The voxelised inside's skeleton (module docstring): ``(voxel indices (n, 3), origin mm, radius (n,) mm,
+    skeleton graph, spanning tree)``, the graphs weighted by length in mm."""
     from skimage.morphology import skeletonize
 
     vox = mesh_mm.voxelized(pitch_mm).fill()
@@ -178,14 +195,84 @@ def _piece_path(mesh_mm, pitch_mm: float, min_gain_mm: float):
     g = sparse.coo_matrix((cost, (pairs[:, 0], pairs[:, 1])), shape=(n, n)).tocsr()
     mst = csgraph.minimum_spanning_tree(g)
     mst = mst + mst.T
-    # Tree diameter by physical length on the MST's edges, then loop repair (see _reroute_through_loops).
     mst_len = mst.tocoo()
     L = np.linalg.norm(idx[mst_len.row] - idx[mst_len.col], axis=1) * pitch_mm
     tree_g = sparse.coo_matrix((L, (mst_len.row, mst_len.col)), shape=(n, n)).tocsr()
-    n_comp = csgraph.connected_components(tree_g, directed=False)[0]
     skel_g = sparse.coo_matrix((length, (pairs[:, 0], pairs[:, 1])), shape=(n, n)).tocsr()
-    path = _reroute_through_loops(skel_g + skel_g.T, tree_g, r, min_gain_mm)
+    return idx, origin, r, skel_g + skel_g.T, tree_g
+
+
+def _piece_path(mesh_mm, pitch_mm: float, min_gain_mm: float):
+    """``(points (k, 3) mm, radius (k,) mm, skeleton components)``: the end-to-end path of a closed mesh's
+    voxelised inside (module docstring), in the largest skeleton component."""
+    idx, origin, r, skel_g, tree_g = _skeleton_tree(mesh_mm, pitch_mm)
+    # Tree diameter by physical length on the MST's edges, then loop repair (see _reroute_through_loops).
+    n_comp = csgraph.connected_components(tree_g, directed=False)[0]
+    path = _reroute_through_loops(skel_g, tree_g, r, min_gain_mm)
     return origin + idx[path] * pitch_mm, r[path], n_comp
+
+
+def _piece_branches(mesh_mm, pitch_mm: float, spur_mm: float = SPUR_MM) -> list:
+    """``[(points (k, 3) mm, radius (k,) mm)]``: the branches of an open piece's skeleton tree (module
+    docstring), split at its junctions, after leaf branches shorter than ``spur_mm`` are pruned (repeatedly:
+    pruning one can leave another a leaf)."""
+    idx, origin, r, _, tree_g = _skeleton_tree(mesh_mm, pitch_mm)
+    t = tree_g.tolil()
+    while True:
+        branches = _tree_branches(t.tocsr())
+        deg = np.diff(t.tocsr().indptr)
+        spurs = [b for b, L in branches if L < spur_mm and (deg[b[0]] == 1) != (deg[b[-1]] == 1)]
+        if not spurs:
+            break
+        for b in spurs:  # the leaf branch without its junction node
+            inner = b if deg[b[0]] != 1 else b[::-1]
+            for u, v in zip(inner[1:], inner[:-1]):
+                t[u, v] = t[v, u] = 0
+    out = []
+    for b, L in branches:
+        if len(b) >= 2:
+            out.append((origin + idx[b] * pitch_mm, r[b]))
+    return out
+
+
+def _tree_branches(t) -> list:
+    """``[(nodes, length mm)]``: a forest's paths between nodes that are not of degree 2 (leaves, junctions)."""
+    deg = np.diff(t.indptr)
+    stop = (deg != 2) & (deg > 0)
+    seen_edges: set = set()
+    out = []
+    for s in np.nonzero(stop)[0].tolist():
+        for nb in t.indices[t.indptr[s]:t.indptr[s + 1]].tolist():
+            if (s, nb) in seen_edges:
+                continue
+            path, prev, cur, L = [s], s, nb, float(t[s, nb])
+            while True:
+                seen_edges.add((prev, cur))
+                seen_edges.add((cur, prev))
+                path.append(cur)
+                if stop[cur]:
+                    break
+                a, b = t.indices[t.indptr[cur]:t.indptr[cur + 1]].tolist()
+                prev, cur = cur, (b if a == prev else a)
+                L += float(t[prev, cur])
+            out.append((path, L))
+    return out
+
+
+def _trim_spurs(p: np.ndarray, r: np.ndarray, frac: float = TRIM_FRAC, max_mm: float = TRIM_MAX_MM):
+    """A piece's path without its end spurs: from each end, the points where the lumen radius is below ``frac``
+    of the piece's median, up to ``max_mm`` of path."""
+    if len(p) < 3:
+        return p, r
+    thin = r < frac * np.median(r)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    a = 0
+    while a < len(p) - 1 and thin[a] and s[a] < max_mm:
+        a += 1
+    b = len(p) - 1
+    while b > a and thin[b] and s[-1] - s[b] < max_mm:
+        b -= 1
+    return p[a:b + 1], r[a:b + 1]
 
 
 def _length_mm(p: np.ndarray) -> float:
@@ -227,8 +314,9 @@ def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3):
         limit *= 2.0
     best = max(chains, key=lambda c: _length_mm(c[0]))
     if best[2] < len(pieces):
-        log.warning("%d skeleton piece(s) not joined to the longest chain (gaps over %.0f mm): left out",
-                    len(pieces) - best[2], limit / 2.0)
+        log.warning("%d of %d skeleton branch(es) not joined to the longest chain (gaps over %.0f mm, or over "
+                    "%.0f mm for a branch under %.0f mm): left out", len(pieces) - best[2], len(pieces), limit / 2.0,
+                    SHORT_GAP_MM, SHORT_MM)
     return best
 
 
@@ -245,6 +333,7 @@ def _link(pieces: list, max_gap_mm: float) -> list:
     for i, (p, _, _) in enumerate(pieces):
         ends.append((i, False, p[0], _end_tangent(p, False)))
         ends.append((i, True, p[-1], _end_tangent(p, True)))
+    lens = [_length_mm(p) for p, _, _ in pieces]
     cand = []
     for a in range(len(ends)):
         for b in range(a + 1, len(ends)):
@@ -254,10 +343,11 @@ def _link(pieces: list, max_gap_mm: float) -> list:
                 continue
             gap = pb - pa
             d = float(np.linalg.norm(gap))
-            if d > max_gap_mm:
+            if d > max_gap_mm or (d > SHORT_GAP_MM and min(lens[ia], lens[ib]) < SHORT_MM):
                 continue
-            g = gap / max(d, 1e-9)
-            cand.append((d * (1.0 + (1.0 - ta @ g) + (1.0 + tb @ g)), a, b))
+            g = gap / d if d > 1e-6 else (ta - tb) / max(float(np.linalg.norm(ta - tb)), 1e-9)
+            turn = (1.0 - ta @ g) + (1.0 + tb @ g)
+            cand.append((d * (1.0 + turn) + TURN_MM * turn, a, b))
     parent = list(range(len(pieces)))
 
     def root(x):

@@ -111,3 +111,45 @@ def test_a_tube_in_open_pieces_with_a_hole_keeps_its_centre_line(tmp_path):
     # bridged gaps are cubic curves along the piece ends' directions: within a millimetre of a gently bending axis
     assert sc["mean_mm"] < 0.8 and sc["max_mm"] < 3.0 and sc["coverage"] == 1.0, sc
     assert abs(got.length_m - cl.length_m) < 0.015  # skeletons stop ~one radius short of each end cap
+
+
+def test_open_piece_skeleton_splits_at_junctions_and_chains_straight_on():
+    """Where two loops of an open segmentation touch, one piece's skeleton is an X: the branches are split at the
+    junction, a short spur is pruned, and chaining pairs each arm with the one that goes straight on (the turn
+    term: at the junction the gaps are all zero long, so length alone cannot choose)."""
+    from scipy import sparse
+
+    from testbed.anatomy import SPUR_MM, _chain_pieces, _tree_branches
+
+    # four 40 mm arms from the origin (+x, -x, +y, -y), 1 mm nodes; a 5 mm spur off the +x arm at x = 20 mm
+    pts, edges = [np.zeros(3)], []
+    for d in ([1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]):
+        prev = 0
+        for k in range(1, 41):
+            pts.append(np.asarray(d, float) * k)
+            edges.append((prev, len(pts) - 1))
+            prev = len(pts) - 1
+    prev = 20  # node (20, 0, 0)
+    for k in range(1, 6):
+        pts.append(np.array([20.0, 0.0, k]))
+        edges.append((prev, len(pts) - 1))
+        prev = len(pts) - 1
+    e = np.asarray(edges)
+    n = len(pts)
+    t = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    t = (t + t.T).tocsr()
+    branches = _tree_branches(t)
+    assert sorted(round(L) for _, L in branches) == [5, 20, 20, 40, 40, 40]  # split at both junctions
+    assert 5 < SPUR_MM  # the spur is below the pruning length, the arms above it
+
+    pts = np.asarray(pts)
+    arms = [(pts[b], np.full(len(b), 5.0)) for b, L in branches if L > 10.0]
+    for seed in range(5):  # whatever order the arms come in
+        order = np.random.default_rng(seed).permutation(len(arms))
+        line, _, used = _chain_pieces([arms[i] for i in order], 80.0)
+        # the longest chain runs straight along one axis through the origin, never turning a corner there
+        at0 = np.nonzero(np.all(np.abs(line) < 1e-9, axis=1))[0]
+        assert len(at0) >= 1
+        k = int(at0[0])
+        before, after = line[max(k - 5, 0)], line[min(k + 5, len(line) - 1)]
+        assert np.allclose(np.cross(before, after), 0.0, atol=1e-6), (before, after)
