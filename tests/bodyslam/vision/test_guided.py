@@ -82,3 +82,50 @@ def test_odometry_falls_back_to_the_rotation_only_when_asked(rotation_steps, sta
     assert vo.estimate_pair(f1, f2).status == status
     # the gap bridge and the consistency check want a full pose: they never take a rotation step
     assert vo.estimate_pair(f1, f2, rotation=False).status == "too_few_matches"
+
+
+def test_guided_candidates_match_a_keypoint_by_keypoint_reading_of_the_rule():
+    """The vectorised candidate selection (grouped reductions) against the rule written out per keypoint: the
+    nearest descriptor inside the window (ties: the lower index), kept when below RATIO x the nearest among the
+    other points (more than 2 px from it). Descriptor distances are rounded so that ties happen."""
+    from scipy.spatial import cKDTree
+
+    from bodyslam.vision import guided
+
+    rng = np.random.default_rng(3)
+    m = synth_matches(tube_points(400, rng), R_TRUE, T_TRUE)
+    pts1 = m.pts1_px
+    pts2 = np.concatenate([m.pts2_px, m.pts2_px[:50] + rng.normal(0, 1.0, (50, 2))])  # near-duplicates: < 2 px
+    dist12 = np.round(rng.uniform(0, 10, (len(pts1), len(pts2)))).astype(np.float32)  # many exact ties
+    x = np.zeros(10)
+    x[3:6] = T_TRUE
+    x[0:3] = R_TRUE.as_rotvec()
+
+    captured = {}
+
+    class Recorder:
+        def verify(self, p1, p2):
+            captured["p1"], captured["p2"] = p1, p2
+            return p1
+
+    guided.guided_matches(Recorder(), pts1, pts2, cKDTree(pts2), dist12, x, CAM, R_TUBE, guided.WINDOW_RAD)
+    uv, vis = tube_predict(x, pts1, CAM, R_TUBE)
+    want1, want2 = [], []
+    r_px = guided.WINDOW_RAD * float(CAM.fx)
+    for k in np.nonzero(vis & np.isfinite(uv).all(axis=1))[0]:
+        cand = np.nonzero(np.linalg.norm(pts2 - uv[k], axis=1) <= r_px)[0]
+        if len(cand) == 0:
+            continue
+        d = dist12[k, cand]
+        b = cand[np.argmin(d)]  # the first of the nearest: candidates are in index order, so the lowest j
+        others = cand[np.linalg.norm(pts2[cand] - pts2[b], axis=1) > 2.0]
+        second = dist12[k, others].min() if len(others) else np.inf
+        if dist12[k, b] < guided.RATIO * second:
+            want1.append(pts1[k])
+            want2.append(pts2[b])
+    want1, want2 = np.array(want1), np.array(want2)
+    _, keep = np.unique(np.round(want2, 1), axis=0, return_index=True)
+    keep = np.sort(keep)
+    assert len(keep) > 50  # the check has something to compare
+    np.testing.assert_array_equal(captured["p1"], want1[keep])
+    np.testing.assert_array_equal(captured["p2"], want2[keep])
