@@ -297,6 +297,10 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         per_seed.append({"seed": seed, **{a: _stats(res["errors"][a], res["pcrb_m2"]) for a in ALGORITHMS},
                          "sqrt_mean_pcrb_cm": float(np.sqrt(res["pcrb_m2"].mean()) * 100),
                          "covariance_inflation_kappa": {k: round(v, 3) for k, v in res["kappa"].items()},
+                         # this run's NEES and 1-sigma coverage (the run-to-run spread behind the means)
+                         "consistency": {a: {"mean_nees": round(float(np.mean(c["nees"])), 3),
+                                             "inside_68pct_ellipsoid": round(float(np.mean(c["inside_68"])), 4)}
+                                         for a, c in res["consistency"].items()},
                          "seconds": {k: round(v, 2) for k, v in res["seconds"].items()}})
         if progress:
             progress(f"seed {seed} ({len(per_seed)}/{len(seeds)}): Body-SLAM (RTS) "

@@ -30,6 +30,10 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
         c = rep["consistency"][alg]
         assert c["mean_nees"] > 0 and 0 <= c["inside_68pct_ellipsoid"] <= 1 and 0 <= c["axis_inside_1sigma"] <= 1
         assert 0 <= rep["orientation_error_deg"][alg]["mean"] <= rep["orientation_error_deg"][alg]["p90"] <= 180
+        # one run: its own figures are the pooled ones (to the 3-4 decimals the per-run entry keeps)
+        mine = rep["per_seed"][0]["consistency"][alg]
+        assert abs(mine["inside_68pct_ellipsoid"] - c["inside_68pct_ellipsoid"]) < 1e-4
+        assert abs(mine["mean_nees"] - c["mean_nees"]) < 1e-3
     # re-scoring the kept sequences without rendering or motion gives the same figures
     p = subprocess.run([sys.executable, "-m", "testbed.cli", "evaluate", "demo", "--seeds", "1", "--frames", "20",
                         "--out", str(out), "--reuse"], capture_output=True, text=True)
