@@ -217,6 +217,8 @@ def _piece_branches(mesh_mm, pitch_mm: float, spur_mm: float = SPUR_MM) -> list:
     docstring), split at its junctions, after leaf branches shorter than ``spur_mm`` are pruned (repeatedly:
     pruning one can leave another a leaf)."""
     idx, origin, r, _, tree_g = _skeleton_tree(mesh_mm, pitch_mm)
+    if np.median(r) < 1.5 * pitch_mm:  # a sheet or a sliver: its capped shell fills a slab a voxel or two thick
+        raise InputError(f"encloses no lumen: median radius {np.median(r):.1f} mm at a {pitch_mm:g} mm pitch")
     t = tree_g.tolil()
     while True:
         branches = _tree_branches(t.tocsr())

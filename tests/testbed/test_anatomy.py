@@ -74,6 +74,11 @@ def test_bad_meshes_get_one_clear_error(tmp_path):
     with pytest.raises(InputError, match="not watertight"):
         load_mesh(open_path)
     assert load_mesh(open_path, repair=True).is_watertight  # the documented repair fills the hole
+    # an open sheet (a 50 mm square) encloses nothing: capping its rim doubles it into a slab one voxel thick,
+    # which must not come back as a "centre line" of 1 mm radius
+    sheet = trimesh.creation.box((50, 50, 1))
+    with pytest.raises(InputError, match="none enclosing a tube"):
+        extract_centerline(trimesh.Trimesh(sheet.vertices, sheet.faces[:2]))
 
 
 def test_centerline_cli_reports_errors_in_one_line(tmp_path):
