@@ -80,16 +80,25 @@ def descriptor_distances(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
 
 def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray,
                    params: np.ndarray, camera: CameraModel, radius_m: float, window_rad: float,
-                   min_sep_px: float = 2.0, beat: int = -1) -> Matches:
+                   min_sep_px: float = 2.0) -> Matches:
     """Verified matches under the motion ``params``: each frame-1 keypoint (``pts1``) takes the nearest
     descriptor (``dist12``: :func:`descriptor_distances`) among the frame-2 keypoints (``pts2``, in ``tree``)
     within ``window_rad`` (x the camera's focal length in pixels) of its predicted position, if that passes the
-    ratio test against the next one there that is a different point (more than ``min_sep_px`` away).
-    ``beat``: no matches (and no verification) unless more than this many candidates pass the ratio test, so
-    they could outnumber another hypothesis's verified ones."""
+    ratio test against the next one there that is a different point (more than ``min_sep_px`` away)."""
+    p1, p2 = guided_candidates(pts1, pts2, tree, dist12, params, camera, radius_m, window_rad, min_sep_px)
+    if len(p1) == 0:
+        return Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
+    return matcher.verify(p1, p2)
+
+
+def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray, params: np.ndarray,
+                      camera: CameraModel, radius_m: float, window_rad: float,
+                      min_sep_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`guided_matches` before verification: the matched points ``(p1, p2)``, one per frame-2 point; empty
+    when fewer than 8."""
     uv, vis = tube_predict(params, pts1, camera, radius_m)
     rows = np.nonzero(vis & np.isfinite(uv).all(axis=1))[0]
-    empty = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
+    empty = np.zeros((0, 2)), np.zeros((0, 2))
     if len(rows) < 8:
         return empty
     # Candidate pairs (frame-1 keypoint i, frame-2 keypoint j) within the window, as arrays, grouped by i (a stable
@@ -117,10 +126,8 @@ def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: c
     if len(p1) < 8:
         return empty
     _, keep = np.unique(np.round(p2, 1), axis=0, return_index=True)  # one match per frame-2 point
-    if len(keep) <= beat:
-        return empty
     keep = np.sort(keep)
-    return matcher.verify(p1[keep], p2[keep])
+    return p1[keep], p2[keep]
 
 
 def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: float,
@@ -135,15 +142,22 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
         return None
     tree, dist12 = cKDTree(pts2), descriptor_distances(d1, d2)
 
-    def matches(x, window_rad, beat=-1):
-        return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad, beat=beat)
+    def matches(x, window_rad):
+        return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad)
 
     starts = ([] if start is None else [np.asarray(start, float)]) + hypotheses(radius_m)
-    best = matches(starts[0], WINDOW_RAD)
-    for x in starts[1:]:  # the first hypothesis with the most verified matches (verification only where it can win)
-        m = matches(x, WINDOW_RAD, beat=len(best))
-        if len(m) > len(best):
-            best = m
+    # The first hypothesis (in the order above) with the most verified matches. Verification (a RANSAC per
+    # hypothesis) is the cost, and it can only remove matches: hypotheses are verified in decreasing order of
+    # their candidates, and only while one could still win.
+    cands = [guided_candidates(pts1, pts2, tree, dist12, x, camera, radius_m, WINDOW_RAD) for x in starts]
+    best, best_h = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0), len(starts)
+    for h in sorted(range(len(starts)), key=lambda h: (-len(cands[h][0]), h)):
+        n = len(cands[h][0])
+        if n == 0 or n < len(best) or (n == len(best) and h > best_h):
+            break
+        m = matcher.verify(*cands[h])
+        if len(m) > len(best) or (len(m) == len(best) and h < best_h):
+            best, best_h = m, h
     _, x = fit_tube(best, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf)
     if x is None:
         return None

@@ -129,3 +129,38 @@ def test_guided_candidates_match_a_keypoint_by_keypoint_reading_of_the_rule():
     assert len(keep) > 50  # the check has something to compare
     np.testing.assert_array_equal(captured["p1"], want1[keep])
     np.testing.assert_array_equal(captured["p2"], want2[keep])
+
+
+def test_verifying_only_hypotheses_that_could_win_picks_what_verifying_all_would():
+    """estimate_rotation verifies hypotheses in decreasing order of their candidates and stops once none can win;
+    the step must equal the one from verifying every hypothesis and keeping the first with the most matches."""
+    from scipy.spatial import cKDTree
+
+    from bodyslam.vision import guided
+
+    rng = np.random.default_rng(11)
+    f1, f2 = twin_frames(500, rng)
+    matcher = Matcher(CAM, "sift")
+    verified = []
+    real_verify = matcher.verify
+
+    def counting_verify(p1, p2):
+        verified.append(len(p1))
+        return real_verify(p1, p2)
+
+    matcher.verify = counting_verify
+    got = estimate_rotation(matcher, f1, f2, CAM, R_TUBE)
+    n_fast = len(verified)
+
+    (pts1, d1), (pts2, d2) = matcher.keypoints(f1), matcher.keypoints(f2)
+    tree, dist12 = cKDTree(pts2), guided.descriptor_distances(d1, d2)
+    every = [guided.guided_matches(matcher, pts1, pts2, tree, dist12, x, CAM, R_TUBE, guided.WINDOW_RAD)
+             for x in guided.hypotheses(R_TUBE)]
+    best = max(every, key=len)  # the first of the most
+    _, x = fit_tube(best, CAM, R_TUBE, min_matches=8, max_sigma_distance_m=math.inf)
+    refined = guided.guided_matches(matcher, pts1, pts2, tree, dist12, x, CAM, R_TUBE, guided.REFINE_WINDOW_RAD)
+    s, _ = fit_tube(refined, CAM, R_TUBE, min_matches=8, max_sigma_distance_m=math.inf)
+    want = guided.rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), guided.ROTATION_SIGMA_RAD)
+    assert got is not None and got.n_matches == want.n_matches
+    np.testing.assert_array_equal(got.R_c1_c2, want.R_c1_c2)
+    assert n_fast < len(guided.hypotheses(R_TUBE))  # and it verified fewer (20 hypotheses + the refinement)
