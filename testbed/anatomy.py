@@ -30,7 +30,8 @@ chained end to end (:func:`_chain_pieces`: greedy matching of ends, the cheapest
 the more either end would have to turn to meet it, plus ``TURN_MM`` per unit of that turn so that arms meeting at
 one junction pair straight on; the gap limit doubled for what is left; a branch shorter than ``SHORT_MM`` joins
 only across ``SHORT_GAP_MM`` or less, so loose spurs are not strung in), and gaps are bridged by a cubic Hermite
-curve along the two end tangents, its radius interpolated. Pieces shorter than ``min_piece_mm`` (debris) and
+curve along the two end tangents, its radius interpolated. Pieces shorter than ``min_piece_mm`` (debris), pieces whose
+skeleton's median lumen radius is under 1.5 voxels (an open sheet: capped, it fills a slab, not a lumen) and
 branches no chain reaches are left out, with a warning. A watertight mesh takes none of these steps: its figure is
 unchanged. Scored on the CT gut cut open (``benchmarks/bench_centerline.py --open``; the constants were chosen on
 cuts 0-9, docs/RESULTS.md).
