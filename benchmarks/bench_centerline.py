@@ -1,7 +1,7 @@
 """Centre line extracted from the real CT gut mesh, scored against the expert mid-line (mm).
 
     .venv/bin/python benchmarks/bench_centerline.py [--anatomy ../shared/data/anatomy] [--pitch-mm 1.0]
-        [--open SEED [SEED ...]]
+        [--open SEED|FIRST-LAST ...]
 
 ``--open``: the same mesh first cut open as real segmentations come (issue 15): 17 sections of the tube removed
 (2-10 mm long each, where a segmentation loses a few slices: 18 pieces where the cuts do not touch) and 10 holes
@@ -53,8 +53,8 @@ def main() -> None:
     ap.add_argument("--anatomy", default=str(Path(__file__).resolve().parents[2] / "shared/data/anatomy"))
     ap.add_argument("--mesh", default="small_intestine_20k.obj")
     ap.add_argument("--pitch-mm", type=float, default=1.0)
-    ap.add_argument("--open", type=int, nargs="*", default=None, metavar="SEED",
-                    help="cut the mesh open first, once per seed (module docstring)")
+    ap.add_argument("--open", nargs="*", default=None, metavar="SEED",
+                    help="cut the mesh open first, once per seed (module docstring); ranges as 20-29")
     ap.add_argument("--long-cuts", action="store_true", help="5-50 mm cuts and holes through the tube")
     args = ap.parse_args()
     conv = Path(args.anatomy) / "EdinGCA_3D_00090" / "converted"
@@ -65,7 +65,9 @@ def main() -> None:
 
         whole = load_mesh(conv / args.mesh)
         harsh = dict(gap_mm=(5.0, 50.0), one_sided=False) if args.long_cuts else {}
-        runs = [(seed, open_up(whole, VOXEL_MM, ref, seed, **harsh)) for seed in (args.open or [0])]
+        seeds = [s for tok in (args.open or ["0"]) for s in _seed_range(tok)]
+        runs = ((seed, open_up(whole, VOXEL_MM, ref, seed, **harsh)) for seed in seeds)
+    summary = []
     for seed, mesh in runs:
         what = args.mesh if seed is None else (
             f"{args.mesh} cut open (seed {seed}: {len(mesh.split(only_watertight=False))} pieces, "
@@ -79,6 +81,25 @@ def main() -> None:
         for name, r in (("whole path (ICV..POL)", ref), ("small intestine proper (ICV..GDJ)", ref[: SI_PROPER + 1])):
             sc = score_centerline(ours, r)
             print(f"  {name}: " + ", ".join(f"{k} {v:.2f}" for k, v in sc.items()), flush=True)
+        summary.append((sc, cl.length_m))  # the small intestine proper's
+    if len(summary) > 1:
+        mean = np.array([s["mean_mm"] for s, _ in summary])
+        cov = np.array([s["coverage"] for s, _ in summary])
+        prec = np.array([s["precision"] for s, _ in summary])
+        length = np.array([L for _, L in summary])
+        met = int(np.sum((mean <= 3.0) & (cov >= 0.9)))
+        print(f"{len(summary)} meshes, small intestine proper: mean {mean.min():.2f}-{mean.max():.2f} mm, within 5 mm "
+              f"{cov.min():.2f}-{cov.max():.2f}, issue 15's target (<= 3 mm, >= 0.90) met on {met} of {len(summary)}; "
+              f"precision {prec.min():.2f}-{prec.max():.2f} (mean {prec.mean():.2f}); line {length.min():.2f}-"
+              f"{length.max():.2f} m")
+
+
+def _seed_range(tok: str) -> list[int]:
+    a, _, b = str(tok).partition("-")
+    try:
+        return list(range(int(a), int(b) + 1)) if b else [int(a)]
+    except ValueError:
+        raise SystemExit(f"--open: expected seeds like 3 or 20-29, got {tok!r}") from None
 
 
 if __name__ == "__main__":
