@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 # Open pieces (module docstring), chosen on the CT gut's development cuts 0-9 (docs/RESULTS.md): a thinned tube's
 # spurs toward a cap's rim are ~one lumen radius (5-8 mm) long and thin; 22 mm pruned real arms (coverage 0.87-0.96
-# against 0.90-0.96 at 15); short branches strung in across any gap made the line 30-45% longer than the gut
+# against 0.90-0.96 at 15); short branches strung in across any gap made the line 26-45% longer than the gut
 TRIM_FRAC, TRIM_MAX_MM = 0.5, 15.0
 SPUR_MM = 15.0
 SHORT_MM, SHORT_GAP_MM = 30.0, 10.0
