@@ -220,22 +220,23 @@ def _piece_branches(mesh_mm, pitch_mm: float, spur_mm: float = SPUR_MM) -> list:
     idx, origin, r, _, tree_g = _skeleton_tree(mesh_mm, pitch_mm)
     if np.median(r) < 1.5 * pitch_mm:  # a sheet or a sliver: its capped shell fills a slab a voxel or two thick
         raise InputError(f"encloses no lumen: median radius {np.median(r):.1f} mm at a {pitch_mm:g} mm pitch")
+    return [(origin + idx[b] * pitch_mm, r[b]) for b, _ in _pruned_branches(tree_g, spur_mm) if len(b) >= 2]
+
+
+def _pruned_branches(tree_g, spur_mm: float) -> list:
+    """:func:`_tree_branches` of a forest after its leaf branches shorter than ``spur_mm`` are removed, again until
+    none is left (pruning one can leave another a leaf, and a junction that loses a spur joins its two others)."""
     t = tree_g.tolil()
     while True:
-        branches = _tree_branches(t.tocsr())
-        deg = np.diff(t.tocsr().indptr)
+        c = t.tocsr()
+        branches, deg = _tree_branches(c), np.diff(c.indptr)
         spurs = [b for b, L in branches if L < spur_mm and (deg[b[0]] == 1) != (deg[b[-1]] == 1)]
         if not spurs:
-            break
+            return branches
         for b in spurs:  # the leaf branch without its junction node
             inner = b if deg[b[0]] != 1 else b[::-1]
             for u, v in zip(inner[1:], inner[:-1]):
                 t[u, v] = t[v, u] = 0
-    out = []
-    for b, L in branches:
-        if len(b) >= 2:
-            out.append((origin + idx[b] * pitch_mm, r[b]))
-    return out
 
 
 def _tree_branches(t) -> list:

@@ -124,7 +124,7 @@ def test_open_piece_skeleton_splits_at_junctions_and_chains_straight_on():
     term: at the junction the gaps are all zero long, so length alone cannot choose)."""
     from scipy import sparse
 
-    from testbed.anatomy import SPUR_MM, _chain_pieces, _tree_branches
+    from testbed.anatomy import SPUR_MM, _chain_pieces, _pruned_branches, _tree_branches
 
     # four 40 mm arms from the origin (+x, -x, +y, -y), 1 mm nodes; a 5 mm spur off the +x arm at x = 20 mm
     pts, edges = [np.zeros(3)], []
@@ -146,6 +146,8 @@ def test_open_piece_skeleton_splits_at_junctions_and_chains_straight_on():
     branches = _tree_branches(t)
     assert sorted(round(L) for _, L in branches) == [5, 20, 20, 40, 40, 40]  # split at both junctions
     assert 5 < SPUR_MM  # the spur is below the pruning length, the arms above it
+    # pruned: the spur goes, and the +x arm's two halves join again at the junction it leaves behind
+    assert sorted(round(L) for _, L in _pruned_branches(t, SPUR_MM)) == [40, 40, 40, 40]
 
     pts = np.asarray(pts)
     arms = [(pts[b], np.full(len(b), 5.0)) for b, L in branches if L > 10.0]
