@@ -158,13 +158,14 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
         m = matcher.verify(*cands[h])
         if len(m) > len(best) or (len(m) == len(best) and h < best_h):
             best, best_h = m, h
-    _, x = fit_tube(best, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf)
+    _, x = fit_tube(best, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf, start="rotation")
     if x is None:
         return None
     refined = matches(x, REFINE_WINDOW_RAD)
     if len(refined) < min_matches:
         return None
-    s, x = fit_tube(refined, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf)
+    s, x = fit_tube(refined, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf,
+                    start="rotation")
     if x is None:
         return None
     return rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), ROTATION_SIGMA_RAD)

@@ -157,9 +157,9 @@ def test_verifying_only_hypotheses_that_could_win_picks_what_verifying_all_would
     every = [guided.guided_matches(matcher, pts1, pts2, tree, dist12, x, CAM, R_TUBE, guided.WINDOW_RAD)
              for x in guided.hypotheses(R_TUBE)]
     best = max(every, key=len)  # the first of the most
-    _, x = fit_tube(best, CAM, R_TUBE, min_matches=8, max_sigma_distance_m=math.inf)
+    _, x = fit_tube(best, CAM, R_TUBE, min_matches=8, max_sigma_distance_m=math.inf, start="rotation")
     refined = guided.guided_matches(matcher, pts1, pts2, tree, dist12, x, CAM, R_TUBE, guided.REFINE_WINDOW_RAD)
-    s, _ = fit_tube(refined, CAM, R_TUBE, min_matches=8, max_sigma_distance_m=math.inf)
+    s, _ = fit_tube(refined, CAM, R_TUBE, min_matches=8, max_sigma_distance_m=math.inf, start="rotation")
     want = guided.rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), guided.ROTATION_SIGMA_RAD)
     assert got is not None and got.n_matches == want.n_matches
     np.testing.assert_array_equal(got.R_c1_c2, want.R_c1_c2)

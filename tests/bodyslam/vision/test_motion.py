@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.camera import FisheyeCamera
 from bodyslam.vision.matching import Matches
-from bodyslam.vision.motion import estimate_thesis, estimate_tube, motion_from_transform
+from bodyslam.errors import ConfigError
+from bodyslam.vision.motion import essential_start, estimate_thesis, estimate_tube, fit_tube, motion_from_transform
 from bodyslam.vision.unroll import Unroller
 
 R_TUBE = 0.015
@@ -77,6 +78,26 @@ def test_hand_written_lm_reaches_scipys_solution(rv, t, axis, off):
     for k in ("roll_rad", "pitch_rad", "yaw_rad"):
         assert abs(getattr(a, k) - getattr(b, k)) < math.radians(0.02)
     assert a.sigma_distance_m == pytest.approx(b.sigma_distance_m, rel=0.05)
+
+
+@pytest.mark.parametrize("rv, t, axis, off", CASES[:3])
+def test_essential_start_is_the_motion_in_the_fits_convention(rv, t, axis, off):
+    # the tube fit starts from the essential matrix: OpenCV's (R, t) map frame-1 points into frame 2, the fit's
+    # parameters are R_c1_c2 and t_c1_c2 (frame 2's pose in frame 1); a transposed rotation or a flipped sign
+    # starts a forward step backwards. Noise-free rays: the start must be the motion itself, its length aside
+    rng = np.random.default_rng(6)
+    R = Rotation.from_rotvec(rv)
+    m = synth_matches(tube_points(200, rng, axis, off), R, np.array(t))
+    b1, _ = CAM.unproject(m.pts1_px)
+    b2, _ = CAM.unproject(m.pts2_px)
+    p0 = essential_start(b1, b2, 0.004)
+    assert (Rotation.from_rotvec(p0[0:3]) * R.inv()).magnitude() < math.radians(0.05)
+    assert np.linalg.norm(p0[3:6]) == pytest.approx(0.004)
+    assert np.degrees(math.acos(np.clip(p0[3:6] @ np.array(t) / (0.004 * np.linalg.norm(t)), -1, 1))) < 0.5
+    assert np.all(p0[6:] == 0.0)  # the tube's axis starts on the optical axis
+    assert essential_start(b1[:7], b2[:7], 0.004) is None  # fewer than 8 rays: no essential matrix
+    with pytest.raises(ConfigError):
+        fit_tube(m, CAM, R_TUBE, start="identity")
 
 
 def test_thesis_estimator_signs_are_derived_not_printed():
