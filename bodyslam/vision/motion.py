@@ -147,18 +147,28 @@ def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius:
 # forward step read as a tilt, or no translation and a larger turn). Started from a pure rotation, as it was to
 # session 17, it converged to those on some steps. Measured in session 18 on realistic tuning seeds 503-509
 # (`bodyslam motion`, then `testbed evaluate realistic --reuse`): Table 4.1 tilt error 0.843 -> 0.777 deg, roll
-# 0.302 -> 0.289 deg, distance 0.0745 -> 0.0717 cm; smoothed localization 3.93 -> 3.73 cm. On thesis seed 7
-# (300 frames, 320 px, sift): tilt 0.137 -> 0.110 deg, roll 0.039 -> 0.028. 0.3 radii is the middle of the steps
-# seen; 0.1-0.8 gave the same within 0.02 deg. Guided matching's fits keep the pure-rotation start: with this
+# 0.302 -> 0.289 deg, distance 0.0745 -> 0.0717 cm; smoothed localization 3.93 -> 3.73 cm (the guard below
+# changes no start on those seeds). On thesis seed 7 (300 frames, 320 px, sift): tilt 0.137 -> 0.110 deg, roll
+# 0.039 -> 0.028, distance 0.0052 -> 0.0053 cm. 0.3 radii is the middle of the steps seen; 0.1-0.8 gave the same
+# within 0.02 deg. Guided matching's fits keep the pure-rotation start: with this
 # one, the rotation steps' roll error rose from 3.77 to 4.18 deg mean on the same seeds.
 ESSENTIAL_START_STEP = 0.3
+# An essential matrix has two rotations 180 degrees apart about its translation (the "twisted pair"). On a
+# stationary step the translation is noise, and the cheirality test can pick the wrong one. That start made the
+# fit converge to a roll of ~180 degrees on 3 of 199 steps of thesis seed 709, and the fused track then erred by
+# 4 cm. A start more than 90 degrees from the pure rotation that best aligns the rays is therefore refused. Real
+# departures between the two, from parallax, were at most 30 degrees on realistic tuning seeds 503-507.
+ESSENTIAL_START_MAX_TURN_RAD = math.radians(90.0)
 
 
-def essential_start(b1: np.ndarray, b2: np.ndarray, step_m: float) -> np.ndarray | None:
+def essential_start(b1: np.ndarray, b2: np.ndarray, step_m: float,
+                    near: Rotation | None = None) -> np.ndarray | None:
     """A start for :func:`fit_tube` from matched unit rays ``b1``, ``b2`` (n, 3): the rotation and the direction
     of translation of the essential matrix (OpenCV's USAC, the 0.5 degree threshold of the matcher's check, the
     cheirality test of ``recoverPose``), the translation ``step_m`` long, the tube's axis on the optical axis.
-    None when fewer than 8 rays lie in front of both cameras or no essential matrix is found."""
+    None when fewer than 8 rays lie in front of both cameras, no essential matrix is found, or its rotation lies
+    more than :data:`ESSENTIAL_START_MAX_TURN_RAD` from ``near`` (``R_c1_c2`` of the pure-rotation alignment:
+    the wrong one of the twisted pair)."""
     ok = (b1[:, 2] > 0.05) & (b2[:, 2] > 0.05)
     if ok.sum() < 8:
         return None
@@ -174,8 +184,11 @@ def essential_start(b1: np.ndarray, b2: np.ndarray, step_m: float) -> np.ndarray
     n = float(np.linalg.norm(t12))
     if not (np.all(np.isfinite(R)) and n > 0):
         return None
+    R12 = Rotation.from_matrix(R.T)
+    if near is not None and (R12 * near.inv()).magnitude() > ESSENTIAL_START_MAX_TURN_RAD:
+        return None
     p0 = np.zeros(10)
-    p0[0:3] = Rotation.from_matrix(R.T).as_rotvec()
+    p0[0:3] = R12.as_rotvec()
     p0[3:6] = t12 / n * step_m
     return p0
 
@@ -294,10 +307,11 @@ def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int 
     if init is not None:  # a caller's start (measured: the previous step's solution does not save iterations)
         p0 = np.asarray(init, float).copy()
     else:
-        p0 = essential_start(b1, b2, ESSENTIAL_START_STEP * R_max) if start == "essential" else None
-        if p0 is None:  # too few rays in front of both cameras, or no essential matrix: a pure rotation
+        aligned = Rotation.align_vectors(b1, b2)[0]  # the pure rotation with b1 ~= R_c1_c2 b2
+        p0 = essential_start(b1, b2, ESSENTIAL_START_STEP * R_max, aligned) if start == "essential" else None
+        if p0 is None:  # too few rays in front of both cameras, no essential matrix, or the twisted pair's
             p0 = np.zeros(10)
-            p0[0:3] = Rotation.align_vectors(b1, b2)[0].as_rotvec()  # b1 ~= R_c1_c2 b2
+            p0[0:3] = aligned.as_rotvec()
     if solver == "lm":
         x, fval, J, cost = _lm_soft_l1(p0, fun_jac, residuals, x_scale, 2.0)
     elif solver == "trf":

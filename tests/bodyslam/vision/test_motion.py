@@ -96,6 +96,11 @@ def test_essential_start_is_the_motion_in_the_fits_convention(rv, t, axis, off):
     assert np.degrees(math.acos(np.clip(p0[3:6] @ np.array(t) / (0.004 * np.linalg.norm(t)), -1, 1))) < 0.5
     assert np.all(p0[6:] == 0.0)  # the tube's axis starts on the optical axis
     assert essential_start(b1[:7], b2[:7], 0.004) is None  # fewer than 8 rays: no essential matrix
+    # a start more than 90 degrees from the pure-rotation alignment is the twisted pair's wrong rotation (a stationary
+    # step's noise picked it on thesis seed 709, and the fit ended at a roll of ~180 degrees): refused
+    assert essential_start(b1, b2, 0.004, near=R) is not None
+    flipped = Rotation.from_rotvec(np.pi * np.array(t) / np.linalg.norm(t)) * R
+    assert essential_start(b1, b2, 0.004, near=flipped) is None
     with pytest.raises(ConfigError):
         fit_tube(m, CAM, R_TUBE, start="identity")
 
