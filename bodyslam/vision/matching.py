@@ -57,7 +57,7 @@ from bodyslam.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask"]
+__all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask", "essential_ransac"]
 
 from bodyslam.choices import MATCH_MODES  # noqa: E402
 ASIFT_VIEWS = ("compact", "standard")
@@ -441,16 +441,27 @@ class Matcher:
             return np.zeros(n, bool)
         r1, v1 = self.camera.unproject(p1)
         r2, v2 = self.camera.unproject(p2)
-        ok = v1 & v2 & (r1[:, 2] > 0.05) & (r2[:, 2] > 0.05)
-        if ok.sum() < 8:
-            return np.zeros(n, bool)
-        x1 = (r1[ok, :2] / r1[ok, 2:]).astype(np.float64)
-        x2 = (r2[ok, :2] / r2[ok, 2:]).astype(np.float64)
-        # threshold on the normalised plane ~ angle; rays far off-axis are stretched by 1/cos^2, so use a median
-        E, inl = cv2.findEssentialMat(x1, x2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_DEFAULT, prob=0.999,
-                                      threshold=float(self.ransac_rad), maxIters=300)
-        out = np.zeros(n, bool)
-        if E is None or inl is None:
-            return out
-        out[np.nonzero(ok)[0]] = inl.ravel() > 0
-        return out
+        return essential_ransac(r1, r2, self.ransac_rad, v1 & v2)[4]
+
+
+def essential_ransac(r1: np.ndarray, r2: np.ndarray, threshold_rad: float, valid: np.ndarray | None = None):
+    """OpenCV's USAC essential matrix of matched unit rays ``r1``, ``r2`` (n, 3), on the normalised plane of the
+    rays in front of both cameras (z > 0.05) and ``valid``. Returns ``(E, x1, x2, used, inliers)``: ``E`` None
+    when fewer than 8 rays are used or none is found; ``x1``, ``x2`` the used rays' normalised coordinates;
+    ``used`` and ``inliers`` (n,) bool. The matcher's check and the tube fit's start
+    (:func:`bodyslam.vision.motion.essential_start`) both call it."""
+    used = (r1[:, 2] > 0.05) & (r2[:, 2] > 0.05)
+    if valid is not None:
+        used &= valid
+    inliers = np.zeros(len(r1), bool)
+    if used.sum() < 8:
+        return None, None, None, used, inliers
+    x1 = (r1[used, :2] / r1[used, 2:]).astype(np.float64)
+    x2 = (r2[used, :2] / r2[used, 2:]).astype(np.float64)
+    # threshold on the normalised plane ~ angle; rays far off-axis are stretched by 1/cos^2, so use a median
+    E, inl = cv2.findEssentialMat(x1, x2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_DEFAULT, prob=0.999,
+                                  threshold=float(threshold_rad), maxIters=300)
+    if E is None or inl is None:
+        return None, x1, x2, used, inliers
+    inliers[np.nonzero(used)[0]] = inl.ravel() > 0
+    return E, x1, x2, used, inliers
