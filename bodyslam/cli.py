@@ -180,6 +180,8 @@ def _parser() -> argparse.ArgumentParser:
                     "frames are then not read: meta.json and the RF files suffice)")
     lo.add_argument("--fusion", default="rss", choices=FUSION_MODES,
                     help="rss: EKF on the raw RSS readings (default); fix: EKF on ML position fixes")
+    lo.add_argument("--no-refine", action="store_true", help="smoothed output: the RTS smoother alone, without the "
+                    "whole-exam refinement (bodyslam.fusion.refine; rss fusion only), to compare")
     lo.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     frame_opts(lo)
     motion_opts(lo)
@@ -526,7 +528,8 @@ def _localize(args) -> int:
                                 progress=Progress("motion"), problems=problems, fov_used=fov)
     frames = np.arange(n)
     stamps = frames / rate
-    loc = localize(steps, stamps, rf, rate, frames, mode=args.fusion, radius_sd_rel=radius_sd_rel)
+    loc = localize(steps, stamps, rf, rate, frames, mode=args.fusion, radius_sd_rel=radius_sd_rel,
+                   refine=not args.no_refine)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
         from bodyslam.vision.odometry import write_mask

@@ -8,7 +8,9 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 3. ML position fixes per frame (:func:`bodyslam.fusion.rf.locate_ml_frames`: vectorised over frames; solved in blocks
    where first read, :class:`bodyslam.fusion.rf.FixesOnDemand` -- the raw-RSS fusion reads its start window's),
    which start the filter;
-4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing;
+4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing,
+   then (raw RSS) the whole exam solved at once from the smoother's trajectory (:func:`bodyslam.fusion.refine.
+   refine_map`): the smoothed output; the plain smoother's is kept beside it (``Localization.rts``);
 5. their covariances scaled by the readings' measured correlation (:mod:`bodyslam.fusion.channel`: the smoother's
    by the whole exam's, the online filter's frame ``k`` by frames ``0 .. k``'s), so that the stated 1-sigma
    admits a channel that is not the calibration's independent shadowing (1.0 on an ideal one);
@@ -32,6 +34,7 @@ import numpy as np
 
 from bodyslam.errors import InputError
 from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
+from bodyslam.fusion.refine import refine_map
 from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, filter_memory, inflate,
                                      normalised_residuals, residual_correlation)
 from bodyslam.io import write_csv, write_image, write_tum
@@ -71,7 +74,7 @@ class Localization:
     frames: np.ndarray  # (n,) frame numbers
     stamps_s: np.ndarray  # (n,)
     filtered: FusionResult  # the online (causal after its start window) filter
-    smoothed: FusionResult  # RTS
+    smoothed: FusionResult  # the RTS smoother refined over the whole exam (refine_map; RTS alone where not refined)
     fixes: Sequence[Fix]  # ML fixes per frame (FixesOnDemand: solved when read)
     rss_dbm: np.ndarray  # (n, m) the readings of each frame (NaN: none)
     path_m: np.ndarray  # (n,) path travelled from the first frame
@@ -81,16 +84,18 @@ class Localization:
     # frame (None / ones: covariances as the filter computed them, ``honest_cov=False``)
     channel: ResidualCorrelation | None = None
     kappa_online: np.ndarray | None = None
+    rts: FusionResult | None = None  # the RTS smoother before the refinement (its covariance scaled the same way)
 
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
              frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True,
-             radius_sd_rel: float = 0.0) -> Localization:
+             radius_sd_rel: float = 0.0, refine: bool = True) -> Localization:
     """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring). ``honest_cov``:
     scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
     ``radius_sd_rel``: relative 1-sigma of the lumen radius the steps assumed; above 0 the fusion estimates the
     visual scale as a state (:mod:`bodyslam.fusion.ekf`), and the steps' 1-sigma is expected to include it
-    (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`).
+    (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`). ``refine``: solve the whole exam at once from the
+    smoother's trajectory (step 4; raw-RSS mode only).
 
     Raises
     ------
@@ -111,17 +116,19 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
         raise InputError(f"RF not usable: {n_ok} frame(s) with an RF fix, "
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel)
-    smoothed = rts_smooth(ekf)
+    rts = smoothed = rts_smooth(ekf)
+    if refine and mode == "rss":
+        smoothed = refine_map(rts, steps, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss)
     channel = kappa_online = None
     if honest_cov:
         kappa_online = online_inflation(ekf, rss, rf)
         channel = residual_correlation(normalised_residuals(rss, smoothed.positions_w_m, rf.sensors_w_m,
                                                             rf.normals_w, rf.pathloss))
-        ekf, smoothed = inflate(ekf, kappa_online), inflate(smoothed, channel.kappa)
+        ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, channel.kappa), inflate(rts, channel.kappa)
     path, var = path_travelled(steps, radius_sd_rel)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
-                        kappa_online)
+                        kappa_online, rts)
 
 
 def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput) -> np.ndarray:

@@ -117,6 +117,13 @@ def test_localize_cli_on_the_demo(tmp_path):
     assert p.returncode == 0, p.stderr
     _, est2, _ = read_tum(tmp_path / "loc2" / "trajectory.tum")
     assert np.abs(est2 - est).max() < 1e-6  # motion.csv's written digits: the same trajectory to 1 um
+    # --no-refine: the smoother alone (measured on the demo: 1.09 cm mean error against 1.01 refined)
+    p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "localize", str(bare), "--motion",
+                        str(out / "motion.csv"), "--out", str(tmp_path / "loc3"), "--no-refine"],
+                       capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    _, est3, _ = read_tum(tmp_path / "loc3" / "trajectory.tum")
+    assert np.abs(est3 - est).max() > 1e-4
 
 
 def test_thesis_kf_runs_and_improves_on_rf(demo):
