@@ -23,7 +23,7 @@ No prior on the start: the readings place the path, as they do the filter's. The
 trajectory, accepts a step only if the cost falls, and stops when the largest update is below 1e-6 (m, rad), the
 cost falls by less than a millionth of itself, or after ``max_iter`` (30; the tuning runs took 15-40 to the first
 two rules, with the same errors at 15 as at 60). The normal equations are block tridiagonal (sparse, solved
-directly): time and memory linear in the frames (a 10,000-frame exam: ~6 s, 10 iterations). Covariances: the
+directly): time and memory linear in the frames (a 10,000-frame exam: 2.5-3 s, 6 iterations). Covariances: the
 smoother's (the same information, linearised elsewhere; the caller scales them by the readings' measured
 correlation at the refined positions).
 
