@@ -22,10 +22,11 @@ frame. Factors, each a whitened residual:
 No prior on the start: the readings place the path, as they do the filter's. The solve starts from the smoother's
 trajectory, accepts a step only if the cost falls, and stops when the largest update is below 1e-6 (m, rad), the
 cost falls by less than a millionth of itself, or after ``max_iter`` (30; the tuning runs took 15-40 to the first
-two rules, with the same errors at 15 as at 60). The normal equations are block tridiagonal (sparse, solved
-directly): time and memory linear in the frames (a 10,000-frame exam: 2.5-3 s, 6 iterations). Covariances: the
-smoother's (the same information, linearised elsewhere; the caller scales them by the readings' measured
-correlation at the refined positions).
+two rules, with the same errors at 15 as at 60). The normal equations are block tridiagonal: built block by
+block without the Jacobian (the readings in chunks of frames) and solved as a banded system, so time is linear in
+the frames and memory little more than the trajectory's (a 10,000-frame exam: ~1.5 s, 6 iterations, +15 MB).
+Covariances: the smoother's (the same information, linearised elsewhere; the caller scales them by the readings'
+measured correlation at the refined positions).
 
 Measured on tuning seeds only (docs/RESULTS.md, "The whole exam solved at once"), smoother -> refined, mean
 position error / orientation error (optical axis):
@@ -51,7 +52,7 @@ from dataclasses import replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
+from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
 from bodyslam.fusion.body_slam import FusionResult
@@ -63,6 +64,8 @@ from bodyslam.steps import StepMotion
 log = logging.getLogger(__name__)
 
 __all__ = ["refine_map", "MapProblem"]
+
+CHUNK_FRAMES = 4096  # frames per block of the readings' terms (~3 MB per array at 32 sensors)
 
 
 class MapProblem:
@@ -79,30 +82,77 @@ class MapProblem:
         self.sensors, self.normals, self.pl, self.gate = sensors_w_m, normals_w, pl, float(gate)
         self.n = n
 
-    def _rss_terms(self, p):
-        diff = self.sensors[None] - p[:, None, :]  # (n, m, 3)
+    def _rss_terms(self, p, rows=slice(None)):
+        """The readings' normalised residuals ``z`` and what their Jacobian needs, for the frames ``rows``."""
+        p = p[rows]
+        diff = self.sensors[None] - p[:, None, :]  # (f, m, 3)
         d = np.linalg.norm(diff, axis=2)
         depth = np.maximum(np.einsum("kij,ij->ki", diff, self.normals), 0.0)
         _, alpha, sigma = self.pl.params(depth)
-        z = (self.rss - self.pl.mean_rss_dbm(d, depth)) / sigma
+        z = (self.rss[rows] - self.pl.mean_rss_dbm(d, depth)) / sigma
         return z, diff, d, alpha, sigma
+
+    def _chunks(self):
+        """Frame blocks of the readings' terms: memory bounded whatever the exam's length."""
+        return (slice(a, min(a + CHUNK_FRAMES, self.n)) for a in range(0, self.n, CHUNK_FRAMES))
+
+    def _steps(self, p, R):
+        """The step factors' whitened residuals ``(rp, rr)`` (each ``(n-1, 3)``)."""
+        rp = (p[1:] - p[:-1] - np.einsum("kij,kj->ki", R[:-1], self.t)) / self.sig_t[:, None]
+        E = np.swapaxes(self.R_steps, 1, 2) @ np.swapaxes(R[:-1], 1, 2) @ R[1:]  # R_s^T R_k^T R_{k+1}
+        return rp, matrix_to_rotvec(E) / self.sig_r[:, None]
 
     def residuals(self, p, R):
         """Whitened residuals ``(step position (n-1, 3), step rotation (n-1, 3), readings (n, m))``."""
-        rp = (p[1:] - p[:-1] - np.einsum("kij,kj->ki", R[:-1], self.t)) / self.sig_t[:, None]
-        E = np.swapaxes(self.R_steps, 1, 2) @ np.swapaxes(R[:-1], 1, 2) @ R[1:]  # R_s^T R_k^T R_{k+1}
-        rr = matrix_to_rotvec(E) / self.sig_r[:, None]
-        return rp, rr, self._rss_terms(p)[0]
+        return (*self._steps(p, R), self._rss_terms(p)[0])
 
     def cost(self, p, R) -> float:
         """Half the sum of squares, each reading's term capped at the gate."""
-        rp, rr, z = self.residuals(p, R)
-        zz = np.where(np.isfinite(z), np.minimum(z * z, self.gate**2), 0.0)
-        return 0.5 * float(np.sum(rp**2) + np.sum(rr**2) + np.sum(zz))
+        rp, rr = self._steps(p, R)
+        total = float(np.sum(rp**2) + np.sum(rr**2))
+        for rows in self._chunks():
+            z = self._rss_terms(p, rows)[0]
+            total += float(np.sum(np.where(np.isfinite(z), np.minimum(z * z, self.gate**2), 0.0)))
+        return 0.5 * total
+
+    def normal_equations(self, p, R):
+        """``(D, O, g)``: the Gauss-Newton system ``J^T J dx = -J^T r`` in blocks -- ``D (n, 6, 6)`` the diagonal
+        blocks, ``O (n-1, 6, 6)`` the blocks ``(k, k+1)``, ``g (n, 6)`` the gradient ``J^T r`` -- without forming
+        ``J`` (:meth:`linearise`, the same system as a sparse matrix, is the reference the tests hold it to)."""
+        n, K = self.n, self.n - 1
+        rp, rr = self._steps(p, R)
+        # one step's six rows against the poses k and k+1: position rows [-I/s_t, R_k [t_k]x / s_t | I/s_t, 0],
+        # rotation rows [0, -(R_{k+1}^T R_k) / s_r | 0, I / s_r]
+        Ja = np.zeros((K, 6, 6))
+        Jb = np.zeros((K, 6, 6))
+        it, ir = 1.0 / self.sig_t[:, None], 1.0 / self.sig_r[:, None]
+        Ja[:, :3, :3] = -np.eye(3) * it[..., None]
+        Ja[:, :3, 3:] = R[:-1] @ _skew(self.t) * it[..., None]
+        Ja[:, 3:, 3:] = -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) * ir[..., None]
+        Jb[:, :3, :3] = np.eye(3) * it[..., None]
+        Jb[:, 3:, 3:] = np.eye(3) * ir[..., None]
+        r = np.concatenate([rp, rr], axis=1)
+        JaT, JbT = np.swapaxes(Ja, 1, 2), np.swapaxes(Jb, 1, 2)
+        D = np.zeros((n, 6, 6))
+        g = np.zeros((n, 6))
+        D[:-1] += JaT @ Ja
+        D[1:] += JbT @ Jb
+        O = JaT @ Jb
+        g[:-1] += np.einsum("kij,kj->ki", JaT, r)
+        g[1:] += np.einsum("kij,kj->ki", JbT, r)
+        for rows in self._chunks():  # the readings: position rows of their own frame only
+            z, diff, d, alpha, sigma = self._rss_terms(p, rows)
+            use = np.isfinite(z) & (np.abs(z) < self.gate)
+            Jz = -(10.0 * alpha / np.log(10.0) / (d**2 * sigma))[..., None] * diff  # (f, m, 3): dz / dp
+            Jz = np.where(use[..., None], Jz, 0.0)
+            D[rows, :3, :3] += np.einsum("kmi,kmj->kij", Jz, Jz)
+            g[rows, :3] += np.einsum("kmi,km->ki", Jz, np.where(use, z, 0.0))
+        return D, O, g
 
     def linearise(self, p, R):
         """``(J, r)``: the sparse Jacobian over ``[dp_k, dphi_k]`` per frame and the residual vector (readings
-        outside the gate left out: their capped term is flat)."""
+        outside the gate left out: their capped term is flat). The reference form of :meth:`normal_equations`
+        (small problems: its memory grows with every reading)."""
         n, K = self.n, self.n - 1
         rp, rr, _ = self.residuals(p, R)
         z, diff, d, alpha, sigma = self._rss_terms(p)
@@ -154,18 +204,16 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
     lam, it = 1e-3, 0
     for it in range(1, max_iter + 1):
         f_before = f
-        J, r = prob.linearise(p, R)
-        H = (J.T @ J).tocsc()
-        g = J.T @ r
-        D = sp.diags(H.diagonal() + 1e-9)
+        D, O, g = prob.normal_equations(p, R)
         while True:
-            dx = -spsolve(H + lam * D, g).reshape(-1, 6)
-            p2, R2 = p + dx[:, :3], R @ rotvec_to_matrix(dx[:, 3:])
-            f2 = prob.cost(p2, R2)
-            if f2 < f:
-                p, R, f = p2, R2, f2
-                lam = max(lam / 3.0, 1e-6)
-                break
+            dx = _solve_damped(D, O, g, lam)
+            if dx is not None:
+                p2, R2 = p + dx[:, :3], R @ rotvec_to_matrix(dx[:, 3:])
+                f2 = prob.cost(p2, R2)
+                if f2 < f:
+                    p, R, f = p2, R2, f2
+                    lam = max(lam / 3.0, 1e-6)
+                    break
             lam *= 5.0
             if lam > 1e6:
                 break
@@ -173,3 +221,21 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
             break
     log.info("whole-exam refinement: cost %.1f -> %.1f in %d iterations", f_start, f, it)
     return replace(res, positions_w_m=p, rotations_w_c=Rotation.from_matrix(R))
+
+
+def _solve_damped(D: np.ndarray, O: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray | None:
+    """``dx (n, 6)`` of ``(H + lam diag(H)) dx = -g`` for the block-tridiagonal ``H`` (diagonal blocks ``D``,
+    blocks ``O`` above them): a symmetric banded Cholesky solve (bandwidth 11: ``O(n)`` time and memory); None
+    where the damped system is not positive definite (the caller damps more)."""
+    n = len(D)
+    N = 6 * n
+    ab = np.zeros((12, N))  # lower form: ab[i - j, j] = H[i, j]
+    i, j = np.tril_indices(6)
+    ab[i - j, 6 * np.arange(n)[:, None] + j] = D[:, i, j]
+    ab[0] += lam * (ab[0] + 1e-9)
+    ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")  # H[6(k+1) + ii, 6k + jj] = O[k, jj, ii]
+    ab[6 + ii - jj, 6 * np.arange(n - 1)[:, None, None] + jj] = np.swapaxes(O, 1, 2)
+    try:
+        return -solveh_banded(ab, g.ravel(), lower=True).reshape(n, 6)
+    except np.linalg.LinAlgError:
+        return None

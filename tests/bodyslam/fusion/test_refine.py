@@ -4,6 +4,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bodyslam.fusion.body_slam import fuse, rts_smooth
+from bodyslam.fusion.ekf import Z_GATE_999
 from bodyslam.fusion.refine import MapProblem, refine_map
 from bodyslam.geometry import rotvec_to_matrix
 
@@ -55,6 +56,36 @@ def test_the_jacobian_matches_finite_differences():
                 continue
             rel = np.linalg.norm(pred[rows] - actual) / np.linalg.norm(actual)
             assert rel < 1e-3, (part, name, rel)
+
+
+def test_the_block_normal_equations_are_the_sparse_jacobians(monkeypatch):
+    # normal_equations builds J^T J and J^T r block by block, the readings in chunks of frames, without J: they
+    # must equal the sparse reference (linearise) to rounding, with chunks smaller than the run (3 frames) too.
+    import bodyslam.fusion.refine as refine
+
+    steps, fixes, rss, pos, nrm, pl, gt = synthetic_run(2, n=25)
+    res = rts_smooth(fuse(steps, fixes, rss, pos, nrm, pl, mode="rss"))
+    rng = np.random.default_rng(1)
+    p = res.positions_w_m + rng.normal(0, 0.01, res.positions_w_m.shape)
+    R = res.rotations_w_c.as_matrix() @ rotvec_to_matrix(rng.normal(0, 0.1, (len(p), 3)))
+    rss = rss.copy()
+    rss[3, 5] = np.nan  # a lost reading
+    rss[7, 2] += 60.0  # one beyond the gate
+    prob = MapProblem(steps, rss, pos, nrm, pl)
+    J, r = prob.linearise(p, R)
+    H, gref = (J.T @ J).toarray(), J.T @ r
+    for chunk in (4096, 3):
+        monkeypatch.setattr(refine, "CHUNK_FRAMES", chunk)
+        D, O, g = prob.normal_equations(p, R)
+        Hb = np.zeros_like(H)
+        for k in range(len(p)):
+            Hb[6 * k:6 * k + 6, 6 * k:6 * k + 6] = D[k]
+            if k + 1 < len(p):
+                Hb[6 * k:6 * k + 6, 6 * k + 6:6 * k + 12] = O[k]
+                Hb[6 * k + 6:6 * k + 12, 6 * k:6 * k + 6] = O[k].T
+        assert np.allclose(Hb, H, rtol=1e-10, atol=1e-8 * np.abs(H).max())
+        assert np.allclose(g.ravel(), gref, rtol=1e-10, atol=1e-10 * np.abs(gref).max())
+        assert np.isclose(prob.cost(p, R), 0.5 * float(r @ r) + 0.5 * Z_GATE_999**2)  # + the capped reading
 
 
 def _turned_start(seed, deg):
