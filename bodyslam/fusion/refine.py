@@ -37,12 +37,15 @@ position error / orientation error (optical axis):
 
 Started from the true trajectory instead, the solve ends where it ends from the smoother (realistic 503-509: six of
 seven runs within 0.25 cm of it; the seventh 0.7 cm better, at a higher cost): the optimum of this model, not a
-local minimum, is what remains off. Tried and not used (realistic 503-509): the readings weighted by their measured
-correlation (``kappa`` or its square root: 4.37 / 3.81 cm against 3.74, session 15's motion), per-sensor constant
-offsets as unknowns (4 or 2 dB priors: 4.32 / 4.15 cm, same motion), and the readings' normalised residuals
-whitened as a Gauss-Markov process along the visual path (correlation distance 1, 3 or 10 cm: 3.66 / 3.89 / 4.28 cm
-and 68 / 75 / 76 deg against 3.73 cm and 52 deg, session 18's motion; under that model the cost is nearly flat:
-from the truth it ends 1.5-4.5 cm off, at costs within 1% of the solution from the smoother).
+local minimum, is what remains off. On thesis runs the cost has several minima close in value, and the lowest is not
+the nearest to the truth: starting from the smoother turned 10 deg either way about each axis and keeping the lowest
+cost made 6 of 7 tuning runs worse (0.95 -> 1.21 cm). The solve therefore starts from the smoother only. Tried and
+not used (realistic 503-509): the readings weighted by their measured correlation (``kappa`` or its square root:
+4.37 / 3.81 cm against 3.74, session 15's motion), per-sensor constant offsets as unknowns (4 or 2 dB priors: 4.32 /
+4.15 cm, same motion), and the readings' normalised residuals whitened as a Gauss-Markov process along the visual
+path (correlation distance 1, 3 or 10 cm: 3.66 / 3.89 / 4.28 cm and 68 / 75 / 76 deg against 3.73 cm and 52 deg,
+session 18's motion; under that model the cost is nearly flat: from the truth it ends 1.5-4.5 cm off, at costs
+within 1% of the solution from the smoother).
 """
 
 from __future__ import annotations
