@@ -72,7 +72,8 @@ CHUNK_FRAMES = 4096  # frames per block of the readings' terms (~3 MB per array 
 
 
 class MapProblem:
-    """The batch problem of one exam (module docstring): residuals, cost and the sparse Jacobian at a trajectory."""
+    """The batch problem of one exam (module docstring) at a trajectory ``p (n, 3)``, ``R (n, 3, 3)``: its
+    residuals, cost and Gauss-Newton system (:meth:`normal_equations`; :meth:`linearise` the sparse reference)."""
 
     def __init__(self, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray,
                  pl: PathLossModel, scale: np.ndarray | None = None, gate: float = Z_GATE_999):
