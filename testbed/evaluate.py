@@ -321,10 +321,9 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         "smoothing_bound": {
             "sqrt_mean_cm": float(np.sqrt(np.concatenate(sm).mean()) * 100),
             "mean_error_cm": float(np.concatenate(sm_eff).mean() * 100),
-            "rts_rmse_over_sqrt_bound": float(np.sqrt(np.mean(np.concatenate(errs["ekf_rss_rts"]) ** 2))
-                                              / np.sqrt(np.concatenate(sm).mean())),
-            "rts_plain_rmse_over_sqrt_bound": float(np.sqrt(np.mean(np.concatenate(errs["ekf_rss_rts_plain"]) ** 2))
-                                                    / np.sqrt(np.concatenate(sm).mean()))},
+            **{f"{name}_rmse_over_sqrt_bound": float(np.sqrt(np.mean(np.concatenate(errs[a]) ** 2))
+                                                      / np.sqrt(np.concatenate(sm).mean()))
+               for name, a in (("rts", "ekf_rss_rts"), ("rts_plain", "ekf_rss_rts_plain"))}},
         # Table 4.1, and whether the per-step 1-sigma holds (distance_within_1sigma: 0.683 if honest)
         # (distance_scale: each run's best factor, testbed.score; its mean over the runs)
         "table_4_1": {k: float(np.nanmean([m.get(k, np.nan) for m in motion])) for k in motion[0]
@@ -383,9 +382,9 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
 
     # each algorithm against its own bound: offline smoothing against the smoothing bound, the rest the PCRB
     sb = report["smoothing_bound"]
-    own = {k: (sb["rts_rmse_over_sqrt_bound"] if k == "ekf_rss_rts" else sb.get("rts_plain_rmse_over_sqrt_bound",
-               float("nan")) if k == "ekf_rss_rts_plain" else v["rmse_over_sqrt_pcrb"])
-           for k, v in report["algorithms"].items()}
+    smoothers = {"ekf_rss_rts": sb["rts_rmse_over_sqrt_bound"],
+                 "ekf_rss_rts_plain": sb.get("rts_plain_rmse_over_sqrt_bound", float("nan"))}
+    own = {k: smoothers.get(k, v["rmse_over_sqrt_pcrb"]) for k, v in report["algorithms"].items()}
     rows = [[LABELS[k], f"{v['mean_error_cm']:.2f}", f"{v['rmse_cm']:.2f}", f"{v['median_error_cm']:.2f}",
              f"{v['p90_error_cm']:.2f}", f"{v['rmse_over_sqrt_pcrb']:.2f}", f"{own[k]:.2f}"]
             for k, v in report["algorithms"].items()]

@@ -876,7 +876,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                            else "not classified"),
                "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
-               "trajectory": "fused (RF + vision, RTS-smoothed and refined)" if fused is not None else "dead reckoning",
+               "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
+                              + (" and refined)" if settings.fusion == "rss" else ")")),
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors
                "rss_error_correlation": (fused.channel.as_dict() if fused is not None and fused.channel else None),
                # the lumen radius the fusion's scale state implies along the exam (radius * (1 + s), smoothed)

@@ -119,81 +119,72 @@ class MapProblem:
             total += float(np.sum(np.where(np.isfinite(z), np.minimum(z * z, self.gate**2), 0.0)))
         return 0.5 * total
 
+    def _step_blocks(self, p, R):
+        """Each step's six whitened residual rows (position, rotation) and their Jacobians against the poses ``k``
+        and ``k+1``: ``(Ja, Jb (n-1, 6, 6), r (n-1, 6))``. Position rows ``[-I/s_t, R_k [t_k]x / s_t | I/s_t, 0]``;
+        rotation rows ``[0, -(R_{k+1}^T R_k) / s_r | 0, I / s_r]`` (the log's Jacobian taken as the identity)."""
+        K = self.n - 1
+        rp, rr = self._steps(p, R)
+        it, ir = 1.0 / self.sig_t[:, None, None], 1.0 / self.sig_r[:, None, None]
+        Ja = np.zeros((K, 6, 6))
+        Jb = np.zeros((K, 6, 6))
+        Ja[:, :3, :3] = -np.eye(3) * it
+        Ja[:, :3, 3:] = R[:-1] @ _skew(self.t) * it
+        Ja[:, 3:, 3:] = -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) * ir
+        Jb[:, :3, :3] = np.eye(3) * it
+        Jb[:, 3:, 3:] = np.eye(3) * ir
+        return Ja, Jb, np.concatenate([rp, rr], axis=1)
+
+    def _reading_rows(self, p, rows=slice(None)):
+        """The readings of the frames ``rows`` that count (finite, inside the gate): ``(z, Jz (f, m, 3), use)``,
+        ``Jz = dz / dp`` of the reading's own frame, zero where not used
+        (``d mean / dp = (10 alpha / ln 10) (s - p) / d^2``)."""
+        z, diff, d, alpha, sigma = self._rss_terms(p, rows)
+        use = np.isfinite(z) & (np.abs(z) < self.gate)
+        Jz = -(10.0 * alpha / np.log(10.0) / (d**2 * sigma))[..., None] * diff
+        return np.where(use, z, 0.0), np.where(use[..., None], Jz, 0.0), use
+
     def normal_equations(self, p, R):
         """``(D, O, g)``: the Gauss-Newton system ``J^T J dx = -J^T r`` in blocks -- ``D (n, 6, 6)`` the diagonal
         blocks, ``O (n-1, 6, 6)`` the blocks ``(k, k+1)``, ``g (n, 6)`` the gradient ``J^T r`` -- without forming
         ``J`` (:meth:`linearise`, the same system as a sparse matrix, is the reference the tests hold it to)."""
-        n, K = self.n, self.n - 1
-        rp, rr = self._steps(p, R)
-        # one step's six rows against the poses k and k+1: position rows [-I/s_t, R_k [t_k]x / s_t | I/s_t, 0],
-        # rotation rows [0, -(R_{k+1}^T R_k) / s_r | 0, I / s_r]
-        Ja = np.zeros((K, 6, 6))
-        Jb = np.zeros((K, 6, 6))
-        it, ir = 1.0 / self.sig_t[:, None], 1.0 / self.sig_r[:, None]
-        Ja[:, :3, :3] = -np.eye(3) * it[..., None]
-        Ja[:, :3, 3:] = R[:-1] @ _skew(self.t) * it[..., None]
-        Ja[:, 3:, 3:] = -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) * ir[..., None]
-        Jb[:, :3, :3] = np.eye(3) * it[..., None]
-        Jb[:, 3:, 3:] = np.eye(3) * ir[..., None]
-        r = np.concatenate([rp, rr], axis=1)
+        Ja, Jb, r = self._step_blocks(p, R)
         JaT, JbT = np.swapaxes(Ja, 1, 2), np.swapaxes(Jb, 1, 2)
-        D = np.zeros((n, 6, 6))
-        g = np.zeros((n, 6))
+        D = np.zeros((self.n, 6, 6))
+        g = np.zeros((self.n, 6))
         D[:-1] += JaT @ Ja
         D[1:] += JbT @ Jb
         O = JaT @ Jb
         g[:-1] += np.einsum("kij,kj->ki", JaT, r)
         g[1:] += np.einsum("kij,kj->ki", JbT, r)
         for rows in self._chunks():  # the readings: position rows of their own frame only
-            z, diff, d, alpha, sigma = self._rss_terms(p, rows)
-            use = np.isfinite(z) & (np.abs(z) < self.gate)
-            Jz = -(10.0 * alpha / np.log(10.0) / (d**2 * sigma))[..., None] * diff  # (f, m, 3): dz / dp
-            Jz = np.where(use[..., None], Jz, 0.0)
+            z, Jz, _ = self._reading_rows(p, rows)
             D[rows, :3, :3] += np.einsum("kmi,kmj->kij", Jz, Jz)
-            g[rows, :3] += np.einsum("kmi,km->ki", Jz, np.where(use, z, 0.0))
+            g[rows, :3] += np.einsum("kmi,km->ki", Jz, z)
         return D, O, g
 
     def linearise(self, p, R):
-        """``(J, r)``: the sparse Jacobian over ``[dp_k, dphi_k]`` per frame and the residual vector (readings
-        outside the gate left out: their capped term is flat). The reference form of :meth:`normal_equations`
+        """``(J, r)``: the sparse Jacobian over ``[dp_k, dphi_k]`` per frame and the residual vector (the steps'
+        position rows, their rotation rows, then the readings that count, frame by frame). The same blocks as
+        :meth:`normal_equations`, assembled as one matrix: the reference the tests hold the normal equations to
         (small problems: its memory grows with every reading)."""
         n, K = self.n, self.n - 1
-        rp, rr, _ = self.residuals(p, R)
-        z, diff, d, alpha, sigma = self._rss_terms(p)
-        k = np.arange(K)
-        rows, cols, vals = [], [], []
-
-        def put(r, c, v):
-            rows.append(np.ravel(r))
-            cols.append(np.ravel(c))
-            vals.append(np.broadcast_to(v, np.shape(r)).ravel())
-
-        # step position: d/dp_{k+1} = I / s, d/dp_k = -I / s, d/dphi_k = R_k [t_k]x / s
-        Jphi = R[:-1] @ _skew(self.t) / self.sig_t[:, None, None]
-        for a in range(3):
-            put(3 * k + a, 6 * (k + 1) + a, 1.0 / self.sig_t)
-            put(3 * k + a, 6 * k + a, -1.0 / self.sig_t)
-            for b in range(3):
-                put(3 * k + a, 6 * k + 3 + b, Jphi[:, a, b])
-        r0 = 3 * K
-        # step rotation: d/dphi_{k+1} = I / s, d/dphi_k = -(R_{k+1}^T R_k) / s (the log's Jacobian taken as I)
-        A = np.swapaxes(R[1:], 1, 2) @ R[:-1] / self.sig_r[:, None, None]
-        for a in range(3):
-            put(r0 + 3 * k + a, 6 * (k + 1) + 3 + a, 1.0 / self.sig_r)
-            for b in range(3):
-                put(r0 + 3 * k + a, 6 * k + 3 + b, -A[:, a, b])
-        r0 += 3 * K
-        # readings: z = (rss - mean(p)) / sigma, d mean / dp = (10 alpha / ln 10) (s - p) / d^2
-        use = np.isfinite(z) & (np.abs(z) < self.gate)
+        Ja, Jb, r = self._step_blocks(p, R)
+        z, Jz, use = self._reading_rows(p)
         kf, jf = np.nonzero(use)
-        g = (10.0 * alpha[kf, jf] / np.log(10.0))[:, None] * diff[kf, jf] / (d[kf, jf] ** 2)[:, None]
-        Jz = -g / sigma[kf, jf][:, None]
         m = len(kf)
-        for b in range(3):
-            put(r0 + np.arange(m), 6 * kf + b, Jz[:, b])
-        r0 += m
-        J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, 6 * n))
-        return J, np.concatenate([rp.ravel(), rr.ravel(), z[kf, jf]])
+        k, i = np.arange(K)[:, None, None], np.arange(6)[None, :, None]
+        row = np.where(i < 3, 3 * k + i, 3 * K + 3 * k + i - 3)  # (K, 6, 1): position rows, then rotation rows
+        col = np.arange(6)[None, None, :]
+        rows = [np.broadcast_to(row, Ja.shape), np.broadcast_to(row, Jb.shape),
+                np.broadcast_to(6 * K + np.arange(m)[:, None], (m, 3))]
+        cols = [np.broadcast_to(6 * k + col, Ja.shape), np.broadcast_to(6 * (k + 1) + col, Jb.shape),
+                6 * kf[:, None] + np.arange(3)[None, :]]
+        vals = [Ja, Jb, Jz[kf, jf]]
+        J = sp.csr_matrix((np.concatenate([v.ravel() for v in vals]),
+                           (np.concatenate([x.ravel() for x in rows]), np.concatenate([x.ravel() for x in cols]))),
+                          shape=(6 * K + m, 6 * n))
+        return J, np.concatenate([r[:, :3].ravel(), r[:, 3:].ravel(), z[kf, jf]])
 
 
 def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray,
