@@ -550,14 +550,14 @@ class BatchReport:
 
 
 def code_fingerprint() -> str:
-    """A hash of the pipeline's code and shipped models: chunks are reused only by the code that computed them
-    (an upgraded toolkit with the same settings could compute different results; without this a resumed run
+    """A hash of the pipeline's code (Python and C sources) and shipped models: chunks are reused only by the code
+    that computed them (an upgraded toolkit with the same settings could compute different results; without this a resumed run
     would mix both)."""
     import hashlib
 
     root = Path(__file__).resolve().parents[1]  # the bodyslam package
     h = hashlib.sha256()
-    for f in sorted([*root.rglob("*.py"), *root.rglob("models/*")]):
+    for f in sorted([*root.rglob("*.py"), *root.rglob("*.c"), *root.rglob("models/*")]):
         h.update(str(f.relative_to(root)).encode())
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
