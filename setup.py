@@ -1,12 +1,19 @@
-"""Build hook for the one compiled part: SRM's merge loop (bodyslam/vision/_srm_merge.c).
+"""Build hook for the two compiled loops; everything else is in pyproject.toml.
 
-Everything else is in pyproject.toml. The extension is optional: where it cannot be built (no C compiler or no
-Python headers) the install goes on and `bodyslam.vision.segmentation` runs the same loop in Python, ~30x slower
-(it says so in its log). -ffp-contract=off keeps the double arithmetic identical to Python's (no fused
-multiply-add), so both loops give the same regions bit for bit.
+- bodyslam/vision/_srm_merge.c: SRM's merge loop (bodyslam.vision.segmentation);
+- bodyslam/vision/_tube_fit.c: the tube fit's residuals (bodyslam.vision.motion).
+
+Both are optional: where they cannot be built (no C compiler or no Python headers) the install goes on and the
+same computations run in Python/numpy, slower (each module says so once in its log). -ffp-contract=off keeps
+the double arithmetic as written (no fused multiply-add): the merge loop gives the same regions bit for bit, the
+residuals agree with numpy's to ~1e-15.
 """
 
 from setuptools import Extension, setup
 
-setup(ext_modules=[Extension("bodyslam.vision._srm_merge", ["bodyslam/vision/_srm_merge.c"], optional=True,
-                             extra_compile_args=["-O2", "-ffp-contract=off"])])
+FLAGS = ["-O2", "-ffp-contract=off"]
+setup(ext_modules=[
+    Extension("bodyslam.vision._srm_merge", ["bodyslam/vision/_srm_merge.c"], optional=True, extra_compile_args=FLAGS),
+    Extension("bodyslam.vision._tube_fit", ["bodyslam/vision/_tube_fit.c"], optional=True, extra_compile_args=FLAGS,
+              libraries=["m"]),
+])

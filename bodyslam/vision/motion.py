@@ -38,6 +38,7 @@ used; set by the caller, :meth:`bodyslam.vision.odometry.VisualOdometry.estimate
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import replace
 
@@ -57,6 +58,15 @@ __all__ = ["ESTIMATORS", "StepMotion", "essential_start", "estimate_thesis", "es
            "tube_predict", "motion_from_transform"]
 
 from bodyslam.choices import ESTIMATORS  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+try:  # the tube fit's residuals compiled (setup.py builds them where a C compiler is at hand); else numpy's
+    from bodyslam.vision import _tube_fit as _tube_c
+except ImportError:
+    _tube_c = None
+_warned = False
+
 NAN = float("nan")
 
 
@@ -134,7 +144,25 @@ def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius:
                           noise_rad: float, prior_sigma: np.ndarray) -> np.ndarray:
     """Residuals of the tube model for a batch of parameter vectors ``P (B, 10)`` -> ``(B, 3 n + 4)``: per
     match the cross product of its frame-2 ray with the direction to its tube point (the sine of their angle),
-    over ``noise_rad``; then the axis priors."""
+    over ``noise_rad``; then the axis priors. Compiled where ``_tube_fit.c`` was built (the same formulas, ~1e-15
+    relative; a fit 5.5 -> 1.7 ms), else in numpy."""
+    if _tube_c is not None:
+        out = np.empty((len(P), 3 * len(b1) + 4))
+        _tube_c.residuals(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(b1, np.float64),
+                          np.ascontiguousarray(b2, np.float64), float(radius), float(max_depth), float(noise_rad),
+                          np.ascontiguousarray(prior_sigma, np.float64), out)
+        return out
+    global _warned
+    if not _warned:
+        _warned = True
+        log.info("tube fit: the compiled residuals (bodyslam/vision/_tube_fit.c) are not built here; using numpy's, "
+                 "~3x slower fits (reinstall with a C compiler: pip install -e .)")
+    return _tube_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, prior_sigma)
+
+
+def _tube_residuals_numpy(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius: float, max_depth: float,
+                          noise_rad: float, prior_sigma: np.ndarray) -> np.ndarray:
+    """:func:`_tube_residuals_batch` in numpy."""
     x, y, z = _tube_points_xyz(P, b1, radius, max_depth)
     inv = 1.0 / (noise_rad * np.sqrt(x * x + y * y + z * z))
     cx, cy, cz = b2[:, 0], b2[:, 1], b2[:, 2]

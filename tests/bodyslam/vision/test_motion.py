@@ -139,12 +139,18 @@ def test_thesis_tilt_fit_recovers_a_small_tilt():
     assert abs(literal.tilt_rad - 0.05) > 0.5  # Eq. 3.20 as printed: a ratio near 2, not the 0.05 rad tilt
 
 
-def test_tube_residuals_are_the_geometry_they_state():
-    # the fit's residuals (written on coordinate arrays for speed) against the model computed point by point:
+@pytest.mark.parametrize("compiled", [True, False])
+def test_tube_residuals_are_the_geometry_they_state(monkeypatch, compiled):
+    # the fit's residuals (compiled, or numpy's on coordinate arrays) against the model computed point by point:
     # each frame-1 ray meets the tube at X (solved as a quadratic), X seen from frame 2 is R^T (X - t), and the
     # residual is the sine vector between it and the frame-2 ray, over the noise
+    from bodyslam.vision import motion
     from bodyslam.vision.motion import _tube_residuals_batch
 
+    if compiled and motion._tube_c is None:
+        pytest.skip("the compiled residuals are not built here")
+    if not compiled:
+        monkeypatch.setattr(motion, "_tube_c", None)
     rng = np.random.default_rng(8)
     b1 = rng.normal(size=(30, 3))
     b1[:, 2] = np.abs(b1[:, 2]) + 0.2
@@ -169,3 +175,37 @@ def test_tube_residuals_are_the_geometry_they_state():
             want.extend(np.cross(c, X2 / np.linalg.norm(X2)) / 0.003)
         np.testing.assert_allclose(row[:-4], want, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(row[-4:], p[6:10] / prior)
+
+
+def test_compiled_tube_residuals_equal_numpys_at_the_edges():
+    """Where the two could part: rotations below the Rodrigues series' 1e-4 rad switch and just above it, rays
+    parallel to the axis (no intersection: the depth cap), rays whose tube point is beyond the cap, an axis
+    offset outside the tube (no real root), and a batch of forward differences as the fit builds it."""
+    from bodyslam.vision import motion
+
+    if motion._tube_c is None:
+        pytest.skip("the compiled residuals are not built here")
+    rng = np.random.default_rng(3)
+    b1 = rng.normal(size=(40, 3))
+    b1[:, 2] = np.abs(b1[:, 2]) + 0.05
+    b1[0] = (0.0, 0.0, 1.0)  # along the axis: never meets the wall
+    b1[1] = (0.001, 0.0, 1.0)  # meets it far beyond the 0.3 m cap
+    b1 /= np.linalg.norm(b1, axis=1)[:, None]
+    b2 = b1 + rng.normal(0, 0.02, b1.shape)
+    b2 /= np.linalg.norm(b2, axis=1)[:, None]
+    P = np.zeros((6, 10))
+    P[0:4, 3:6] = (0.001, -0.002, 0.003)  # a translation: the depth (and its cap) shows in the residuals
+    P[0, 0:3] = (3e-5, -2e-5, 1e-5)  # series branch
+    P[1, 0:3] = (1.2e-4, 0.0, 0.0)  # just above the switch
+    P[2, 0:3], P[2, 3:6], P[2, 6:10] = (0.1, -0.2, 0.15), (0.001, 0.002, 0.004), (0.1, -0.05, 0.002, -0.001)
+    P[3, 8] = 0.02  # axis offset outside the 1.25 cm tube
+    P[4:] = P[2] + np.diag(1e-6 * np.r_[[0.05] * 3, [0.003] * 3, [0.2] * 2, [0.005] * 2])[:2]
+    prior = np.array([0.35, 0.35, 0.006, 0.006])
+    got = motion._tube_residuals_batch(P, b1, b2, R_TUBE, 0.3, 0.003, prior)
+    want = motion._tube_residuals_numpy(P, b1, b2, R_TUBE, 0.3, 0.003, prior)
+    assert np.isfinite(want).all()
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    fd_got, fd_want = (got[4:] - got[2]) / 1e-6, (want[4:] - want[2]) / 1e-6  # the fit's Jacobian columns
+    np.testing.assert_allclose(fd_got, fd_want, rtol=1e-6, atol=1e-6 * np.abs(fd_want).max())
+    with pytest.raises(ValueError, match="float64 arrays"):
+        motion._tube_c.residuals(P, b1, b2[:-1], R_TUBE, 0.3, 0.003, prior, np.empty_like(got))
