@@ -145,7 +145,7 @@ def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius:
     """Residuals of the tube model for a batch of parameter vectors ``P (B, 10)`` -> ``(B, 3 n + 4)``: per
     match the cross product of its frame-2 ray with the direction to its tube point (the sine of their angle),
     over ``noise_rad``; then the axis priors. Compiled where ``_tube_fit.c`` was built (the same formulas, ~1e-15
-    relative; a fit 5.5 -> 1.7 ms), else in numpy."""
+    relative; a whole fit, its essential-matrix start included, 7.7 -> 3.5-3.9 ms on exam frames), else numpy."""
     if _tube_c is not None:
         out = np.empty((len(P), 3 * len(b1) + 4))
         _tube_c.residuals(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(b1, np.float64),
@@ -156,7 +156,7 @@ def _tube_residuals_batch(P: np.ndarray, b1: np.ndarray, b2: np.ndarray, radius:
     if not _warned:
         _warned = True
         log.info("tube fit: the compiled residuals (bodyslam/vision/_tube_fit.c) are not built here; using numpy's, "
-                 "~3x slower fits (reinstall with a C compiler: pip install -e .)")
+                 "~2x slower fits (reinstall with a C compiler: pip install -e .)")
     return _tube_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, prior_sigma)
 
 
