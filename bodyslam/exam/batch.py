@@ -551,8 +551,8 @@ class BatchReport:
 
 def code_fingerprint() -> str:
     """A hash of the pipeline's code (Python and C sources) and shipped models: chunks are reused only by the code
-    that computed them (an upgraded toolkit with the same settings could compute different results; without this a resumed run
-    would mix both)."""
+    that computed them (an upgraded toolkit with the same settings could compute different results; without this
+    a resumed run would mix both)."""
     import hashlib
 
     root = Path(__file__).resolve().parents[1]  # the bodyslam package

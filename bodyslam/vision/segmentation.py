@@ -112,7 +112,9 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
     b2_tab = k / nn * (np.minimum(g, nn) * np.log1p(nn) + log_term)
     if _merge_c is not None:
         parent = np.arange(h * w, dtype=np.intp)
-        _merge_c.merge(pa.astype(np.intp), pb.astype(np.intp), b2_tab, parent, np.ones(h * w, np.intp), flat.copy())
+        # the sums are written in place: ``flat`` is this call's own copy and is not read again
+        _merge_c.merge(pa.astype(np.intp, copy=False), pb.astype(np.intp, copy=False), b2_tab, parent,
+                       np.ones(h * w, np.intp), flat)
     else:
         _warn_python_loop()
         parent = _merge_python(pa.tolist(), pb.tolist(), b2_tab.tolist(), flat)
