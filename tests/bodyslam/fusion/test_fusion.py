@@ -545,3 +545,51 @@ def test_a_start_committed_far_off_is_turned_by_the_recheck_and_the_output_stays
     assert np.array_equal(on.positions_w_m[:120], moved.positions_w_m[:120])
     assert np.array_equal(on.rotations_w_c[:120].as_matrix(), moved.rotations_w_c[:120].as_matrix())
     assert not np.allclose(on.positions_w_m[120:], moved.positions_w_m[120:])
+
+
+def _bend_window_by_growing(q, m0, spread_m):
+    """The rule as first written: grow the window one point at a time (O(n^2))."""
+    from bodyslam.fusion.body_slam import _second_spread
+
+    n, m = len(q), min(len(q), max(m0, 3))
+    while m < n and _second_spread(q[:m]) < spread_m:
+        m += 1
+    return m
+
+
+def test_the_alignment_window_is_the_one_grown_point_by_point():
+    """The start's window (the shortest dead-reckoned path that bends by ``init_spread_m``) found from prefix sums
+    is the one the point-by-point rule finds: on straight paths that never bend, paths that bend early or late,
+    a capsule at rest, far from the origin (the sums' rounding), a window that starts at the end, and a path whose
+    spread lands exactly on the threshold at a known point."""
+    from bodyslam.fusion.body_slam import _bend_window, _second_spread
+
+    rng = np.random.default_rng(11)
+    line = np.c_[np.linspace(0, 0.3, 900), np.zeros(900), np.zeros(900)] + rng.normal(0, 1e-4, (900, 3))
+    arc_t = np.linspace(0, 2.0, 900)
+    arc = 0.1 * np.c_[np.sin(arc_t), 1 - np.cos(arc_t), 0.1 * arc_t]
+    late = line.copy()
+    late[600:, 1] += np.linspace(0, 0.1, 300) ** 2 * 8  # straight, then it turns
+    walk = np.cumsum(rng.normal(0, 1e-3, (900, 3)), axis=0)
+    cases = [line, arc, late, walk, np.zeros((500, 3)), walk + 0.8, arc[:41], arc[:40], arc[:2]]
+    for q in cases:
+        for m0, spread in ((40, 0.015), (3, 0.002), (40, 0.05), (100, 1e-4)):
+            assert _bend_window(q, m0, spread) == _bend_window_by_growing(q, m0, spread)
+    assert _bend_window(line, 40, 0.015) == len(line)  # never bends: the whole path
+    # the threshold met exactly at a known window: the spread of arc[:300] itself
+    s300 = _second_spread(arc[:300])
+    assert _bend_window(arc, 40, s300) == _bend_window_by_growing(arc, 40, s300) <= 300
+
+
+def test_a_path_that_never_bends_costs_no_spread_per_point(monkeypatch):
+    """The exact spread (an SVD of the whole window) is computed only near the threshold: along a straight path of
+    5,000 points it is never needed, where growing the window took 5,000 SVDs (55,000 on a whole exam: 74 s)."""
+    from bodyslam.fusion import body_slam
+
+    calls = []
+    exact = body_slam._second_spread
+    monkeypatch.setattr(body_slam, "_second_spread", lambda q: calls.append(len(q)) or exact(q))
+    rng = np.random.default_rng(2)
+    line = np.c_[np.linspace(0, 1.0, 5000), np.zeros((5000, 2))] + rng.normal(0, 1e-4, (5000, 3))
+    assert body_slam._bend_window(line, 40, 0.015) == 5000
+    assert calls == []
