@@ -116,7 +116,7 @@ def _simulate(args) -> int:
                      progress=Progress(f"render {scn.get('name')}"))
     print(f"{args.out}: {truth['n_frames']} frames; mean step {truth['mean_step_cm']:.3f} cm, "
           f"roll {truth['mean_roll_deg']:.2f} deg, tilt {truth['mean_tilt_deg']:.2f} deg per step; "
-          f"{truth['n_ft']} FT / {truth['n_fl']} FL")
+          f"advances {100 * truth['advance_m']:.1f} cm along the centre line; {truth['n_ft']} FT / {truth['n_fl']} FL")
     return 0
 
 

@@ -218,6 +218,9 @@ def simulate(
         "mean_roll_deg": float(np.degrees(np.mean(np.abs(m["roll_rad"])))),
         "mean_tilt_deg": float(np.degrees(np.mean(m["tilt_rad"]))),
         "path_travelled_m": float(np.sum(np.abs(m["distance_m"]))),
+        # net progress along the centre line: far below the path travelled where the lateral wobble takes most of
+        # the calibrated mean step (a capsule that jitters in place; testbed.motion warns)
+        "advance_m": float(traj.s_m[-1] - traj.s_m[0]),
         "n_ft": int(np.sum(labels == "FT")),
         "n_fl": int(np.sum(labels == "FL")),
         "path_length_m": world.tube.centerline.length_m,
