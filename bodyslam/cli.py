@@ -566,7 +566,8 @@ def _batch(args) -> int:
     total_frames = sum(e.n_positions for e in exams)
     print(f"{len(exams)} exam(s), {total_frames} frames -> {args.out}", flush=True)
     rep = run_batch(exams, args.out, settings, jobs=args.jobs, scheduler=args.scheduler, force=args.force,
-                    progress=Progress("batch"), problems=skipped)
+                    progress=Progress("batch"), problems=skipped,
+                    stage=lambda line: print(line, file=sys.stderr, flush=True))
     for s in rep.exams:
         steps = s["steps"]
         c = s["classes"]

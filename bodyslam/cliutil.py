@@ -11,23 +11,29 @@ from bodyslam.errors import BodySlamError
 
 
 class Progress:
-    """A text progress bar on stderr: redrawn in place on a terminal, a line every 10% otherwise."""
+    """A text progress bar on stderr: redrawn in place on a terminal, a line every 10% otherwise. The rate and the
+    time left count from the first call: what was done before it (chunks reused from an earlier run, a worker
+    pool's start) is shown in the count, not in the rate."""
 
     def __init__(self, label: str, stream=None):
         self.label = label
         self.stream = stream or sys.stderr
-        self.t0 = time.monotonic()
         self.tty = self.stream.isatty()
         self._last_decile = -1
+        self._first: tuple[float, int] | None = None  # (time, done) at the first call
 
     def __call__(self, done: int, total: int) -> None:
         frac = done / max(total, 1)
-        el = time.monotonic() - self.t0
-        rate = done / el if el > 0 else 0.0
-        eta = (total - done) / rate if rate > 0 else 0.0
+        now = time.monotonic()
+        if self._first is None:
+            self._first = (now, done)
+        el = now - self._first[0]
+        rate = (done - self._first[1]) / el if el > 0 else None
         if self.tty:
             bar = "#" * int(frac * 30)
-            self.stream.write(f"\r{self.label} [{bar:<30}] {done}/{total} {rate:5.1f}/s eta {eta:4.0f}s")
+            tail = (f" {rate:5.1f}/s eta {(total - done) / rate if rate else 0.0:4.0f}s" if rate is not None
+                    else "")
+            self.stream.write(f"\r{self.label} [{bar:<30}] {done}/{total}{tail}")
             if done >= total:
                 self.stream.write("\n")
             self.stream.flush()
@@ -35,7 +41,8 @@ class Progress:
             dec = int(frac * 10)
             if dec != self._last_decile or done >= total:
                 self._last_decile = dec
-                self.stream.write(f"{self.label}: {done}/{total} ({rate:.1f}/s)\n")
+                self.stream.write(f"{self.label}: {done}/{total}" + (f" ({rate:.1f}/s)\n" if rate is not None
+                                                                        else "\n"))
                 self.stream.flush()
 
 

@@ -99,3 +99,19 @@ def test_failed_localizers_leave_no_output_directory(tmp_path):
         p = run(cmd, str(tmp_path / "rec"), "--out", str(tmp_path / cmd))
         assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "meta.json" in p.stderr
         assert not (tmp_path / cmd).exists()
+
+
+def test_progress_rates_only_the_work_of_this_run(monkeypatch):
+    """A resumed batch starts with most frames reused from the checkpoints: the rate counts from the first call,
+    so reused frames are counted, not rated (it printed 56,195 frames/s for 55,000 reused frames)."""
+    import io
+
+    from bodyslam import cliutil
+
+    clock = iter([10.0, 20.0])
+    monkeypatch.setattr(cliutil.time, "monotonic", lambda: next(clock))
+    out = io.StringIO()
+    bar = cliutil.Progress("batch", stream=out)
+    bar(9000, 10000)  # at 10 s: 9,000 reused, no rate yet
+    bar(10000, 10000)  # at 20 s: 1,000 computed
+    assert out.getvalue().splitlines() == ["batch: 9000/10000", "batch: 10000/10000 (100.0/s)"]

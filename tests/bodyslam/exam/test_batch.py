@@ -46,7 +46,11 @@ def _same_outputs(a: Path, b: Path) -> None:
 
 def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     exams = open_exams([str(DEMO)], marks=[(10, "polyp"), (30, "")], landmarks=[5])
-    rep = run_batch(exams, tmp_path / "out", FAST, jobs=1)
+    stages: list[str] = []
+    rep = run_batch(exams, tmp_path / "out", FAST, jobs=1, stage=stages.append)
+    # what runs after the chunks is announced (a 55,000-frame exam with RF spends ~40 s there)
+    assert [s.split(":")[0] for s in stages] == ["demo_seed0", "demo_seed0"]
+    assert "bridging" in stages[0] and "fusing vision with RF over 40 frames" in stages[1]
     d = tmp_path / "out" / "demo_seed0"
     frames = _rows(d / "frames.csv")
     steps = _rows(d / "motion.csv")
