@@ -28,11 +28,11 @@ class Progress:
         if self._first is None:
             self._first = (now, done)
         el = now - self._first[0]
-        rate = (done - self._first[1]) / el if el > 0 else None
+        rate = (done - self._first[1]) / el if el > 0 else None  # None: nothing to rate yet
         if self.tty:
             bar = "#" * int(frac * 30)
-            tail = (f" {rate:5.1f}/s eta {(total - done) / rate if rate else 0.0:4.0f}s" if rate is not None
-                    else "")
+            eta = (total - done) / rate if rate else 0.0
+            tail = "" if rate is None else f" {rate:5.1f}/s eta {eta:4.0f}s"
             self.stream.write(f"\r{self.label} [{bar:<30}] {done}/{total}{tail}")
             if done >= total:
                 self.stream.write("\n")
@@ -41,8 +41,8 @@ class Progress:
             dec = int(frac * 10)
             if dec != self._last_decile or done >= total:
                 self._last_decile = dec
-                self.stream.write(f"{self.label}: {done}/{total}" + (f" ({rate:.1f}/s)\n" if rate is not None
-                                                                        else "\n"))
+                tail = "" if rate is None else f" ({rate:.1f}/s)"
+                self.stream.write(f"{self.label}: {done}/{total}{tail}\n")
                 self.stream.flush()
 
 

@@ -171,8 +171,9 @@ def _bend_window(q: np.ndarray, m0: int, spread_m: float) -> int:
     each, which costs O(n^2): an exam whose dead-reckoned path never bends (a capsule held in one place, or a
     stand-in without forward motion) spent 74 s of 55,000 frames in it. Here every window's spread comes from
     prefix sums of the points and their outer products (the scatter matrix's middle eigenvalue), and the exact
-    spread is computed only where that estimate comes within 1e-6 of ``spread_m``: its rounding, ~1e-11 m^2 at
-    100,000 points a metre apart, is far inside that margin."""
+    spread is computed only where that estimate could reach ``spread_m`` within the sums' rounding (a sum of n
+    terms: ~n eps times the largest squared distance from the first point, ~2e-13 m^2 for 100,000 points within
+    10 cm; the screen allows 16 times that) or 1e-6 of the threshold."""
     n = len(q)
     m0 = min(n, max(int(m0), 3))
     if m0 >= n:
@@ -183,7 +184,8 @@ def _bend_window(q: np.ndarray, m0: int, spread_m: float) -> int:
     m = np.arange(m0, n, dtype=float)
     scatter = s2 - s1[:, :, None] * s1[:, None, :] / m[:, None, None]
     spread2 = np.maximum(np.linalg.eigvalsh(scatter)[:, 1], 0.0) / m  # eigvalsh: ascending, [:, 1] the middle
-    for k in np.nonzero(spread2 >= spread_m**2 * (1.0 - 1e-6))[0]:
+    rounding = 16.0 * n * np.finfo(float).eps * float(np.max(np.einsum("ij,ij->i", x, x)))  # 16: a safety factor
+    for k in np.nonzero(spread2 >= spread_m**2 * (1.0 - 1e-6) - rounding)[0]:
         if _second_spread(q[: m0 + k]) >= spread_m:
             return int(m0 + k)
     return n
