@@ -34,7 +34,7 @@ from bodyslam.plots import Figure
 from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION
 from bodyslam.fusion.rf import locate_nls
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
-from testbed.score import score_motion
+from testbed.score import score_motion, score_path
 from testbed.simulate import prepare_output_dir, simulate
 from testbed.rf import ChannelModel
 from testbed.scenario import rf_channel
@@ -104,6 +104,7 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "consistency": {k: consistency(r.positions_w_m, r.cov[:, :3, :3], gt) for k, r in with_cov.items()},
             "orientation_error_deg": {k: orientation_errors_deg(r.rotations_w_c, grot) for k, r in with_cov.items()},
             "motion": score_motion(d, d / "motion.csv"),
+            "path_travelled": score_path(d, d / "motion.csv", rel),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": loc.channel.kappa, "online_last_frame": float(loc.kappa_online[-1])}}
 
@@ -272,6 +273,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     per_seed, errs, pcrbs, motion, timing, eff = [], {a: [] for a in ALGORITHMS}, [], [], [], []
     step_counts: dict[str, int] = {}
     rot_blocks: list[dict] = []
+    paths: list[dict] = []
     cons: dict[str, list] = {}
     orient: dict[str, list] = {}
     sm, sm_eff = [], []
@@ -293,6 +295,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
         rot_blocks.append(res["motion"].get("rotation_only", {}))
+        paths.append(res["path_travelled"])
         for st, c in res["motion"]["status_counts"].items():
             step_counts[st] = step_counts.get(st, 0) + c
         timing.append(res["seconds"])
@@ -303,6 +306,9 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                          "consistency": {a: {"mean_nees": round(float(np.mean(c["nees"])), 3),
                                              "inside_68pct_ellipsoid": round(float(np.mean(c["inside_68"])), 4)}
                                          for a, c in res["consistency"].items()},
+                         "path_travelled": {k: round(v, 5) for k, v in res["path_travelled"].items()},
+                         "orientation_error_deg": {a: {k: round(v, 2) for k, v in _orientation_stats(e).items()}
+                                                   for a, e in res["orientation_error_deg"].items()},
                          "seconds": {k: round(v, 2) for k, v in res["seconds"].items()}})
         if progress:
             progress(f"seed {seed} ({len(per_seed)}/{len(seeds)}): Body-SLAM smoothed "
@@ -345,6 +351,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                                        for k in per_seed[0]["covariance_inflation_kappa"]},
         # the whole rotation's error, and its parts: the optical axis's direction, the roll about the axis
         "orientation_error_deg": {a: _orientation_stats(np.concatenate(v, axis=1)) for a, v in orient.items()},
+        # how far along the gut (vision only, the figure marks and plots give): testbed.score.score_path
+        "path_travelled": _path_summary(paths),
         "per_seed": per_seed,
         "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
                     **{f"{k}_total": round(sum(t[k] for t in timing), 2) for k in timing[0]}},
@@ -361,6 +369,19 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     return report
 
 
+def _path_summary(paths: list[dict]) -> dict:
+    """The runs' path-travelled scores (:func:`testbed.score.score_path`) as one: the error at each run's end in
+    percent of the true path (mean, mean absolute, the largest absolute), the runs whose end is inside its stated
+    1-sigma and 2-sigma (0.683 and 0.954 if honest), and the frames inside 1-sigma over all runs."""
+    e = np.array([p["error_rel"] for p in paths]) * 100
+    z = np.abs([p["z"] for p in paths])
+    return {"true_mean_cm": float(np.mean([p["true_m"] for p in paths]) * 100),
+            "end_error_mean_pct": float(np.mean(e)), "end_error_mean_abs_pct": float(np.mean(np.abs(e))),
+            "end_error_max_abs_pct": float(np.max(np.abs(e))),
+            "runs_inside_1sigma": float(np.mean(z <= 1.0)), "runs_inside_2sigma": float(np.mean(z <= 2.0)),
+            "frames_inside_1sigma": float(np.mean([p["frames_inside_1sigma"] for p in paths]))}
+
+
 LABELS = {"rf_ml": "RF only (ML)", "rf_nls": "RF only (NLS, Eq. 3.36)", "dead_reckoning": "dead reckoning",
           "thesis_kf": "dissertation's KF (Eq. 3.26-3.38) on NLS fixes", "thesis_kf_ml": "dissertation's KF on ML fixes",
           "ekf_fixes": "EKF on RF fixes",
@@ -373,6 +394,18 @@ SHORT = {"rf_ml": "RF only", "rf_nls": "RF only (NLS)", "dead_reckoning": "visio
          "ekf_fixes": "EKF on RF fixes", "ekf_rss": "Body-SLAM online", "ekf_rss_causal": "Body-SLAM strictly causal",
          "ekf_rss_rts": "Body-SLAM smoothed", "ekf_rss_rts_plain": "RTS, not refined", "thesis_kf": "dissertation's KF",
          "thesis_kf_ml": "dissertation's KF (ML)"}
+
+
+def _path_html(p: dict | None) -> str:
+    """The path-travelled paragraph of the HTML page (empty for a report written before it was scored)."""
+    if not p:
+        return ""
+    return ("<h2>How far along the gut (path travelled, vision only)</h2>"
+            f"<p>True path {p['true_mean_cm']:.1f} cm per run on average. Error at the run's end: "
+            f"{p['end_error_mean_pct']:+.1f}% mean, {p['end_error_mean_abs_pct']:.1f}% mean absolute, "
+            f"{p['end_error_max_abs_pct']:.1f}% at most. Runs whose end is inside its stated 1-sigma: "
+            f"{p['runs_inside_1sigma']:.0%} (2-sigma: {p['runs_inside_2sigma']:.0%}); frames inside 1-sigma: "
+            f"{p['frames_inside_1sigma']:.0%} (68% if the 1-sigma is honest).</p>")
 
 
 def _html(out: Path, report: dict, view_html: str = "") -> None:
@@ -409,6 +442,7 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
                + ", ".join(f"{k} {v}" for k, v in report["step_status_counts"].items()) + ".</p>"
                if "step_status_counts" in report else "")
             + _rotation_html(report.get("rotation_steps", {}))
+            + _path_html(report.get("path_travelled"))
             + view_html + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "

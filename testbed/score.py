@@ -29,7 +29,7 @@ from bodyslam.errors import InputError
 from bodyslam.io import read_motion_csv
 from bodyslam.steps import MEASURED, StepStatus
 
-__all__ = ["score_motion", "format_table"]
+__all__ = ["score_motion", "score_path", "format_table"]
 
 
 def _wrap(a):
@@ -101,6 +101,33 @@ def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
         return {}
     return {"distance_within_1sigma": float(np.mean(err[ok] <= sigma[ok])),
             "distance_within_2sigma": float(np.mean(err[ok] <= 2 * sigma[ok]))}
+
+
+def score_path(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike, scale_sd_rel: float) -> dict:
+    """How far along the gut, scored: the path travelled from the first frame
+    (:func:`bodyslam.vision.tracking.path_travelled` on ``motion_csv``, the figure ``bodyslam`` writes for marks and
+    plots) against the true one (the summed lengths of the true steps), with the stated 1-sigma.
+
+    Returns the run's end (``true_m``, ``estimated_m``, ``sigma_m``, ``error_rel``: (estimated - true) / true, and
+    ``z``: the error over its 1-sigma) and over every frame the mean absolute error (``mean_abs_error_m``) and the
+    fraction of frames whose error is inside the stated 1-sigma (``frames_inside_1sigma``; 0.683 if honest)."""
+    from bodyslam.io import read_motion_steps
+    from bodyslam.vision.tracking import path_travelled
+
+    seq_dir = Path(seq_dir)
+    if not (seq_dir / "motion_truth.csv").exists():
+        raise InputError(f"{seq_dir}: no motion_truth.csv (only testbed sequences have ground truth)")
+    truth = read_motion_csv(seq_dir / "motion_truth.csv")
+    frames = sorted(truth)
+    path, var = path_travelled(read_motion_steps(motion_csv, frames), scale_sd_rel)
+    true = np.r_[0.0, np.cumsum([abs(truth[k]["distance_m"]) for k in frames])]
+    err, sd = path - true, np.sqrt(var)
+    inside = np.abs(err[1:]) <= sd[1:]
+    return {"true_m": float(true[-1]), "estimated_m": float(path[-1]), "sigma_m": float(sd[-1]),
+            "error_rel": float(err[-1] / true[-1]) if true[-1] > 0 else math.nan,
+            "z": float(err[-1] / sd[-1]) if sd[-1] > 0 else math.nan,
+            "mean_abs_error_m": float(np.mean(np.abs(err[1:]))) if len(err) > 1 else 0.0,
+            "frames_inside_1sigma": float(np.mean(inside)) if len(inside) else math.nan}
 
 
 def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> dict:

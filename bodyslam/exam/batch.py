@@ -49,8 +49,9 @@ same ``motion.csv``. Without RF, steps are accumulated with the fusion's process
 (:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one with a
 1-sigma as large as that step). The path travelled -- the "how far along the gut" figure -- is
 :func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a run of steps without an
-estimate the mean length of its estimated neighbours (one rule at both ends of an exam, so it does not depend on
-the frame order), with the steps' variances summed.
+estimate the mean length of its estimated neighbours, at least the exam's 90th percentile of estimated lengths for
+a step lost to motion (one rule at both ends of an exam, so it does not depend on the frame order), with the
+steps' variances summed.
 """
 
 from __future__ import annotations
@@ -818,7 +819,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
     from bodyslam.vision.odometry import with_lumen_uncertainty
-    from bodyslam.vision.tracking import path_from_lengths, step_length
+    from bodyslam.vision.tracking import lost_to_motion, path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
@@ -855,14 +856,14 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                 mw.writerow(_csv_cells(step))
                 statuses[step[8]] = statuses.get(step[8], 0) + 1
                 dr.step(s)
-                acc.record(row, dr, classes, step_length(s))
+                acc.record(row, dr, classes, step_length(s), lost_to_motion(s))
             if ch["eof"] is not None:
                 eof = ch["eof"]
                 break
     n = acc.n
     t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
     frame_idx = acc.frame[:n].tolist()
-    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel)
+    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n])
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
     fused = None
     if exam.rf and n >= 2:
@@ -930,14 +931,15 @@ class _Track:
         self.n = 0
         self.frame = np.zeros(n, np.int64)
         self.t, self.sd_heading, self.length, self.length_var = (np.zeros(n) for _ in range(4))
+        self.lost = np.zeros(n, bool)  # the step into the frame was lost to motion (its path length's rule)
         self.pos = np.zeros((n, 3))
         self.rot = np.zeros((n, 3, 3))
         self.cov = np.zeros((n, 3, 3))
 
-    def record(self, row: list, dr, classes: dict, length_var: tuple[float, float]) -> None:
+    def record(self, row: list, dr, classes: dict, length_var: tuple[float, float], lost: bool = False) -> None:
         k = self.n
         if k >= len(self.t):  # more frames than planned (cannot happen for folders; a video may say less)
-            for name in ("frame", "t", "sd_heading", "length", "length_var", "pos", "rot", "cov"):
+            for name in ("frame", "t", "sd_heading", "length", "length_var", "lost", "pos", "rot", "cov"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.zeros_like(a[: max(len(a), 16)])]))
         self.frame[k] = int(row[0])
@@ -948,6 +950,7 @@ class _Track:
         self.cov[k] = dr.P[:3, :3]
         self.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
         self.length[k], self.length_var[k] = length_var
+        self.lost[k] = lost
         self.n = k + 1
 
 

@@ -34,6 +34,8 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
         mine = rep["per_seed"][0]["consistency"][alg]
         assert abs(mine["inside_68pct_ellipsoid"] - c["inside_68pct_ellipsoid"]) < 1e-4
         assert abs(mine["mean_nees"] - c["mean_nees"]) < 1e-3
+        o = rep["per_seed"][0]["orientation_error_deg"][alg]  # rounded to 0.01 deg
+        assert abs(o["mean"] - rep["orientation_error_deg"][alg]["mean"]) < 0.01
     # re-scoring the kept sequences without rendering or motion gives the same figures
     p = subprocess.run([sys.executable, "-m", "testbed.cli", "evaluate", "demo", "--seeds", "1", "--frames", "20",
                         "--out", str(out), "--reuse"], capture_output=True, text=True)

@@ -70,3 +70,36 @@ def test_a_run_whose_distances_are_all_off_by_one_scale_scores_zero_once_scale_a
     assert a["mae_distance_scale_aligned_cm"] == pytest.approx(0.5 * (1 - 0.8 / 1.2))
     assert a["mae_distance_scale_aligned_cm"] < a["mae_distance_cm"] == pytest.approx(0.2)
     assert "scale-aligned" in format_table(rep)
+
+
+def test_path_travelled_is_scored_at_the_end_and_per_frame_against_its_1_sigma(tmp_path):
+    """Eight true steps of 1 cm; estimated: six of 1.1 cm (1-sigma 1 mm each) and two without an estimate, which the
+    path fills with their neighbours' 1.1 cm at a 1-sigma as large (bodyslam.vision.tracking.path_travelled). The
+    end is 8.8 cm for 8 cm true (+10%), its 1-sigma sqrt(6 x 0.1^2 + 2 x 1.1^2) cm; a run that is all 1.1 cm steps
+    with a 0.5 mm 1-sigma is 5.7 sigma off at its end and outside its 1-sigma at every frame."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.io import write_motion_csv
+    from bodyslam.steps import StepMotion, StepStatus, motion_from_transform
+    from testbed.score import score_path
+
+    truth = [HEADER + ",label"] + [f"{k},{k * 0.5},0.01,0.0,0.0,0.0,0.0,FT" for k in range(1, 9)]
+    (tmp_path / "motion_truth.csv").write_text("\n".join(truth) + "\n")
+
+    def step(sd):
+        return motion_from_transform(Rotation.identity(), np.array([0.0, 0.0, 0.011]), 50, sd, 0.001)
+
+    steps = [step(0.001)] * 3 + [StepMotion.failed(StepStatus.TOO_FEW_MATCHES)] * 2 + [step(0.001)] * 3
+    write_motion_csv(tmp_path / "motion.csv", range(1, 9), [k * 0.5 for k in range(1, 9)], steps)
+    p = score_path(tmp_path, tmp_path / "motion.csv", 0.0)
+    assert p["true_m"] == pytest.approx(0.08) and p["estimated_m"] == pytest.approx(0.088)
+    assert p["error_rel"] == pytest.approx(0.1)
+    assert p["sigma_m"] == pytest.approx(math.sqrt(6 * 0.001**2 + 2 * 0.011**2))
+    assert p["z"] == pytest.approx(0.008 / p["sigma_m"])
+    write_motion_csv(tmp_path / "motion.csv", range(1, 9), [k * 0.5 for k in range(1, 9)], [step(0.0005)] * 8)
+    p = score_path(tmp_path, tmp_path / "motion.csv", 0.0)
+    assert p["z"] == pytest.approx(0.008 / (0.0005 * math.sqrt(8)))
+    # frame k is off by k mm against a 1-sigma of 0.5 sqrt(k) mm: never inside (k <= 0.5 sqrt(k) needs k <= 0.25)
+    assert p["frames_inside_1sigma"] == pytest.approx(0.0)
+    assert p["mean_abs_error_m"] == pytest.approx(np.mean(np.arange(1, 9)) * 0.001)

@@ -194,3 +194,29 @@ def test_the_radius_error_adds_up_along_the_path_as_a_correlated_error():
     assert segment_variance(path, var, j, k, sd, corr) == pytest.approx(
         (k - j) * fit + scale_path_variance((k - j) * d, sd, corr))
     assert np.array_equal(path_from_lengths(np.full(n, d), np.full(n, fit))[1], np.r_[0, np.cumsum(np.full(n, fit))])
+
+
+def test_steps_lost_to_motion_take_the_long_steps_length_and_every_missing_step_its_1_sigma():
+    """A run of missing steps between estimated ones of 1 mm: its steps lost to motion (status rotation) take the
+    exam's 90th percentile of estimated lengths (the matcher loses the steps longer than it measures), the others
+    their neighbours' mean; each missing step's 1-sigma is its length and at least that percentile. Reversed, the
+    same path; without the flags, the neighbours' mean at a 1-sigma as large (the rule before)."""
+    from bodyslam.steps import StepMotion, StepStatus, rotation_step
+    from bodyslam.vision.tracking import LOST_STEP_QUANTILE, lost_to_motion, path_from_lengths
+
+    nan = np.nan
+    length = np.array([1.0, 1.0, 1.0, nan, nan, nan, 1.0, 1.0, 5.0, 1.0, 1.0, 1.0]) * 1e-3
+    lost = np.array([False] * 3 + [True, False, True] + [False] * 6)
+    var = np.where(np.isfinite(length), 1e-8, 0.0)
+    q = np.percentile(length[np.isfinite(length)], LOST_STEP_QUANTILE)
+    assert 1e-3 < q < 5e-3
+    path, v = path_from_lengths(length, var, lost=lost)
+    assert path[-1] == pytest.approx(np.nansum(length) + 2 * q + 1e-3)
+    assert v[-1] == pytest.approx(9 * 1e-8 + 3 * q**2)
+    back, vb = path_from_lengths(length[::-1], var[::-1], lost=lost[::-1])
+    assert back[-1] == pytest.approx(path[-1]) and vb[-1] == pytest.approx(v[-1])
+    old, vo = path_from_lengths(length, var)
+    assert old[-1] == pytest.approx(np.nansum(length) + 3e-3) and vo[-1] == pytest.approx(9e-8 + 3e-6)
+    # which steps count as lost to motion: rotation steps only (a failed match may be a dark or blurred frame)
+    assert lost_to_motion(rotation_step(Rotation.identity(), 90, 0.07))
+    assert not lost_to_motion(StepMotion.failed(StepStatus.TOO_FEW_MATCHES))
