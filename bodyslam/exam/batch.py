@@ -46,7 +46,8 @@ Gaps, dead reckoning and path length
 Once an exam's chunks are in, its short gaps are bridged as ``bodyslam motion`` bridges them
 (:func:`bodyslam.vision.odometry.bridge_gaps`; the result is a checkpoint too, ``bridges.json``), so both write the
 same ``motion.csv``. Without RF, steps are accumulated with the fusion's process model
-(:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one with a
+(:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one -- a step
+lost to motion stretched to the estimated steps so far at their 90th percentile -- with a
 1-sigma as large as that step). The path travelled -- the "how far along the gut" figure -- is
 :func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a run of steps without an
 estimate the mean length of its estimated neighbours, at least the exam's 90th percentile of estimated lengths for

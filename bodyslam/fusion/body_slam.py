@@ -4,8 +4,10 @@ The filter itself is :class:`bodyslam.fusion.ekf.ErrorStateEkf` (state, process 
 guard); where it starts and restarts is :mod:`bodyslam.fusion.orientation_search`. This module runs them over an exam:
 
 - A step without an estimate (facing the wall, too few matches after a big jump) repeats the last estimated
-  step (constant velocity) with a 1-sigma as large as that step (at least 3 mm) and 5 deg: handled, not skipped
-  (measured: such steps moved 0.55-0.95 cm on average on thesis seeds, so assuming a stop biased the path).
+  step (constant velocity) with a 1-sigma as large as that step (at least 3 mm and at least the estimated steps
+  so far at their 90th percentile) and 5 deg: handled, not skipped (measured: such steps moved 0.55-0.95 cm on
+  average on thesis seeds, so assuming a stop biased the path). A step lost to motion (status ``rotation``) is
+  stretched to at least that percentile (:func:`bodyslam.fusion.ekf.step_noise`; session 22).
 - Initialisation: the dead-reckoned path over the first ``init_frames`` frames (more, until it bends: 1.5 cm RMS
   spread along its second principal direction) is aligned to the RF fixes by a weighted Procrustes fit
   (rotation + translation), which gives ``p_0`` and ``R_w_c0``: vision alone has no world frame, RF alone no
@@ -40,7 +42,7 @@ from bodyslam.errors import InputError
 from bodyslam.geometry import matrix_to_rotvec, rotvec_to_matrix
 from bodyslam.fusion.orientation_search import SearchResult, search_orientation
 from bodyslam.fusion.rf import Fix, PathLossModel
-from bodyslam.steps import StepMotion
+from bodyslam.steps import LOST_STEP_QUANTILE, StepLengths, StepMotion
 from bodyslam.vision.tracking import SCALE_CORR_M
 
 __all__ = ["FusionSettings", "FusionResult", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
@@ -141,15 +143,18 @@ class DeadReckoner:
         self.path_m = 0.0
         self.path_var_m2 = 0.0
         self._last_t = np.zeros(3)
+        self._lengths = StepLengths()  # the estimated steps' lengths so far (a lost step's length: step_noise)
 
     @property
     def R_w_c(self) -> Rotation:
         return Rotation.from_matrix(self.R_w_c_matrix)
 
     def step(self, s: StepMotion) -> None:
-        t_s, sig_t, sig_r = step_noise(s, self._last_t)
+        long_m = 0.0 if s.has_estimate else self._lengths.percentile(LOST_STEP_QUANTILE)
+        t_s, sig_t, sig_r = step_noise(s, self._last_t, long_m=long_m)
         if s.has_estimate:
             self._last_t = t_s
+            self._lengths.add(float(np.linalg.norm(t_s)))
         R_s = s.R_c1_c2 if s.has_rotation else np.eye(3)
         self.p_w_m, self.R_w_c_matrix, self.P, _ = predict(self.p_w_m, self.R_w_c_matrix, self.P, t_s, R_s, sig_t,
                                                            sig_r)

@@ -49,7 +49,7 @@ from bodyslam.choices import FUSION_MODES
 from bodyslam.errors import InputError
 from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.geometry import rotvec_to_matrix
-from bodyslam.steps import StepMotion
+from bodyslam.steps import LOST_STEP_QUANTILE, StepLengths, StepMotion, lost_to_motion
 from bodyslam.vision.tracking import SCALE_CORR_M
 
 __all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "FilterPasses", "with_orientation_sigma",
@@ -60,7 +60,8 @@ Z_GATE_999 = 3.29  # per-reading two-sided 99.9% gate on a normalised RSS innova
 # divergence guard's covariance inflation: position (fixes: 4x their covariance; RSS: 5 cm), orientation 10 deg
 GUARD_FIX_COV_SCALE, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD = 4.0, 0.05, np.radians(10.0)
 # process-noise floors of an estimated step (the fit's own 1-sigma can be optimistic) and the rule for a step
-# without an estimate: the last estimated translation again (constant velocity), 1-sigma its own size (>= 3 mm)
+# without an estimate: the last estimated translation again (constant velocity), 1-sigma its own size (>= 3 mm);
+# a step lost to motion at least as long as the steps so far at their LOST_STEP_QUANTILE (step_noise)
 SIGMA_T_FLOOR_M, SIGMA_R_FLOOR_RAD = 3e-4, np.radians(0.2)
 MISSING_SIGMA_T_MIN_M, MISSING_SIGMA_R_RAD = 3e-3, np.radians(5.0)
 
@@ -110,11 +111,16 @@ def step_rotation_matrices(steps: list[StepMotion]) -> np.ndarray:
     return mats
 
 
-def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0) -> tuple[np.ndarray, float, float]:
+def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0,
+               long_m: float = 0.0) -> tuple[np.ndarray, float, float]:
     """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
     a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity), and so does a
-    ``rotation`` step, with its own rotation 1-sigma (its translation is unknown). With a scale state
-    (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
+    ``rotation`` step, with its own rotation 1-sigma (its translation is unknown). ``long_m``: the estimated steps
+    so far at their :data:`~bodyslam.steps.LOST_STEP_QUANTILE` (:class:`~bodyslam.steps.StepLengths`; 0: not
+    used). A step lost to motion (:func:`~bodyslam.steps.lost_to_motion`: matching loses the long steps) is
+    ``last_t`` stretched to at least that length, and every step without an estimate has at least that 1-sigma
+    (the path travelled's rule, :func:`bodyslam.vision.tracking.path_from_lengths`, made causal). With a scale
+    state (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
     (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`) is taken out: the state carries it."""
     if s.has_estimate:
         t = np.asarray(s.t_c1_c2_m, float)
@@ -122,10 +128,14 @@ def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0) -> 
         if scale_sd_rel > 0:
             sig = math.sqrt(max(sig**2 - (scale_sd_rel * float(np.linalg.norm(t))) ** 2, 0.0))
         return t, max(sig, SIGMA_T_FLOOR_M), max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD)
-    sig_t = max(float(np.linalg.norm(last_t)), MISSING_SIGMA_T_MIN_M)
+    n = float(np.linalg.norm(last_t))
+    t = last_t
+    if long_m > n and lost_to_motion(s):  # along the last step's direction (forward when there is none)
+        t = last_t * (long_m / n) if n > 1e-9 else np.array([0.0, 0.0, long_m])
+    sig_t = max(n, long_m, MISSING_SIGMA_T_MIN_M)
     if s.has_rotation:
-        return last_t, sig_t, max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD)
-    return last_t, sig_t, MISSING_SIGMA_R_RAD
+        return t, sig_t, max(s.sigma_r_rad, SIGMA_R_FLOOR_RAD)
+    return t, sig_t, MISSING_SIGMA_R_RAD
 
 
 def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -134,10 +144,13 @@ def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[n
     sig_t = np.zeros(len(steps))
     sig_r = np.zeros(len(steps))
     last_t = np.zeros(3)
+    lengths = StepLengths()
     for k, s in enumerate(steps):
-        t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t, scale_sd_rel)
+        long_m = 0.0 if s.has_estimate else lengths.percentile(LOST_STEP_QUANTILE)
+        t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t, scale_sd_rel, long_m)
         if s.has_estimate:
             last_t = t_out[k]
+            lengths.add(float(np.linalg.norm(last_t)))
     return t_out, sig_t, sig_r
 
 

@@ -20,8 +20,9 @@ hypotheses (mean error 0.48 cm of 0.83) and is not reported. The roll and tilt h
 :data:`MIN_GUIDED_MATCHES` matches after the second pass (80 in ``sift`` mode: 140 of the 220 steps) the roll
 errs 2.4 deg at the 68th percentile (3.8 RMS) and the tilt 2.5, where those steps' true roll is ~11 deg RMS.
 The step is written with its rotation, ``distance_m`` NaN, and the 1-sigma :data:`ROTATION_SIGMA_RAD`; the
-filters apply the rotation and treat the translation as unknown (the last estimated step again, with a missing
-step's 1-sigma).
+filters apply the rotation and treat the translation as unknown (the last estimated step again, stretched to the
+estimated steps so far at their 90th percentile: a step matching loses is a long one; with that length as
+1-sigma; :func:`bodyslam.fusion.ekf.step_noise`).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.steps import StepMotion
+from bodyslam.steps import LOST_STEP_QUANTILE, StepMotion, lost_to_motion
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length", "scale_path_variance",
            "segment_variance", "lost_to_motion", "SCALE_CORR_M", "LOST_STEP_QUANTILE"]
@@ -28,12 +28,6 @@ __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length", 
 # the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
 # the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
 SCALE_CORR_M = 0.2
-# a missing step's length is at least this percentile of the exam's estimated step lengths when it was lost to
-# motion (status rotation), and its 1-sigma at least as large whatever the reason (path_from_lengths; chosen on
-# realistic tuning seeds 503-509 among 75, 90, 95 and a 1-sigma correlated along each run, docs/RESULTS.md)
-LOST_STEP_QUANTILE = 90.0
-
-
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
     if not (s.ok or s.has_estimate):  # a rotation step turns without moving (its translation is unknown)
         return (Rotation.from_matrix(s.R_c1_c2) if s.has_rotation else Rotation.identity()), np.zeros(3)
@@ -85,13 +79,6 @@ def segment_variance(path_m: np.ndarray, var_m2: np.ndarray, j: int, k: int, sca
     sv = (lambda L: float(scale_path_variance(L, scale_sd_rel, corr_m))) if scale_sd_rel > 0 else (lambda L: 0.0)
     own = abs((var_m2[k] - sv(path_m[k])) - (var_m2[j] - sv(path_m[j])))
     return own + sv(path_m[k] - path_m[j])
-
-
-def lost_to_motion(s: StepMotion) -> bool:
-    """A step whose pair ordinary matching lost although guided matching, under forward-motion hypotheses, found
-    the wall in both frames (status ``rotation``, :mod:`bodyslam.vision.guided`): a step longer than the matcher
-    measures (the realistic testbed's are: median 0.68 cm against 0.20 for the measured ones)."""
-    return str(s.status) == "rotation"
 
 
 def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

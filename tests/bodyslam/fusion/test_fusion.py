@@ -156,11 +156,18 @@ def test_dead_reckoner_streams_the_filters_prediction(demo):
                for k, s in enumerate(steps)]
     ref, _ = dead_reckon(bridged)
     assert np.allclose(pos, ref, atol=1e-12)
-    # the step without an estimate costs far more certainty than an estimated one (its 1-sigma is its own size)
+    # the step without an estimate costs far more certainty than an estimated one (its 1-sigma is its own size,
+    # at least the steps so far at their 90th percentile)
+    from bodyslam.steps import LOST_STEP_QUANTILE, StepLengths
+
     assert sd[6] - sd[5] > 5 * abs(sd[5] - sd[4])
     assert dr.path_m == pytest.approx(sum(np.linalg.norm(s.t_c1_c2_m) for s in bridged), rel=1e-12)
-    assert dr.path_var_m2 == pytest.approx(sum(max(s.sigma_t_m, 3e-4) ** 2 for s in steps if s.ok)
-                                           + max(np.linalg.norm(steps[4].t_c1_c2_m), 3e-3) ** 2, rel=1e-12)
+    lengths = StepLengths()
+    for s in steps[:5]:
+        lengths.add(float(np.linalg.norm(s.t_c1_c2_m)))
+    sig5 = max(np.linalg.norm(steps[4].t_c1_c2_m), lengths.percentile(LOST_STEP_QUANTILE), 3e-3)
+    assert dr.path_var_m2 == pytest.approx(sum(max(s.sigma_t_m, 3e-4) ** 2 for s in steps if s.ok) + sig5**2,
+                                           rel=1e-12)
 
 
 def test_thesis_kf_keeps_its_rotation_on_the_updated_heading():
@@ -479,20 +486,32 @@ def test_steps_carry_the_radius_uncertainty_and_the_filter_takes_it_back_out():
     assert w.sigma_distance_m == pytest.approx(np.sqrt(1e-4**2 + 8e-4**2 + (WALL_SIGMA_FACTOR * 4e-4)**2), rel=1e-9)
 
 
-def test_a_rotation_step_turns_the_filter_and_leaves_its_translation_unknown(demo):
+def test_a_rotation_step_turns_the_filter_and_takes_the_long_steps_length(demo):
     """A step with only its rotation measured (status rotation): the dead reckoner and the filters apply that
-    rotation, with its own 1-sigma, and repeat the last translation with a missing step's 1-sigma."""
+    rotation, with its own 1-sigma, and the last translation stretched to the steps so far at their 90th
+    percentile (a step lost to motion is a long one), with that length as 1-sigma; a step without any estimate
+    repeats the last translation as it is, with at least that 1-sigma."""
     from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.fusion.ekf import MISSING_SIGMA_T_MIN_M, process_noise, step_rotation_matrices
+    from bodyslam.steps import LOST_STEP_QUANTILE, StepLengths
 
     steps, *_ = demo
     steps = list(steps[:10])
     R5 = Rotation.from_matrix(steps[5].R_c1_c2)
     steps[5] = StepMotion(np.nan, 0.0, 0.0, 0.0, 0.0, 100, "rotation", R5.as_matrix(), None, np.nan, 0.07)
+    lengths = StepLengths()
+    for s in steps[:5]:
+        lengths.add(float(np.linalg.norm(s.t_c1_c2_m)))
+    q, t4 = lengths.percentile(LOST_STEP_QUANTILE), np.asarray(steps[4].t_c1_c2_m)
+    assert q > np.linalg.norm(t4) * 1.05  # the demo's step 4 is shorter than the first five's 90th percentile
     t_applied, sig_t, sig_r = process_noise(steps)
-    assert np.allclose(t_applied[5], steps[4].t_c1_c2_m)  # constant velocity: the last estimated step
-    assert sig_t[5] == pytest.approx(max(np.linalg.norm(steps[4].t_c1_c2_m), MISSING_SIGMA_T_MIN_M))
+    assert np.allclose(t_applied[5], t4 * q / np.linalg.norm(t4))  # the last step's direction, the long length
+    assert sig_t[5] == pytest.approx(max(q, MISSING_SIGMA_T_MIN_M))
     assert sig_r[5] == pytest.approx(0.07)  # its own rotation 1-sigma, not a missing step's 5 deg
+    steps_miss = list(steps)
+    steps_miss[5] = StepMotion.failed("too_few_matches")
+    t_m, sig_m, _ = process_noise(steps_miss)
+    assert np.allclose(t_m[5], t4) and sig_m[5] == pytest.approx(max(q, MISSING_SIGMA_T_MIN_M))
     assert np.allclose(step_rotation_matrices(steps)[5], R5.as_matrix())
     dr, ref = DeadReckoner(), DeadReckoner()
     for k, s in enumerate(steps):
