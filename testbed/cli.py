@@ -5,7 +5,7 @@ Subcommands
 simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--force]
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
 centerline MESH --out centerline.csv [--voxel-size X Y Z] [--pitch-mm P] [--reference CSV]
-score-motion SEQDIR motion.csv [--json report.json]   Table 4.1: per-step motion errors against the truth
+score-motion SEQDIR motion.csv [--json report.json]   Table 4.1 and the path travelled against the truth
 evaluate SCENARIO --seeds N|A-B|a,b --out DIR [--frames K] [--jobs J]   every algorithm on the same runs: report.json + report.html
 scenarios      list the shipped scenarios
 """
@@ -171,12 +171,19 @@ def _score_motion(args) -> int:
     from pathlib import Path
 
     from bodyslam.io import write_json
-    from testbed.score import format_table, score_motion
+    from bodyslam.meta import read_meta
+    from testbed.score import format_table, score_motion, score_path
 
     rep = score_motion(args.seqdir, args.motion_csv)
+    meta = read_meta(args.seqdir)
+    rel = meta.tube_radius_sd_m / meta.tube_radius_m if meta.tube_radius_m else 0.0
+    rep["path_travelled"] = p = score_path(args.seqdir, args.motion_csv, rel)
     out = Path(args.json) if args.json else Path(args.motion_csv).with_suffix(".score.json")
     write_json(out, rep)
     print(format_table(rep))
+    print(f"path travelled (vision only): {p['estimated_m'] * 100:.1f} +- {p['sigma_m'] * 100:.1f} cm against "
+          f"{p['true_m'] * 100:.1f} true ({p['error_rel']:+.1%}, {p['z']:+.1f} sigma; frames inside 1-sigma "
+          f"{p['frames_inside_1sigma']:.0%})")
     print(f"wrote {out}")
     return 0
 

@@ -68,6 +68,11 @@ def test_motion_and_score_on_the_demo_sequence(tmp_path):
     assert a["mae_tilt_deg"] < 2.0
     assert a["mae_distance_cm"] < 0.25 * a["mean_true_distance_cm"]
     assert "distance" in p.stdout and "roll" in p.stdout
+    # the path travelled against the truth (testbed.score.score_path): the demo's distances come out short (above)
+    path = rep["path_travelled"]
+    assert path["true_m"] == pytest.approx(sum(abs(float(r.split(",")[2])) for r in
+                                               (DEMO / "motion_truth.csv").read_text().splitlines()[1:]))
+    assert -0.25 < path["error_rel"] < 0.05 and "path travelled (vision only)" in p.stdout
 
 
 def test_track_writes_a_tum_trajectory(tmp_path):
