@@ -23,8 +23,11 @@ block, read off the run's own covariances). For an exponentially weighted mean w
 inflation is ``1 + 2 sum_l rho_l a^l`` (the double sum ``sum_ij a^i a^j rho_|i-j|`` over ``sum_i a^2i``), so
 :func:`causal_inflation` tapers each lag by ``a_k^l`` when given the memory. Measured on realistic tuning seeds
 503-509 (session 12's motion): online NEES 1.76 -> 3.16 and frames inside their 68% ellipsoid 0.88 -> 0.72 (the
-strictly causal filter 1.54 -> 2.98, 0.89 -> 0.72), with no parameter chosen. The smoother uses every reading of
-the exam on both sides of each frame and keeps the untapered ``kappa``.
+strictly causal filter 1.54 -> 2.98, 0.89 -> 0.72), with no parameter chosen. The smoother's estimate is, in
+steady state, a two-sided exponential average of the readings (weights ``a^|i|``, ``a`` the forward filter's
+memory), so :func:`smoother_inflation` weights lag ``l`` by :func:`two_sided_lag_weights` (session 22; tried in
+session 16, when it under-covered, 57% inside the 68% ellipsoid on tuning seeds 503-509, because the process
+noise understated the steps lost to motion; with them stated, 70% against 83% untapered, docs/RESULTS.md).
 
 What it does not see: error the residuals cannot show (the estimate follows part of the correlated error, so
 ``kappa`` is if anything low), and error from the vision's heading. On the ideal ``thesis`` channel ``kappa`` is 1.0.
@@ -43,7 +46,7 @@ from bodyslam.fusion.body_slam import FusionResult
 from bodyslam.fusion.rf import PathLossModel
 
 __all__ = ["ResidualCorrelation", "normalised_residuals", "residual_correlation", "causal_inflation", "filter_memory",
-           "inflate", "MAX_LAG_FRAMES"]
+           "smoother_inflation", "two_sided_lag_weights", "inflate", "MAX_LAG_FRAMES"]
 
 # lags looked at: 30 frames (15 s at the PillCam SB's 2 fps). A sensor's constant departure from the calibration
 # correlates at every lag; the cap is where this estimate stops counting it (a stated choice).
@@ -125,6 +128,26 @@ def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.nd
     w = np.asarray(memory, float)[:, None] ** lags[None]
     keep = lags[None] <= first[:, None]
     return np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep, rho * w, 0.0), axis=1))
+
+
+def two_sided_lag_weights(memory: np.ndarray, max_lag: int) -> np.ndarray:
+    """``c (n, L)``: the weight of lag ``l`` in the variance inflation of a two-sided exponential average with
+    weights ``a^|i|`` (``a``: each frame's ``memory``), ``sum_i w_i w_(i+l) / sum_i w_i^2 =
+    a^l (2 + (l - 1)(1 - a^2)) / (1 + a^2)``: 1 at every lag for ``a = 1`` (the whole run), 0 for ``a = 0``."""
+    a = np.clip(np.asarray(memory, float), 0.0, 1.0)[:, None]
+    lags = np.arange(1, max_lag + 1)[None]
+    return a**lags * (2.0 + (lags - 1) * (1.0 - a * a)) / (1.0 + a * a)
+
+
+def smoother_inflation(corr: ResidualCorrelation, memory: np.ndarray | None) -> np.ndarray | float:
+    """The smoother's ``kappa`` per frame: the whole run's correlation ``corr`` (its initial sequence of lags),
+    each lag weighted by :func:`two_sided_lag_weights` of the forward filter's ``memory`` (module docstring);
+    ``corr.kappa`` (every lag in full) without it."""
+    if memory is None or not len(corr.rho):
+        return corr.kappa
+    c = two_sided_lag_weights(memory, len(corr.rho))
+    keep = np.arange(1, len(corr.rho) + 1) <= corr.n_lags
+    return np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep[None], corr.rho[None] * c, 0.0), axis=1))
 
 
 def filter_memory(res: FusionResult) -> np.ndarray | None:

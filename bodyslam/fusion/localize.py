@@ -36,7 +36,7 @@ from bodyslam.errors import InputError
 from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
 from bodyslam.fusion.refine import refine_map
 from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, filter_memory, inflate,
-                                     normalised_residuals, residual_correlation)
+                                     normalised_residuals, residual_correlation, smoother_inflation)
 from bodyslam.io import write_csv, write_image, write_tum
 from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion
@@ -85,6 +85,8 @@ class Localization:
     channel: ResidualCorrelation | None = None
     kappa_online: np.ndarray | None = None
     rts: FusionResult | None = None  # the RTS smoother before the refinement (its covariance scaled the same way)
+    # the factor the smoother's covariance was scaled by, per frame (bodyslam.fusion.channel.smoother_inflation)
+    kappa_smoothed: np.ndarray | float | None = None
 
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
@@ -119,16 +121,17 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     rts = smoothed = rts_smooth(ekf)
     if refine and mode == "rss":
         smoothed = refine_map(rts, steps, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss)
-    channel = kappa_online = None
+    channel = kappa_online = kappa_smoothed = None
     if honest_cov:
         kappa_online = online_inflation(ekf, rss, rf)
         channel = residual_correlation(normalised_residuals(rss, smoothed.positions_w_m, rf.sensors_w_m,
                                                             rf.normals_w, rf.pathloss))
-        ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, channel.kappa), inflate(rts, channel.kappa)
+        kappa_smoothed = smoother_inflation(channel, filter_memory(ekf))
+        ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
     path, var = path_travelled(steps, radius_sd_rel)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
-                        kappa_online, rts)
+                        kappa_online, rts, kappa_smoothed)
 
 
 def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput) -> np.ndarray:

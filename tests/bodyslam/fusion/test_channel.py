@@ -110,3 +110,35 @@ def test_the_online_factor_over_the_filters_memory_is_an_exponential_averages_in
     steps, fixes, rss, pos, nrm, pl, gt = correlated_run(0, 0.03, n=60)
     mem = filter_memory(fuse(steps, fixes, rss, pos, nrm, pl, mode="rss"))
     assert mem.shape == (60,) and np.all((mem > 0.5) & (mem <= 1.0))  # measured 0.96-0.98 after the start
+
+
+def test_the_smoothers_factor_is_a_two_sided_exponential_averages_inflation():
+    """A two-sided exponential average (weight ``a^|i|`` on the reading ``i`` frames away: the smoother in steady
+    state) of AR(1) residuals has ``1 + 2 sum rho_l c_l`` times the variance it has on white ones, ``c_l`` the
+    weights' overlap at lag ``l``: checked against the direct sums (to 1e-12), against a simulated average (within
+    3%: measured 1.7% and 2.3% low on these cases, 4000 frames x 16 sensors; the measured rho is a sample's),
+    and at the ends (``a = 1``: the whole run's kappa; ``a = 0``: 1)."""
+    from bodyslam.fusion.channel import smoother_inflation, two_sided_lag_weights
+
+    for a in (0.5, 0.9, 0.97):
+        i = np.arange(-2000, 2001)
+        w = a ** np.abs(i)
+        direct = [np.sum(w[:-l] * w[l:]) / np.sum(w * w) for l in range(1, 31)]
+        assert np.allclose(two_sided_lag_weights(np.array([a]), 30)[0], direct, rtol=0, atol=1e-12)
+    for rho, a in ((0.8, 0.8), (0.9, 0.85)):
+        z, white = ar1(rho, n=4000, seed=1), ar1(0.0, n=4000, seed=2)
+        k = np.arange(-60, 61)
+        w = a ** np.abs(k)
+
+        def two_sided_var(x):
+            y = np.array([np.convolve(x[:, j], w, mode="valid") for j in range(x.shape[1])])
+            return y.var()
+
+        corr = residual_correlation(z)
+        got = smoother_inflation(corr, np.full(len(z), a))
+        assert np.allclose(got, got[0]) and got[0] < corr.kappa
+        assert abs(got[0] / (two_sided_var(z) / two_sided_var(white)) - 1) < 0.03, (rho, a, got[0])
+    corr = residual_correlation(ar1(0.8, seed=2))
+    assert np.allclose(smoother_inflation(corr, np.ones(5)), corr.kappa)
+    assert np.allclose(smoother_inflation(corr, np.zeros(5)), 1.0)
+    assert smoother_inflation(corr, None) == corr.kappa
