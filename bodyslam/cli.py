@@ -541,7 +541,8 @@ def _localize(args) -> int:
     sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
     print(f"{out}: {n} poses; path travelled {loc.path_m[-1] * 100:.1f} +- {np.sqrt(loc.path_var_m2[-1]) * 100:.1f} cm; "
           f"position 1-sigma median {np.median(sd) * 100:.2f} cm (max {sd.max() * 100:.2f}; RSS errors correlated "
-          f"x{loc.channel.kappa:.1f}, bodyslam.fusion.channel); "
+          f"x{loc.channel.kappa:.1f} over the exam, x{np.mean(loc.kappa_smoothed):.1f} over the smoother's window, "
+          "bodyslam.fusion.channel); "
           f"{loc.filtered.n_updates} RF updates, {loc.filtered.n_rejected} readings rejected by the gate; "
           f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate "
           f"({sum(s.has_rotation and not s.has_estimate for s in steps)} of them with their rotation); "

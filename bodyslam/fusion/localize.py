@@ -190,8 +190,9 @@ def write_localization(out: str | os.PathLike, loc: Localization, title: str = "
     rows = [["frames", len(loc.frames)], ["duration (s)", f"{loc.stamps_s[-1] - loc.stamps_s[0]:.1f}"],
             ["path travelled (cm)", f"{loc.path_m[-1] * 100:.1f} +- {math.sqrt(max(loc.path_var_m2[-1], 0)) * 100:.1f}"],
             ["position 1-sigma, median / max (cm)", f"{np.median(sd) * 100:.2f} / {sd.max() * 100:.2f}"],
-            ["RF readings' correlation factor kappa",
-             f"{loc.channel.kappa:.2f}" if loc.channel is not None else "not measured"],
+            ["RF readings' correlation factor kappa (whole exam / smoother's window, mean)",
+             f"{loc.channel.kappa:.2f} / {np.mean(loc.kappa_smoothed):.2f}" if loc.channel is not None
+             else "not measured"],
             ["RF updates / readings rejected", f"{ekf.n_updates} / {ekf.n_rejected}"]]
     body = (table(None, rows) + "<h2>3-D view</h2>" + view_3d(paths[:2], [], loc.stamps_s, loc.frames)
             + "<h2>Plots</h2>")
