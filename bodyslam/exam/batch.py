@@ -888,8 +888,11 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
                               + (" and refined)" if settings.fusion == "rss" else ")")),
-               # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors
-               "rss_error_correlation": (fused.channel.as_dict() if fused is not None and fused.channel else None),
+               # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors;
+               # kappa is the whole exam's, kappa_smoothed_mean the smoother's (its window's share, per frame)
+               "rss_error_correlation": (
+                   {**fused.channel.as_dict(), "kappa_smoothed_mean": round(float(np.mean(fused.kappa_smoothed)), 3)}
+                   if fused is not None and fused.channel else None),
                # the lumen radius the fusion's scale state implies along the exam (radius * (1 + s), smoothed)
                "lumen_radius_estimate_m": _radius_estimate(exam, fused),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
@@ -1056,5 +1059,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
                + (". The 1-sigma is dead reckoning's: it grows with every step" if not fused else
                   " (x toward the patient's left, y anterior, z cranial). The 1-sigma is the filter's, scaled by the "
                   "RF readings' measured correlation")
-               + "; the path travelled is the sum of the visual steps (its 1-sigma includes the lumen radius's).", body,
+               + "; the path travelled is the sum of the visual steps, a step without a distance filled from its "
+                 "neighbours and one lost to motion (status rotation) as a long one (its 1-sigma includes the lumen "
+                 "radius's and each filled step's own size).", body,
                ["trajectory.png", "path.png"])
