@@ -61,6 +61,11 @@ class SequenceMeta:
     def camera_model(self) -> CameraModel:
         return camera_from_dict(self.camera)
 
+    @property
+    def radius_sd_rel(self) -> float:
+        """The lumen radius prior's 1-sigma relative to it (the visual scale's; 0 without a radius)."""
+        return self.tube_radius_sd_m / self.tube_radius_m if self.tube_radius_m else 0.0
+
     def stamp_s(self, k: int) -> float:
         return k / self.frame_rate_hz
 

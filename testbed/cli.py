@@ -176,8 +176,7 @@ def _score_motion(args) -> int:
 
     rep = score_motion(args.seqdir, args.motion_csv)
     if (Path(args.seqdir) / "meta.json").exists():
-        meta = read_meta(args.seqdir)
-        rel = meta.tube_radius_sd_m / meta.tube_radius_m if meta.tube_radius_m else 0.0
+        rel = read_meta(args.seqdir).radius_sd_rel
     else:  # Table 4.1 needs only the truth; the path's 1-sigma then leaves out the radius prior's spread
         rel = 0.0
         print(f"note: {args.seqdir}: no meta.json, so the path's 1-sigma has no lumen-radius share")

@@ -56,7 +56,7 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
     _, gt, grot = read_tum(d / "groundtruth.tum")
     steps = read_motion_steps(d / "motion.csv", range(1, len(gt)))
     # the pipeline's one localization chain (bodyslam.fusion.localize), on the frames' time stamps
-    rel = meta.tube_radius_sd_m / meta.tube_radius_m if meta.tube_radius_m else 0.0  # the radius prior's spread
+    rel = meta.radius_sd_rel  # the radius prior's spread
     loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss",
                    radius_sd_rel=rel)
     ekf, fixes = loc.filtered, loc.fixes

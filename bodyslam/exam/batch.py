@@ -820,7 +820,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
     from bodyslam.vision.odometry import with_lumen_uncertainty
-    from bodyslam.vision.tracking import lost_to_motion, path_from_lengths, step_length
+    from bodyslam.steps import lost_to_motion
+    from bodyslam.vision.tracking import path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions

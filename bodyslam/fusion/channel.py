@@ -125,9 +125,14 @@ def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.nd
     if memory is None:
         return kappa
     lags = np.arange(1, rho.shape[1] + 1)
-    w = np.asarray(memory, float)[:, None] ** lags[None]
-    keep = lags[None] <= first[:, None]
-    return np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep, rho * w, 0.0), axis=1))
+    return _weighted_kappa(rho, first, np.asarray(memory, float)[:, None] ** lags[None])
+
+
+def _weighted_kappa(rho: np.ndarray, n_lags, w: np.ndarray) -> np.ndarray:
+    """``kappa (n,)`` from the correlations ``rho`` (``(L,)`` or ``(n, L)``) of their first ``n_lags`` lags (a number
+    or ``(n,)``), lag ``l`` weighted per frame by ``w (n, L)``: ``max(1, 1 + 2 sum_l w_l rho_l)``."""
+    keep = np.arange(1, w.shape[1] + 1)[None] <= np.reshape(n_lags, (-1, 1))
+    return np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep, np.atleast_2d(rho) * w, 0.0), axis=1))
 
 
 def two_sided_lag_weights(memory: np.ndarray, max_lag: int) -> np.ndarray:
@@ -145,9 +150,7 @@ def smoother_inflation(corr: ResidualCorrelation, memory: np.ndarray | None) -> 
     ``corr.kappa`` (every lag in full) without it."""
     if memory is None or not len(corr.rho):
         return corr.kappa
-    c = two_sided_lag_weights(memory, len(corr.rho))
-    keep = np.arange(1, len(corr.rho) + 1) <= corr.n_lags
-    return np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep[None], corr.rho[None] * c, 0.0), axis=1))
+    return _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory, len(corr.rho)))
 
 
 def filter_memory(res: FusionResult) -> np.ndarray | None:

@@ -123,10 +123,11 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
         smoothed = refine_map(rts, steps, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss)
     channel = kappa_online = kappa_smoothed = None
     if honest_cov:
-        kappa_online = online_inflation(ekf, rss, rf)
+        memory = filter_memory(ekf)  # the online factor's taper, and the smoother's two-sided one
+        kappa_online = online_inflation(ekf, rss, rf, memory)
         channel = residual_correlation(normalised_residuals(rss, smoothed.positions_w_m, rf.sensors_w_m,
                                                             rf.normals_w, rf.pathloss))
-        kappa_smoothed = smoother_inflation(channel, filter_memory(ekf))
+        kappa_smoothed = smoother_inflation(channel, memory)
         ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
     path, var = path_travelled(steps, radius_sd_rel)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
@@ -134,11 +135,13 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
                         kappa_online, rts, kappa_smoothed)
 
 
-def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput) -> np.ndarray:
+def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput,
+                     memory: np.ndarray | None = None) -> np.ndarray:
     """Per frame ``k``, the correlation factor of the readings of frames ``0 .. k`` at an online run's positions,
-    over the filter's own memory (:func:`bodyslam.fusion.channel.causal_inflation`, :func:`filter_memory`)."""
+    over the filter's own memory (:func:`bodyslam.fusion.channel.causal_inflation`; ``memory``: the run's
+    :func:`filter_memory`, computed here when not given)."""
     return causal_inflation(normalised_residuals(rss, res.positions_w_m, rf.sensors_w_m, rf.normals_w, rf.pathloss),
-                            memory=filter_memory(res))
+                            memory=filter_memory(res) if memory is None else memory)
 
 
 def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2: np.ndarray,

@@ -23,11 +23,13 @@ from scipy.spatial.transform import Rotation
 from bodyslam.steps import LOST_STEP_QUANTILE, StepMotion, lost_to_motion
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length", "scale_path_variance",
-           "segment_variance", "lost_to_motion", "SCALE_CORR_M", "LOST_STEP_QUANTILE"]
+           "segment_variance", "SCALE_CORR_M"]
 
 # the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
 # the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
 SCALE_CORR_M = 0.2
+
+
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
     if not (s.ok or s.has_estimate):  # a rotation step turns without moving (its translation is unknown)
         return (Rotation.from_matrix(s.R_c1_c2) if s.has_rotation else Rotation.identity()), np.zeros(3)
@@ -87,13 +89,13 @@ def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[
     The length of an estimated step is :func:`step_length`, with its own 1-sigma. A run of steps without an
     estimate is a capsule that still moved: each of its steps takes the mean length of the estimated steps that
     border the run (both sides inside the exam, the one side at its start or end). A step lost to motion
-    (:func:`lost_to_motion`) takes at least the :data:`LOST_STEP_QUANTILE` percentile of the exam's estimated
-    lengths instead: matching fails on the steps longer than it measures, so the neighbours' mean is biased low
-    (realistic tuning seeds 503-509: the path's end -11% on average, 27% at worst; with the percentile -3% and
-    19%). Every missing step's 1-sigma is its length, and at least that percentile (a step lost for another
-    reason may have been as fast). The rule is the same forwards and backwards, so an exam's path does not
-    depend on its frame order beyond the steps' own errors (tested on a clip played backwards); with no estimated
-    step at all the path is zero, with zero variance (nothing is known).
+    (:func:`~bodyslam.steps.lost_to_motion`) takes at least the :data:`~bodyslam.steps.LOST_STEP_QUANTILE`
+    percentile of the exam's estimated lengths instead: matching fails on the steps longer than it measures, so
+    the neighbours' mean is biased low (realistic tuning seeds 503-509: the path's end -11% on average, 27% at
+    worst; with the percentile -3% and 19%). Every missing step's 1-sigma is its length, and at least that
+    percentile (a step lost for another reason may have been as fast). The rule is the same forwards and
+    backwards, so an exam's path does not depend on its frame order beyond the steps' own errors (tested on a
+    clip played backwards); with no estimated step at all the path is zero, with zero variance (nothing is known).
     """
     lv = np.array([step_length(s) for s in steps], float).reshape(-1, 2)
     return path_from_lengths(lv[:, 0], lv[:, 1], scale_sd_rel, lost=np.array([lost_to_motion(s) for s in steps]))
@@ -102,7 +104,8 @@ def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
                       corr_m: float = SCALE_CORR_M, lost: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
-    only these two numbers per step, and ``lost``: which steps were lost to motion, :func:`lost_to_motion`; None:
+    only these two numbers per step, and ``lost``: which steps were lost to motion,
+    :func:`~bodyslam.steps.lost_to_motion`; None:
     every missing step takes its neighbours' mean at a 1-sigma as large, the rule before session 22).
     ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
     assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
@@ -117,7 +120,7 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
     est = np.isfinite(length)
     if not est.any():
         return np.zeros(n + 1), np.zeros(n + 1)
-    q_hi = float(np.percentile(length[est], LOST_STEP_QUANTILE))
+    q_hi = float(np.percentile(length[est], LOST_STEP_QUANTILE)) if lost is not None else 0.0
     i = 0
     while i < n:
         if est[i]:
@@ -127,9 +130,9 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
         while j < n and not est[j]:
             j += 1
         fill = float(np.mean([length[k] for k in (i - 1, j) if 0 <= k < n and est[k]]))
-        length[i:j] = fill
-        var[i:j] = fill ** 2
-        if lost is not None:  # the reason a step has no estimate says how long it likely was
+        if lost is None:
+            length[i:j], var[i:j] = fill, fill**2
+        else:  # the reason a step has no estimate says how long it likely was
             length[i:j] = np.where(lost[i:j], max(fill, q_hi), fill)
             var[i:j] = np.maximum(length[i:j], q_hi) ** 2
         i = j

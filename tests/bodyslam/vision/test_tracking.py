@@ -206,8 +206,8 @@ def test_steps_lost_to_motion_take_the_long_steps_length_and_every_missing_step_
     exam's 90th percentile of estimated lengths (the matcher loses the steps longer than it measures), the others
     their neighbours' mean; each missing step's 1-sigma is its length and at least that percentile. Reversed, the
     same path; without the flags, the neighbours' mean at a 1-sigma as large (the rule before)."""
-    from bodyslam.steps import StepMotion, StepStatus, rotation_step
-    from bodyslam.vision.tracking import LOST_STEP_QUANTILE, lost_to_motion, path_from_lengths
+    from bodyslam.steps import LOST_STEP_QUANTILE, StepMotion, StepStatus, lost_to_motion, rotation_step
+    from bodyslam.vision.tracking import path_from_lengths
 
     nan = np.nan
     length = np.array([1.0, 1.0, 1.0, nan, nan, nan, 1.0, 1.0, 5.0, 1.0, 1.0, 1.0]) * 1e-3
