@@ -521,15 +521,16 @@ def _localize(args) -> int:
         told = meta.tube_radius_m if args.radius_m is None else None  # a radius on the command line has no spread
         radius_sd_rel = meta.tube_radius_sd_m / told if told else 0.0
         steps = read_motion_steps(args.motion, range(1, n))
+        radius_m = meta.tube_radius_m if args.radius_m is None else args.radius_m
     else:
         seq = Sequence.open(seq_dir, args.radius_m)
-        n, rate, radius_sd_rel = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel
+        n, rate, radius_sd_rel, radius_m = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel, seq.radius_m
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
                                 progress=Progress("motion"), problems=problems, fov_used=fov)
     frames = np.arange(n)
     stamps = frames / rate
     loc = localize(steps, stamps, rf, rate, frames, mode=args.fusion, radius_sd_rel=radius_sd_rel,
-                   refine=not args.no_refine)
+                   refine=not args.no_refine, radius_m=radius_m)
     out = prepare_output_dir(args.out, args.force)
     if not args.motion:
         from bodyslam.vision.odometry import write_mask
@@ -576,7 +577,8 @@ def _batch(args) -> int:
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
               f"({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged; "
-              f"{steps.get('rotation', 0)} more with only their rotation), path "
+              f"{steps.get('rotation', 0)} more with only their rotation; {steps.get('lost', 0)} lost to fast "
+              f"motion), path "
               f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "
               f"{s['problems']} problem(s)")
         for a in s["assumed"]:
@@ -694,7 +696,7 @@ def _motion_or_track(args) -> int:
         write_tum(args.out, stamps, pos, rot, world="first camera frame")
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
-    path, var = path_travelled(steps, seq.radius_sd_rel)
+    path, var = path_travelled(steps, seq.radius_sd_rel, seq.radius_m)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
     return _print_problems(problems)

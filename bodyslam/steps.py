@@ -16,6 +16,10 @@ Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which 
 - ``rotation``: only the rotation was measured (a fast step whose ordinary matches were too few: guided matching,
   :mod:`bodyslam.vision.guided`); roll, pitch, yaw, tilt and ``R_c1_c2`` are set, the distance and translation
   are NaN;
+- ``lost``: no estimate, and lost to motion: ordinary and guided matching both failed between two frames rich in
+  features (:data:`bodyslam.vision.odometry.LOST_MIN_KEYPOINTS_FRAC`), so the view changed too much to match --
+  the capsule moved far (a blurred, turbid or featureless frame keeps ``too_few_matches``: it may be a capsule at
+  rest);
 - ``too_few_matches``, ``uncertain``, ``solver_failed``: the estimator gave no usable estimate;
 - ``no_lumen``: a frame of the pair is too dark or saturated to fit, or faces the wall and the step was not
   estimated (the thesis estimator's unrolling needs the lumen in view; ``--drop-wall-steps``);
@@ -36,7 +40,7 @@ import numpy as np
 
 __all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "WITH_ROTATION", "StepMotion", "motion_from_transform",
            "rotation_step", "lost_to_motion", "StepLengths", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD",
-           "LOST_STEP_QUANTILE"]
+           "LOST_STEP_QUANTILE", "LOST_STEP_FLOOR_R", "lost_step_floor_m", "LOST_TO_MOTION"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -47,6 +51,17 @@ SIGMA_R_DEFAULT_RAD = math.radians(1.0)
 # fusion's process rule, bodyslam.fusion.ekf.step_noise). Chosen on realistic tuning seeds 503-509 among the 75th,
 # 90th and 95th percentile (docs/RESULTS.md, "How far along the gut")
 LOST_STEP_QUANTILE = 90.0
+# ... and at least this many lumen radii (the radius the steps assume): the length at which matching loses about
+# half of the steps (realistic tuning seeds 503-509, 1.25 cm prior: 18% of the steps of 0.3-0.4 cm lost, 33% of
+# 0.4-0.5, 61% of 0.5-0.6, 97% of 1.0-1.5). The percentile alone collapses where an exam's estimated steps are
+# few and short: an 18-frame clip of a fast phase then a rest gave a path of 0.0 +- 0.01 cm for 12.9 cm travelled
+# (docs/RESULTS.md, "Short clips")
+LOST_STEP_FLOOR_R = 0.4
+
+
+def lost_step_floor_m(radius_m: float | None) -> float:
+    """The least length (m) of a step lost to motion at the lumen radius ``radius_m`` (None: no floor)."""
+    return 0.0 if radius_m is None or not radius_m > 0 else LOST_STEP_FLOOR_R * float(radius_m)
 
 
 class StepStatus(StrEnum):
@@ -54,6 +69,7 @@ class StepStatus(StrEnum):
     WALL = "wall"
     BRIDGED = "bridged"
     ROTATION = "rotation"
+    LOST = "lost"
     TOO_FEW_MATCHES = "too_few_matches"
     UNCERTAIN = "uncertain"
     SOLVER_FAILED = "solver_failed"
@@ -67,6 +83,8 @@ class StepStatus(StrEnum):
 MEASURED = (StepStatus.OK, StepStatus.WALL)
 WITH_ESTIMATE = (*MEASURED, StepStatus.BRIDGED)
 WITH_ROTATION = (*WITH_ESTIMATE, StepStatus.ROTATION)
+# statuses of a step lost to motion (lost_to_motion)
+LOST_TO_MOTION = (StepStatus.ROTATION, StepStatus.LOST)
 
 
 @dataclass(frozen=True)
@@ -153,10 +171,11 @@ def rotation_step(R_c1_c2, n_matches: int, sigma_rotation_rad: float) -> StepMot
 
 def lost_to_motion(s: StepMotion) -> bool:
     """A step whose pair ordinary matching lost although guided matching, under forward-motion hypotheses, found
-    the wall in both frames (status ``rotation``, :mod:`bodyslam.vision.guided`): a step longer than the matcher
-    measures (on the realistic testbed's tuning seeds: median 0.68 cm against 0.20 for the measured ones). A step
-    without any estimate may also be a dark or blurred frame while the capsule rests: not counted."""
-    return s.status == StepStatus.ROTATION
+    the wall in both frames (status ``rotation``, :mod:`bodyslam.vision.guided`), or although both frames are rich
+    in features (status ``lost``): a step longer than the matcher measures (on the realistic testbed's tuning seeds:
+    median 0.68-0.71 cm against 0.20 for the measured ones). A step without an estimate between a dark, blurred or
+    featureless frame and the next may be a capsule at rest: not counted."""
+    return s.status in LOST_TO_MOTION
 
 
 class StepLengths:

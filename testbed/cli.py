@@ -176,11 +176,13 @@ def _score_motion(args) -> int:
 
     rep = score_motion(args.seqdir, args.motion_csv)
     if (Path(args.seqdir) / "meta.json").exists():
-        rel = read_meta(args.seqdir).radius_sd_rel
+        meta = read_meta(args.seqdir)
+        rel, radius_m = meta.radius_sd_rel, meta.tube_radius_m
     else:  # Table 4.1 needs only the truth; the path's 1-sigma then leaves out the radius prior's spread
-        rel = 0.0
-        print(f"note: {args.seqdir}: no meta.json, so the path's 1-sigma has no lumen-radius share")
-    rep["path_travelled"] = p = score_path(args.seqdir, args.motion_csv, rel)
+        rel, radius_m = 0.0, None
+        print(f"note: {args.seqdir}: no meta.json, so the path's 1-sigma has no lumen-radius share and a step lost "
+              f"to motion no least length")
+    rep["path_travelled"] = p = score_path(args.seqdir, args.motion_csv, rel, radius_m)
     out = Path(args.json) if args.json else Path(args.motion_csv).with_suffix(".score.json")
     write_json(out, rep)
     print(format_table(rep))

@@ -31,7 +31,7 @@ from bodyslam.fusion.channel import inflate
 from bodyslam.fusion.localize import RfInput, localize, online_inflation
 from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
-from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION
+from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION, lost_step_floor_m
 from bodyslam.fusion.rf import locate_nls
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
 from testbed.score import score_motion, score_path
@@ -58,7 +58,7 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
     # the pipeline's one localization chain (bodyslam.fusion.localize), on the frames' time stamps
     rel = meta.radius_sd_rel  # the radius prior's spread
     loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss",
-                   radius_sd_rel=rel)
+                   radius_sd_rel=rel, radius_m=meta.tube_radius_m)
     ekf, fixes = loc.filtered, loc.fixes
     pos, nrm, pl = rf.sensors_w_m, rf.normals_w, rf.pathloss
     rss = loc.rss_dbm
@@ -67,7 +67,8 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
     R_fit, p_fit = ekf.alignment  # dead reckoning's best rigid fit to the fixes of the first window
     dr = ekf.dead_reckoning  # in the first camera frame, steps without an estimate as no motion
     # strictly causal: frame k sees frames 0..k only (no alignment window; the start searched from frame 0)
-    causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True, scale_sd_rel=rel)
+    floor = lost_step_floor_m(meta.tube_radius_m)
+    causal = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True, scale_sd_rel=rel, lost_floor_m=floor)
     causal = inflate(causal, online_inflation(causal, rss, rf))  # the covariance localize states (step 5)
     est = {
         "rf_ml": np.array([f.position_w_m for f in fixes]),
@@ -76,7 +77,8 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
         "thesis_kf": kf_thesis(steps, nls, (R0, p0), resets=ekf.resets),
         # the same filter fed by the dissertation's other RF localizer (ML, Sec. 2.3.3.2) instead of Eq. 3.36's NLS
         "thesis_kf_ml": kf_thesis(steps, fixes, (R0, p0), resets=ekf.resets),
-        "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix", scale_sd_rel=rel).positions_w_m,
+        "ekf_fixes": fuse(steps, fixes, rss, pos, nrm, pl, mode="fix", scale_sd_rel=rel,
+                          lost_floor_m=floor).positions_w_m,
         "ekf_rss": ekf.positions_w_m,
         "ekf_rss_causal": causal.positions_w_m,
         # the smoother alone, and refined over the whole exam (bodyslam.fusion.refine: the shipped smoothed output)
@@ -104,7 +106,7 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "consistency": {k: consistency(r.positions_w_m, r.cov[:, :3, :3], gt) for k, r in with_cov.items()},
             "orientation_error_deg": {k: orientation_errors_deg(r.rotations_w_c, grot) for k, r in with_cov.items()},
             "motion": score_motion(d, d / "motion.csv"),
-            "path_travelled": score_path(d, d / "motion.csv", rel),
+            "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": float(np.mean(loc.kappa_smoothed)), "whole_run": loc.channel.kappa,
                       "online_last_frame": float(loc.kappa_online[-1])}}

@@ -103,10 +103,13 @@ def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
             "distance_within_2sigma": float(np.mean(err[ok] <= 2 * sigma[ok]))}
 
 
-def score_path(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike, scale_sd_rel: float) -> dict:
+def score_path(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike, scale_sd_rel: float,
+               radius_m: float | None = None) -> dict:
     """How far along the gut, scored: the path travelled from the first frame
     (:func:`bodyslam.vision.tracking.path_travelled` on ``motion_csv``, the figure ``bodyslam`` writes for marks and
-    plots) against the true one (the summed lengths of the true steps), with the stated 1-sigma.
+    plots) against the true one (the summed lengths of the true steps), with the stated 1-sigma. ``scale_sd_rel``,
+    ``radius_m``: the lumen radius prior the steps assumed (its relative 1-sigma, and the radius: the floor of a lost
+    step's length; None: none).
 
     Returns the run's end (``true_m``, ``estimated_m``, ``sigma_m``, ``error_rel``: (estimated - true) / true, and
     ``z``: the error over its 1-sigma) and over every frame the mean absolute error (``mean_abs_error_m``) and the
@@ -119,7 +122,7 @@ def score_path(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike, scale_
         raise InputError(f"{seq_dir}: no motion_truth.csv (only testbed sequences have ground truth)")
     truth = read_motion_csv(seq_dir / "motion_truth.csv")
     frames = sorted(truth)
-    path, var = path_travelled(read_motion_steps(motion_csv, frames), scale_sd_rel)
+    path, var = path_travelled(read_motion_steps(motion_csv, frames), scale_sd_rel, radius_m)
     true = np.r_[0.0, np.cumsum([abs(truth[k]["distance_m"]) for k in frames])]
     err, sd = path - true, np.sqrt(var)
     inside = np.abs(err[1:]) <= sd[1:]

@@ -820,7 +820,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
     from bodyslam.vision.odometry import with_lumen_uncertainty
-    from bodyslam.steps import lost_to_motion
+    from bodyslam.steps import lost_step_floor_m, lost_to_motion
     from bodyslam.vision.tracking import path_from_lengths, step_length
 
     problems = [list(p) for p in exam.problems]
@@ -829,7 +829,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
     bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
-    dr = DeadReckoner()
+    dr = DeadReckoner(lost_step_floor_m(exam.radius_m))
     eof = None
     item = 0
     rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
@@ -865,7 +865,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     n = acc.n
     t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
     frame_idx = acc.frame[:n].tolist()
-    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n])
+    path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
+                                         radius_m=exam.radius_m)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
     fused = None
     if exam.rf and n >= 2:
@@ -969,7 +970,7 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
         steps = read_motion_steps(d / "motion.csv", frame_idx[1:])
         loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
-                       radius_sd_rel=exam.radius_sd_rel)
+                       radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m)
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
         return None
@@ -1012,6 +1013,7 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
 STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)",
               "bridged": " (shares of gaps measured end to end)",
               "rotation": " (fast steps: only the rotation measured, the distance unknown)",
+              "lost": " (fast steps: no match between frames rich in features; counted long in the path)",
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
 
@@ -1022,6 +1024,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
     3-D view to turn, the plots)."""
     from bodyslam.plots import Mark, Path3D, path_figure, trajectory_figure
     from bodyslam.report import table, view_3d, write_page
+    from bodyslam.steps import LOST_STEP_FLOOR_R
 
     if len(t) < 2:
         return
@@ -1061,6 +1064,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
                   " (x toward the patient's left, y anterior, z cranial). The 1-sigma is the filter's, scaled by the "
                   "RF readings' measured correlation")
                + "; the path travelled is the sum of the visual steps, a step without a distance filled from its "
-                 "neighbours and one lost to motion (status rotation) as a long one (its 1-sigma includes the lumen "
-                 "radius's and each filled step's own size).", body,
+                 "neighbours and one lost to motion (status rotation or lost) as a long one, at least "
+                 f"{LOST_STEP_FLOOR_R:g} lumen radii (its 1-sigma includes the lumen radius's and each filled "
+                 "step's own size).", body,
                ["trajectory.png", "path.png"])

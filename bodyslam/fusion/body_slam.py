@@ -82,6 +82,9 @@ class FusionSettings:
     # and the distance along the path over which the radius changes
     scale_sd_rel: float = 0.0
     scale_corr_m: float = SCALE_CORR_M
+    # the least length (m) of a step lost to motion (bodyslam.steps.lost_step_floor_m of the radius the steps
+    # assumed; 0: none): the path travelled's floor, in the process rule (bodyslam.fusion.ekf.step_noise)
+    lost_floor_m: float = 0.0
 
 
 class _Recheck(NamedTuple):
@@ -136,7 +139,8 @@ class DeadReckoner:
     :func:`bodyslam.vision.tracking.path_travelled` (one rule at both ends of an exam), not this.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, lost_floor_m: float = 0.0) -> None:
+        self.lost_floor_m = float(lost_floor_m)  # the least length of a step lost to motion (step_noise)
         self.p_w_m = np.zeros(3)
         self.R_w_c_matrix = np.eye(3)  # the orientation (R_w_c property: as a Rotation)
         self.P = np.zeros((6, 6))
@@ -150,7 +154,7 @@ class DeadReckoner:
         return Rotation.from_matrix(self.R_w_c_matrix)
 
     def step(self, s: StepMotion) -> None:
-        long_m = 0.0 if s.has_estimate else self._lengths.percentile(LOST_STEP_QUANTILE)
+        long_m = 0.0 if s.has_estimate else max(self._lengths.percentile(LOST_STEP_QUANTILE), self.lost_floor_m)
         t_s, sig_t, sig_r = step_noise(s, self._last_t, long_m=long_m)
         if s.has_estimate:
             self._last_t = t_s
@@ -262,7 +266,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         raise InputError(f"need one RF fix per frame for initialisation ({n}), got "
                          f"{0 if fixes is None else len(fixes)}")
     ekf = ErrorStateEkf(steps, fixes, rss, sensors_w_m, normals_w, pl, cfg.mode, cfg.max_rejections,
-                        cfg.bias_corr_m, cfg.bias_sd_db, cfg.scale_sd_rel, cfg.scale_corr_m)
+                        cfg.bias_corr_m, cfg.bias_sd_db, cfg.scale_sd_rel, cfg.scale_corr_m, cfg.lost_floor_m)
     searcher = copy.copy(ekf)  # the same inputs, its own state: searches run while the committed run is open
     # dead reckoning in the first camera frame (steps without an estimate: no motion), for the initial alignment
     dr = np.zeros((n, 3))

@@ -138,15 +138,18 @@ def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0,
     return t, sig_t, MISSING_SIGMA_R_RAD
 
 
-def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per step: the translation the filter applies (:func:`step_noise`) and its 1-sigmas (m, rad)."""
+def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0,
+                  lost_floor_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step: the translation the filter applies (:func:`step_noise`) and its 1-sigmas (m, rad).
+    ``lost_floor_m``: the least length of a step lost to motion (:func:`bodyslam.steps.lost_step_floor_m` of the
+    radius the steps assumed; the path travelled's floor, :func:`bodyslam.vision.tracking.path_from_lengths`)."""
     t_out = np.zeros((len(steps), 3))
     sig_t = np.zeros(len(steps))
     sig_r = np.zeros(len(steps))
     last_t = np.zeros(3)
     lengths = StepLengths()
     for k, s in enumerate(steps):
-        long_m = 0.0 if s.has_estimate else lengths.percentile(LOST_STEP_QUANTILE)
+        long_m = 0.0 if s.has_estimate else max(lengths.percentile(LOST_STEP_QUANTILE), lost_floor_m)
         t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t, scale_sd_rel, long_m)
         if s.has_estimate:
             last_t = t_out[k]
@@ -193,14 +196,14 @@ class ErrorStateEkf:
     def __init__(self, steps: list[StepMotion], fixes: list[Fix] | None, rss: np.ndarray | None,
                  sensors_w_m: np.ndarray | None, normals_w: np.ndarray | None, pl: PathLossModel | None,
                  mode: str = "rss", max_rejections: int = 5, bias_corr_m: float = 0.0, bias_sd_db: float = 4.0,
-                 scale_sd_rel: float = 0.0, scale_corr_m: float = SCALE_CORR_M):
+                 scale_sd_rel: float = 0.0, scale_corr_m: float = SCALE_CORR_M, lost_floor_m: float = 0.0):
         if mode not in FUSION_MODES:
             raise InputError(f"fusion mode must be one of {', '.join(FUSION_MODES)}, got {mode!r}")
         if mode == "rss" and (rss is None or sensors_w_m is None or pl is None):
             raise InputError("RSS fusion needs the readings, the sensor positions and the path-loss model")
         self.fixes, self.rss, self.pos, self.nrm, self.pl = fixes, rss, sensors_w_m, normals_w, pl
         self.mode, self.max_rejections = mode, max_rejections
-        self.t_applied, self.sig_t, self.sig_r = process_noise(steps, scale_sd_rel)
+        self.t_applied, self.sig_t, self.sig_r = process_noise(steps, scale_sd_rel, lost_floor_m)
         self.R_steps = step_rotation_matrices(steps)
         self.m_bias = len(sensors_w_m) if (mode == "rss" and bias_corr_m > 0) else 0
         self.n_scale = 1 if scale_sd_rel > 0 else 0

@@ -39,7 +39,7 @@ from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, filt
                                      normalised_residuals, residual_correlation, smoother_inflation)
 from bodyslam.io import write_csv, write_image, write_tum
 from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_sensors, rss_per_frame
-from bodyslam.steps import StepMotion
+from bodyslam.steps import StepMotion, lost_step_floor_m
 from bodyslam.vision.tracking import path_travelled
 
 __all__ = ["RfInput", "Localization", "localize", "online_inflation", "write_localization", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
@@ -91,13 +91,15 @@ class Localization:
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
              frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True,
-             radius_sd_rel: float = 0.0, refine: bool = True) -> Localization:
+             radius_sd_rel: float = 0.0, refine: bool = True, radius_m: float | None = None) -> Localization:
     """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring). ``honest_cov``:
     scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
     ``radius_sd_rel``: relative 1-sigma of the lumen radius the steps assumed; above 0 the fusion estimates the
     visual scale as a state (:mod:`bodyslam.fusion.ekf`), and the steps' 1-sigma is expected to include it
     (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`). ``refine``: solve the whole exam at once from the
-    smoother's trajectory (step 4; raw-RSS mode only).
+    smoother's trajectory (step 4; raw-RSS mode only). ``radius_m``: the lumen radius the steps assumed (the
+    floor of a lost step's length, in the filters and in the path travelled,
+    :func:`bodyslam.vision.tracking.path_travelled`).
 
     Raises
     ------
@@ -117,10 +119,12 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     if n_ok < 3:
         raise InputError(f"RF not usable: {n_ok} frame(s) with an RF fix, "
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")
-    ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel)
+    floor = lost_step_floor_m(radius_m)
+    ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel,
+               lost_floor_m=floor)
     rts = smoothed = rts_smooth(ekf)
     if refine and mode == "rss":
-        smoothed = refine_map(rts, steps, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss)
+        smoothed = refine_map(rts, steps, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, lost_floor_m=floor)
     channel = kappa_online = kappa_smoothed = None
     if honest_cov:
         memory = filter_memory(ekf)  # the online factor's taper, and the smoother's two-sided one
@@ -129,7 +133,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
                                                             rf.normals_w, rf.pathloss))
         kappa_smoothed = smoother_inflation(channel, memory)
         ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
-    path, var = path_travelled(steps, radius_sd_rel)
+    path, var = path_travelled(steps, radius_sd_rel, radius_m)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
                         kappa_online, rts, kappa_smoothed)

@@ -76,8 +76,9 @@ class MapProblem:
     residuals, cost and Gauss-Newton system (:meth:`normal_equations`; :meth:`linearise` the sparse reference)."""
 
     def __init__(self, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray,
-                 pl: PathLossModel, scale: np.ndarray | None = None, gate: float = Z_GATE_999):
-        t, self.sig_t, self.sig_r = process_noise(steps, 0.0)
+                 pl: PathLossModel, scale: np.ndarray | None = None, gate: float = Z_GATE_999,
+                 lost_floor_m: float = 0.0):
+        t, self.sig_t, self.sig_r = process_noise(steps, 0.0, lost_floor_m)
         n = len(steps) + 1
         s = np.zeros(n) if scale is None else np.asarray(scale, float)
         self.t = t * (1.0 + s[:-1, None])
@@ -189,10 +190,11 @@ class MapProblem:
 
 def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray,
                normals_w: np.ndarray, pl: PathLossModel, max_iter: int = 30, tol: float = 1e-6,
-               rel_tol: float = 1e-6) -> FusionResult:
+               rel_tol: float = 1e-6, lost_floor_m: float = 0.0) -> FusionResult:
     """The smoothed run ``res`` (:func:`bodyslam.fusion.body_slam.rts_smooth`) refined to the whole exam's joint
-    optimum (module docstring); a copy with the refined positions and orientations, everything else as ``res``."""
-    prob = MapProblem(steps, rss, sensors_w_m, normals_w, pl, res.scale)
+    optimum (module docstring); a copy with the refined positions and orientations, everything else as ``res``.
+    ``lost_floor_m``: the filters' least length of a step lost to motion (:func:`bodyslam.fusion.ekf.process_noise`)."""
+    prob = MapProblem(steps, rss, sensors_w_m, normals_w, pl, res.scale, lost_floor_m=lost_floor_m)
     p = np.array(res.positions_w_m, float)
     R = res.rotations_w_c.as_matrix()
     f = f_start = prob.cost(p, R)

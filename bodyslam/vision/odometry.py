@@ -40,14 +40,15 @@ from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import Frame, FrameSource
 from bodyslam.io import read_image
 from bodyslam.meta import read_meta
-from bodyslam.steps import MEASURED, StepMotion, StepStatus, motion_from_transform, rotation_step
+from bodyslam.steps import (LOST_TO_MOTION, MEASURED, StepMotion, StepStatus, lost_step_floor_m, motion_from_transform,
+                            rotation_step)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_lumen_uncertainty",
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps",
-           "WALL_SIGMA_FACTOR", "WALL_STEPS"]
+           "WALL_SIGMA_FACTOR", "WALL_STEPS", "LOST_MIN_KEYPOINTS_FRAC", "BRIDGE_MIN_LOST_SHARE"]
 
 
 WALL_STEPS = ("estimate", "drop")
@@ -57,6 +58,20 @@ WALL_STEPS = ("estimate", "drop")
 # wall steps the ok steps' coverage (0.688 / 0.981 within 1 / 2 sigma): 0.517 / 0.896 at 1, 0.632 / 0.945 at 1.5,
 # 0.687 / 0.950 at 1.8, 0.706 / 0.955 at 2 (docs/RESULTS.md)
 WALL_SIGMA_FACTOR = 1.8
+# A step no matching could fit between two frames that each have at least this share of the matcher's keypoint
+# budget (``max_features``: 3000 in sift/asift mode, 800 in fast mode) is lost to motion (status ``lost``): the
+# view changed too much to match. Fewer keypoints: a blurred, turbid or featureless frame, which may be a capsule
+# at rest (status stays ``too_few_matches``). Measured with the sift matcher: five real PillCam COLON 2 frames
+# (576 px) have 870-2330 keypoints, the same blurred by a 5 px Gaussian 80-180 and by 15 px 9-19; the realistic
+# testbed's frames of failed steps 2270 at the 5th percentile (tuning seed 504)
+LOST_MIN_KEYPOINTS_FRAC = 0.25
+# A gap's end-to-end motion is not taken when it is shorter than this share of its steps lost to motion at their
+# least length each (bodyslam.steps.lost_step_floor_m): the steps say the capsule moved far, the bridge that it
+# hardly moved. Seen on thesis tuning seed 510: ten steps of 1.4-3.1 cm (six ``lost``, four ``rotation``)
+# bridged as 0.62 cm in all with a 1-sigma of 0.002 cm (the far tunnel of the first frame is the near wall of the
+# last: 313 verified matches, a wrong minimum of the tube fit), the path 25% short at 13 sigma. Half: a lost step
+# may be shorter than the floor (18% of the steps of 0.3-0.4 cm are lost), or go back part of the way
+BRIDGE_MIN_LOST_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -173,7 +188,15 @@ class VisualOdometry:
             from bodyslam.vision.guided import estimate_rotation
 
             s = estimate_rotation(self.matcher, f1, f2, self.camera, self.radius_m, start=x) or s
+        if (rotation and estimator == "tube" and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)
+                and self._textured(f1) and self._textured(f2)):
+            s = StepMotion(n_matches=s.n_matches, status=StepStatus.LOST)
         return self.to_body(s)
+
+    def _textured(self, f) -> bool:
+        """Whether a frame has the keypoints to match (:data:`LOST_MIN_KEYPOINTS_FRAC` of the matcher's budget;
+        detected once per frame, at the matcher's ``detect_scale``: every mode has them once its cascade failed)."""
+        return len(self.matcher.keypoints(f)[0]) >= LOST_MIN_KEYPOINTS_FRAC * self.matcher.max_features
 
     def to_body(self, s: StepMotion) -> StepMotion:
         """A step measured by this camera, as the motion of the capsule body (front camera) frame."""
@@ -357,10 +380,18 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
     if not gaps:
         return {}
     out = {}
+    floor = lost_step_floor_m(task_base["radius_m"])
     for (a, b), total in zip(gaps, pair_motions(gaps, task_base, jobs, run_tasks)):
-        if total is not None:
-            for i, s in zip(range(a, b), split_motion(total, b - a)):
-                out[i] = s
+        if total is None:
+            continue
+        n_lost = sum(getattr(s, "status", s) in LOST_TO_MOTION for s in steps[a:b])
+        if float(np.linalg.norm(total.t_c1_c2_m)) < BRIDGE_MIN_LOST_SHARE * n_lost * floor:
+            log.info("gap of steps %d-%d not bridged: %.2f cm end to end, where %d of its steps were lost to motion "
+                     "(each at least %.2f cm)", a + 1, b, 100 * float(np.linalg.norm(total.t_c1_c2_m)), n_lost,
+                     100 * floor)
+            continue
+        for i, s in zip(range(a, b), split_motion(total, b - a)):
+            out[i] = s
     return out
 
 

@@ -20,7 +20,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.steps import LOST_STEP_QUANTILE, StepMotion, lost_to_motion
+from bodyslam.steps import LOST_STEP_QUANTILE, StepMotion, lost_step_floor_m, lost_to_motion
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length", "scale_path_variance",
            "segment_variance", "SCALE_CORR_M"]
@@ -83,7 +83,8 @@ def segment_variance(path_m: np.ndarray, var_m2: np.ndarray, j: int, k: int, sca
     return own + sv(path_m[k] - path_m[j])
 
 
-def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0,
+                   radius_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Path travelled from the first frame to each frame, and its variance: ``(path_m (n+1,), var_m2 (n+1,))``.
 
     The length of an estimated step is :func:`step_length`, with its own 1-sigma. A run of steps without an
@@ -93,20 +94,28 @@ def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0) -> tuple[
     percentile of the exam's estimated lengths instead: matching fails on the steps longer than it measures, so
     the neighbours' mean is biased low (realistic tuning seeds 503-509: the path's end -11% on average, 27% at
     worst; with the percentile -3% and 19%). Every missing step's 1-sigma is its length, and at least that
-    percentile (a step lost for another reason may have been as fast). The rule is the same forwards and
+    percentile (a step lost for another reason may have been as fast). That percentile is taken at least
+    :data:`~bodyslam.steps.LOST_STEP_FLOOR_R` lumen radii (``radius_m``, the radius the steps assumed; None: no
+    floor), the length at which matching loses about half of the steps: an exam whose estimated steps are few and
+    short (a rest after a fast phase) would otherwise fill its lost steps with nearly nothing, and state that
+    nothing as sure. The rule is the same forwards and
     backwards, so an exam's path does not depend on its frame order beyond the steps' own errors (tested on a
-    clip played backwards); with no estimated step at all the path is zero, with zero variance (nothing is known).
+    clip played backwards); with no estimated step at all the path is the lost steps at the floor, each step with the
+    floor as 1-sigma (zero with zero variance without a floor: nothing is known).
     """
     lv = np.array([step_length(s) for s in steps], float).reshape(-1, 2)
-    return path_from_lengths(lv[:, 0], lv[:, 1], scale_sd_rel, lost=np.array([lost_to_motion(s) for s in steps]))
+    return path_from_lengths(lv[:, 0], lv[:, 1], scale_sd_rel, lost=np.array([lost_to_motion(s) for s in steps]),
+                             radius_m=radius_m)
 
 
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
-                      corr_m: float = SCALE_CORR_M, lost: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      corr_m: float = SCALE_CORR_M, lost: np.ndarray | None = None,
+                      radius_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
     only these two numbers per step, and ``lost``: which steps were lost to motion,
     :func:`~bodyslam.steps.lost_to_motion`; None:
-    every missing step takes its neighbours' mean at a 1-sigma as large, the rule before session 22).
+    every missing step takes its neighbours' mean at a 1-sigma as large, the rule before session 22;
+    ``radius_m``: the floor of a lost step's length, :func:`~bodyslam.steps.lost_step_floor_m`).
     ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
     assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
     that share is taken out of the steps and added back as one error correlated along the path
@@ -118,9 +127,13 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
         var[ok] = np.maximum(var[ok] - (scale_sd_rel * length[ok]) ** 2, 0.0)
     n = len(length)
     est = np.isfinite(length)
-    if not est.any():
+    floor = lost_step_floor_m(radius_m) if lost is not None else 0.0
+    if not est.any():  # nothing measured: a lost step still moved at least the floor, the others are unknown
+        if floor > 0:
+            length, var = np.where(lost, floor, 0.0), np.full(n, floor**2)
+            return np.r_[0.0, np.cumsum(length)], np.r_[0.0, np.cumsum(var)]
         return np.zeros(n + 1), np.zeros(n + 1)
-    q_hi = float(np.percentile(length[est], LOST_STEP_QUANTILE)) if lost is not None else 0.0
+    q_hi = max(float(np.percentile(length[est], LOST_STEP_QUANTILE)), floor) if lost is not None else 0.0
     i = 0
     while i < n:
         if est[i]:

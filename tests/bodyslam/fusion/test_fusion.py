@@ -520,6 +520,18 @@ def test_a_rotation_step_turns_the_filter_and_takes_the_long_steps_length(demo):
     # the rotation step's turn is kept, not dropped: the two orientations differ by R5 seen through the later steps
     assert R5.magnitude() > 0.01
     assert (ref.R_w_c.inv() * dr.R_w_c).magnitude() == pytest.approx(R5.magnitude(), abs=1e-9)
+    # with the radius's floor (bodyslam.steps.lost_step_floor_m) above the percentile, the lost step takes the
+    # floor, and so does every missing step's 1-sigma; a step lost before any estimate moves forward by the floor
+    floor = 2.0 * q
+    t_f, sig_f, _ = process_noise(steps, lost_floor_m=floor)
+    assert np.allclose(t_f[5], t4 * floor / np.linalg.norm(t4)) and sig_f[5] == pytest.approx(floor)
+    assert np.allclose(process_noise(steps_miss, lost_floor_m=floor)[0][5], t4)  # not lost: the last step as it is
+    first_lost = [StepMotion.failed("lost")] + list(steps[1:])
+    t0, s0, _ = process_noise(first_lost, lost_floor_m=floor)
+    assert np.allclose(t0[0], [0.0, 0.0, floor]) and s0[0] == pytest.approx(max(floor, MISSING_SIGMA_T_MIN_M))
+    dr_f = DeadReckoner(floor)
+    dr_f.step(first_lost[0])
+    assert dr_f.path_m == pytest.approx(floor)
 
 
 def test_a_start_committed_far_off_is_turned_by_the_recheck_and_the_output_stays_causal(monkeypatch):

@@ -174,6 +174,39 @@ def test_gaps_are_found_between_estimated_steps_and_split_exactly():
     assert parts[0].sigma_distance_m == pytest.approx(2e-4)  # 4e-4 / sqrt(4): four independent shares
 
 
+def test_a_bridge_that_contradicts_its_steps_lost_to_motion_is_not_taken():
+    """A gap of six steps, four of them lost to motion (each at least 0.4 radii: 2 cm in all at a 1.25 cm radius):
+    an end-to-end motion of 0.6 cm says the capsule hardly moved, which the lost steps contradict (thesis tuning seed
+    510: 21 cm bridged as 0.6 cm, sure of it), and is not taken; one of 1.2 cm (above half of 2 cm) is. A gap
+    without lost steps takes any bridge."""
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.steps import StepMotion, StepStatus, lost_step_floor_m, motion_from_transform
+    from bodyslam.vision.odometry import BRIDGE_MIN_LOST_SHARE, MotionSettings, bridge_gaps
+
+    radius = 0.0125
+    ok = motion_from_transform(Rotation.identity(), np.array([0.0, 0.0, 0.002]), 50)
+    gap = ["lost", "rotation", "too_few_matches", "lost", "lost", "no_lumen"]
+    steps = [ok] + [StepMotion(status=StepStatus(g)) for g in gap] + [ok]
+    need = BRIDGE_MIN_LOST_SHARE * 4 * lost_step_floor_m(radius)
+    assert need == pytest.approx(0.01)
+
+    def bridged(length_m, statuses):
+        total = motion_from_transform(Rotation.identity(), np.array([0.0, 0.0, length_m]), 300)
+        class Frames:  # the gap's end frames are never read: run_tasks answers for the workers
+            def subset(self, a, b):
+                return None
+
+        return bridge_gaps(statuses, MotionSettings(), {"radius_m": radius, "source": Frames()},
+                           run_tasks=lambda func, tasks: [total for _ in tasks])
+
+    assert bridged(0.006, steps) == {}
+    assert sorted(bridged(0.012, steps)) == list(range(1, 7))
+    assert sorted(bridged(0.006, [s.status for s in steps])) == []  # the batch passes statuses
+    calm = [ok] + [StepMotion(status="too_few_matches")] * 6 + [ok]
+    assert sorted(bridged(0.001, calm)) == list(range(1, 7))
+
+
 def test_the_radius_error_adds_up_along_the_path_as_a_correlated_error():
     """Monte Carlo: 500 steps of 4 mm whose scale error is a Gauss-Markov process along the path (20% 1-sigma,
     0.2 m correlation distance). The variance of the path's length error matches ``scale_path_variance`` (within
@@ -222,6 +255,40 @@ def test_steps_lost_to_motion_take_the_long_steps_length_and_every_missing_step_
     assert back[-1] == pytest.approx(path[-1]) and vb[-1] == pytest.approx(v[-1])
     old, vo = path_from_lengths(length, var)
     assert old[-1] == pytest.approx(np.nansum(length) + 3e-3) and vo[-1] == pytest.approx(9e-8 + 3e-6)
-    # which steps count as lost to motion: rotation steps only (a failed match may be a dark or blurred frame)
+    # which steps count as lost to motion: rotation steps, and steps no match found between frames rich in
+    # features (a failed match between a blurred or featureless frame and the next may be a capsule at rest)
     assert lost_to_motion(rotation_step(Rotation.identity(), 90, 0.07))
+    assert lost_to_motion(StepMotion.failed(StepStatus.LOST))
     assert not lost_to_motion(StepMotion.failed(StepStatus.TOO_FEW_MATCHES))
+
+
+def test_a_lost_step_is_at_least_a_share_of_the_lumen_radius_long():
+    """A fast phase then a rest (an 18-frame clip measured it: 0.0 +- 0.01 cm for 12.9 cm travelled): the estimated
+    steps are few and near zero, so their 90th percentile says the lost steps were nothing. With the radius the
+    steps assumed, each lost step is at least LOST_STEP_FLOOR_R radii long, with that 1-sigma; a missing step that
+    is not lost keeps its neighbours' mean, with the floor as 1-sigma. Nothing measured at all: the lost steps at
+    the floor."""
+    from bodyslam.steps import LOST_STEP_FLOOR_R, lost_step_floor_m
+    from bodyslam.vision.tracking import path_from_lengths
+
+    radius = 0.0125
+    floor = LOST_STEP_FLOOR_R * radius
+    assert lost_step_floor_m(radius) == pytest.approx(floor) and lost_step_floor_m(None) == 0.0
+    length = np.r_[[np.nan] * 15, 1e-7, 1e-7]
+    lost = np.r_[[True] * 15, False, False]
+    lost[3] = False  # too few matches between a blurred frame and the next: not counted as lost
+    var = np.where(np.isfinite(length), 1e-12, 0.0)
+    no_floor, v0 = path_from_lengths(length, var, lost=lost)
+    assert no_floor[-1] < 1e-5  # the collapse the floor prevents
+    path, v = path_from_lengths(length, var, lost=lost, radius_m=radius)
+    assert path[-1] == pytest.approx(14 * floor + 1e-7 + 2e-7)  # step 3: the estimated neighbour's 1e-7
+    assert v[-1] == pytest.approx(15 * floor**2 + 2e-12)
+    back, vb = path_from_lengths(length[::-1], var[::-1], lost=lost[::-1], radius_m=radius)
+    assert back[-1] == pytest.approx(path[-1]) and vb[-1] == pytest.approx(v[-1])
+    none, vn = path_from_lengths(np.full(4, np.nan), np.zeros(4), lost=np.array([True, False, True, True]),
+                                 radius_m=radius)
+    assert none[-1] == pytest.approx(3 * floor) and vn[-1] == pytest.approx(4 * floor**2)
+    # long estimated steps: their percentile is above the floor and rules, as before
+    long = np.r_[np.full(10, 0.01), np.nan]
+    assert path_from_lengths(long, np.zeros(11), lost=np.r_[[False] * 10, True], radius_m=radius)[0][-1] == \
+        pytest.approx(0.11)
