@@ -17,9 +17,10 @@ Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which 
   :mod:`bodyslam.vision.guided`); roll, pitch, yaw, tilt and ``R_c1_c2`` are set, the distance and translation
   are NaN;
 - ``lost``: no estimate, and lost to motion: ordinary and guided matching both failed between two frames rich in
-  features (:data:`bodyslam.vision.odometry.LOST_MIN_KEYPOINTS_FRAC`), so the view changed too much to match --
-  the capsule moved far (a blurred, turbid or featureless frame keeps ``too_few_matches``: it may be a capsule at
-  rest);
+  features (:data:`bodyslam.vision.odometry.LOST_MIN_KEYPOINTS_FRAC`), with no more verified matches than
+  unrelated frames give (:data:`~bodyslam.vision.odometry.LOST_MAX_MATCHES`), so the view changed too much to
+  match -- the capsule moved far (a blurred, turbid or featureless frame keeps ``too_few_matches``: it may be a
+  capsule at rest; so do frames that overlap but verify too few matches to fit);
 - ``too_few_matches``, ``uncertain``, ``solver_failed``: the estimator gave no usable estimate;
 - ``no_lumen``: a frame of the pair is too dark or saturated to fit, or faces the wall and the step was not
   estimated (the thesis estimator's unrolling needs the lumen in view; ``--drop-wall-steps``);

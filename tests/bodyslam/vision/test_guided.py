@@ -166,25 +166,32 @@ def test_verifying_only_hypotheses_that_could_win_picks_what_verifying_all_would
     assert n_fast < len(guided.hypotheses(R_TUBE))  # and it verified fewer (20 hypotheses + the refinement)
 
 
-@pytest.mark.parametrize("n_keypoints, status", [(2000, "lost"), (300, "too_few_matches")])
-def test_a_failed_step_between_frames_rich_in_features_is_lost_to_motion(n_keypoints, status):
+@pytest.mark.parametrize("n_keypoints, n_shared, status", [(2000, 0, "lost"), (300, 0, "too_few_matches"),
+                                                           (2000, 15, "too_few_matches")])
+def test_a_failed_step_between_frames_rich_in_features_is_lost_to_motion(n_keypoints, n_shared, status):
     """Two frames with nothing in common (unrelated keypoints and descriptors): no match, no guided rotation. With
     as many keypoints as a real frame (870-2330 on real PillCam frames) the view changed: status ``lost``, a step
     the path counts as long; with as few as a blurred or featureless frame (80-180) it may be a capsule at rest:
-    ``too_few_matches``. The gap bridge asks for a full pose and never gets a ``lost`` step."""
+    ``too_few_matches``. Frames that share 15 wall points (verified beyond what unrelated frames give, too few to
+    fit) overlap: ``too_few_matches`` too. The gap bridge asks for a full pose and never gets a ``lost`` step."""
     from bodyslam.steps import lost_to_motion
-    from bodyslam.vision.odometry import LOST_MIN_KEYPOINTS_FRAC
+    from bodyslam.vision.odometry import LOST_MAX_MATCHES, LOST_MIN_KEYPOINTS_FRAC
 
     rng = np.random.default_rng(4)
+    shared = synth_matches(tube_points(400, rng, s_range=(0.004, 0.04)), R_TRUE, np.array([0.0, 0.0, 0.002]))
+    idx = rng.choice(len(shared), n_shared, replace=False)
+    desc_shared = rng.normal(0.0, 40.0, (n_shared, 128))
     feats = []
-    for _ in range(2):
+    for pts_shared in (shared.pts1_px[idx], shared.pts2_px[idx]):
         f = FrameFeatures(np.zeros((CAM.height, CAM.width), np.uint8), np.zeros((CAM.height, CAM.width), np.uint8))
-        pts = CAM.cx + rng.uniform(-0.3, 0.3, (n_keypoints, 2)) * CAM.width
-        f.kp = (pts, rng.normal(0.0, 40.0, (n_keypoints, 128)).astype(np.float32))
+        pts = np.r_[pts_shared, CAM.cx + rng.uniform(-0.3, 0.3, (n_keypoints - n_shared, 2)) * CAM.width]
+        desc = np.r_[desc_shared, rng.normal(0.0, 40.0, (n_keypoints - n_shared, 128))]
+        f.kp = (pts, desc.astype(np.float32))
         feats.append(f)
     vo = VisualOdometry(CAM, MotionSettings(classify=False), R_TUBE)
-    assert (n_keypoints >= LOST_MIN_KEYPOINTS_FRAC * vo.matcher.max_features) == (status == "lost")
+    assert (n_keypoints >= LOST_MIN_KEYPOINTS_FRAC * vo.matcher.max_features) == (n_keypoints == 2000)
     s = vo.estimate_pair(*feats)
+    assert (s.n_matches > LOST_MAX_MATCHES) == (n_shared > 0)  # the premise: shared points verify, chance does not
     assert s.status == status and lost_to_motion(s) == (status == "lost")
     assert not s.has_rotation and math.isnan(s.distance_m)
     assert vo.estimate_pair(*feats, rotation=False).status == "too_few_matches"
