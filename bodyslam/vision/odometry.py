@@ -181,7 +181,10 @@ class VisualOdometry:
         (:meth:`~bodyslam.vision.matching.Matcher.cascade`) the estimate succeeds on: in fast mode tracking, then
         coarse descriptors, then descriptors, so the cheap tries never cost coverage. A step the tube fit still
         fails on gets its rotation by guided matching where it can (status ``rotation``,
-        :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off: not tried).
+        :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off: not tried), and
+        one that stays without an estimate is ``lost`` to motion when both frames are rich in features and the pair
+        verified no more matches than unrelated frames give (:data:`LOST_MIN_KEYPOINTS_FRAC`,
+        :data:`LOST_MAX_MATCHES`; not with ``rotation=False``: the gap bridge wants a pose or nothing).
         ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). The step is in the
         body frame (:meth:`to_body`)."""
         estimator = estimator or self.settings.estimator
