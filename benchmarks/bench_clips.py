@@ -55,6 +55,9 @@ def main() -> None:
     L, starts = args.frames, [int(x) for x in args.starts.split(",")]
     results = []
     for seq in args.seqdirs:
+        if not (seq / "motion_truth.csv").is_file() or not (seq / "frames").is_dir():
+            raise SystemExit(f"{seq}: not a rendered sequence with its frames (needs frames/ and motion_truth.csv; "
+                             f"testbed evaluate --keep-frames or testbed simulate writes them)")
         truth = list(csv.DictReader(open(seq / "motion_truth.csv", newline="")))
         frames = sorted((seq / "frames").iterdir())
         for a in starts:
