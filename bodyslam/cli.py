@@ -502,6 +502,9 @@ def _localize(args) -> int:
 
     import numpy as np
 
+    import math
+
+    from bodyslam.errors import ConfigError
     from bodyslam.io import prepare_output_dir, read_motion_steps, write_motion_csv
     from bodyslam.fusion.localize import RfInput, localize, write_localization
     from bodyslam.meta import read_meta
@@ -517,11 +520,13 @@ def _localize(args) -> int:
     problems: list = []
     fov: list = []
     if args.motion:  # the steps are given: meta.json is all that is read of the sequence (no frames needed)
+        if args.radius_m is not None and not (math.isfinite(args.radius_m) and args.radius_m > 0):
+            raise ConfigError(f"lumen radius must be a positive number of metres, got {args.radius_m!r}")
         n, rate = meta.n_frames, meta.frame_rate_hz
-        told = meta.tube_radius_m if args.radius_m is None else None  # a radius on the command line has no spread
-        radius_sd_rel = meta.tube_radius_sd_m / told if told else 0.0
-        steps = read_motion_steps(args.motion, range(1, n))
         radius_m = meta.tube_radius_m if args.radius_m is None else args.radius_m
+        # a radius on the command line has no spread
+        radius_sd_rel = meta.radius_sd_rel if args.radius_m is None else 0.0
+        steps = read_motion_steps(args.motion, range(1, n))
     else:
         seq = Sequence.open(seq_dir, args.radius_m)
         n, rate, radius_sd_rel, radius_m = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel, seq.radius_m

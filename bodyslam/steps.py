@@ -207,3 +207,8 @@ class StepLengths:
         v = self.LO_M * (self.HI_M / self.LO_M) ** ((min(b, self.BINS - 1) + 0.5) / self.BINS)
         self._cached = (self.n, q, v)
         return v
+
+    def lost_length_m(self, floor_m: float = 0.0) -> float:
+        """The least length (m) of a step lost to motion: the lengths so far at :data:`LOST_STEP_QUANTILE`, and at
+        least ``floor_m`` (:func:`lost_step_floor_m`; 0 before any length and without a floor)."""
+        return max(self.percentile(LOST_STEP_QUANTILE), floor_m)

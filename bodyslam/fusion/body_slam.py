@@ -42,7 +42,7 @@ from bodyslam.errors import InputError
 from bodyslam.geometry import matrix_to_rotvec, rotvec_to_matrix
 from bodyslam.fusion.orientation_search import SearchResult, search_orientation
 from bodyslam.fusion.rf import Fix, PathLossModel
-from bodyslam.steps import LOST_STEP_QUANTILE, StepLengths, StepMotion
+from bodyslam.steps import StepLengths, StepMotion
 from bodyslam.vision.tracking import SCALE_CORR_M
 
 __all__ = ["FusionSettings", "FusionResult", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
@@ -154,7 +154,7 @@ class DeadReckoner:
         return Rotation.from_matrix(self.R_w_c_matrix)
 
     def step(self, s: StepMotion) -> None:
-        long_m = 0.0 if s.has_estimate else max(self._lengths.percentile(LOST_STEP_QUANTILE), self.lost_floor_m)
+        long_m = 0.0 if s.has_estimate else self._lengths.lost_length_m(self.lost_floor_m)
         t_s, sig_t, sig_r = step_noise(s, self._last_t, long_m=long_m)
         if s.has_estimate:
             self._last_t = t_s

@@ -49,7 +49,7 @@ from bodyslam.choices import FUSION_MODES
 from bodyslam.errors import InputError
 from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.geometry import rotvec_to_matrix
-from bodyslam.steps import LOST_STEP_QUANTILE, StepLengths, StepMotion, lost_to_motion
+from bodyslam.steps import StepLengths, StepMotion, lost_to_motion
 from bodyslam.vision.tracking import SCALE_CORR_M
 
 __all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "FilterPasses", "with_orientation_sigma",
@@ -61,7 +61,8 @@ Z_GATE_999 = 3.29  # per-reading two-sided 99.9% gate on a normalised RSS innova
 GUARD_FIX_COV_SCALE, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD = 4.0, 0.05, np.radians(10.0)
 # process-noise floors of an estimated step (the fit's own 1-sigma can be optimistic) and the rule for a step
 # without an estimate: the last estimated translation again (constant velocity), 1-sigma its own size (>= 3 mm);
-# a step lost to motion at least as long as the steps so far at their LOST_STEP_QUANTILE (step_noise)
+# a step lost to motion at least as long as the steps so far at their LOST_STEP_QUANTILE and the radius's floor
+# (step_noise)
 SIGMA_T_FLOOR_M, SIGMA_R_FLOOR_RAD = 3e-4, np.radians(0.2)
 MISSING_SIGMA_T_MIN_M, MISSING_SIGMA_R_RAD = 3e-3, np.radians(5.0)
 
@@ -116,8 +117,8 @@ def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0,
     """The process rule for one step: ``(translation applied, 1-sigma translation m, 1-sigma rotation rad)``;
     a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity), and so does a
     ``rotation`` step, with its own rotation 1-sigma (its translation is unknown). ``long_m``: the estimated steps
-    so far at their :data:`~bodyslam.steps.LOST_STEP_QUANTILE` (:class:`~bodyslam.steps.StepLengths`; 0: not
-    used). A step lost to motion (:func:`~bodyslam.steps.lost_to_motion`: matching loses the long steps) is
+    so far at their :data:`~bodyslam.steps.LOST_STEP_QUANTILE`, at least the lumen radius's floor
+    (:meth:`~bodyslam.steps.StepLengths.lost_length_m`; 0: not used). A step lost to motion (:func:`~bodyslam.steps.lost_to_motion`: matching loses the long steps) is
     ``last_t`` stretched to at least that length, and every step without an estimate has at least that 1-sigma
     (the path travelled's rule, :func:`bodyslam.vision.tracking.path_from_lengths`, made causal). With a scale
     state (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
@@ -149,7 +150,7 @@ def process_noise(steps: list[StepMotion], scale_sd_rel: float = 0.0,
     last_t = np.zeros(3)
     lengths = StepLengths()
     for k, s in enumerate(steps):
-        long_m = 0.0 if s.has_estimate else max(lengths.percentile(LOST_STEP_QUANTILE), lost_floor_m)
+        long_m = 0.0 if s.has_estimate else lengths.lost_length_m(lost_floor_m)
         t_out[k], sig_t[k], sig_r[k] = step_noise(s, last_t, scale_sd_rel, long_m)
         if s.has_estimate:
             last_t = t_out[k]

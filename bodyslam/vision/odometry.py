@@ -394,10 +394,10 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
         if total is None:
             continue
         n_lost = sum(getattr(s, "status", s) in LOST_TO_MOTION for s in steps[a:b])
-        if float(np.linalg.norm(total.t_c1_c2_m)) < BRIDGE_MIN_LOST_SHARE * n_lost * floor:
+        length_m = float(np.linalg.norm(total.t_c1_c2_m))
+        if length_m < BRIDGE_MIN_LOST_SHARE * n_lost * floor:
             log.info("gap of steps %d-%d not bridged: %.2f cm end to end, where %d of its steps were lost to motion "
-                     "(each at least %.2f cm)", a + 1, b, 100 * float(np.linalg.norm(total.t_c1_c2_m)), n_lost,
-                     100 * floor)
+                     "(each at least %.2f cm)", a + 1, b, 100 * length_m, n_lost, 100 * floor)
             continue
         for i, s in zip(range(a, b), split_motion(total, b - a)):
             out[i] = s

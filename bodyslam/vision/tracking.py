@@ -98,10 +98,10 @@ def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0,
     :data:`~bodyslam.steps.LOST_STEP_FLOOR_R` lumen radii (``radius_m``, the radius the steps assumed; None: no
     floor), the length at which matching loses about half of the steps: an exam whose estimated steps are few and
     short (a rest after a fast phase) would otherwise fill its lost steps with nearly nothing, and state that
-    nothing as sure. The rule is the same forwards and
-    backwards, so an exam's path does not depend on its frame order beyond the steps' own errors (tested on a
-    clip played backwards); with no estimated step at all the path is the lost steps at the floor, each step with the
-    floor as 1-sigma (zero with zero variance without a floor: nothing is known).
+    nothing as sure. The rule is the same forwards and backwards, so an exam's path does not depend on its frame
+    order beyond the steps' own errors (tested on a clip played backwards); with no estimated step at all the path
+    is the lost steps at the floor, each step with the floor as 1-sigma (zero with zero variance without a floor:
+    nothing is known).
     """
     lv = np.array([step_length(s) for s in steps], float).reshape(-1, 2)
     return path_from_lengths(lv[:, 0], lv[:, 1], scale_sd_rel, lost=np.array([lost_to_motion(s) for s in steps]),
@@ -113,9 +113,9 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
                       radius_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
     only these two numbers per step, and ``lost``: which steps were lost to motion,
-    :func:`~bodyslam.steps.lost_to_motion`; None:
-    every missing step takes its neighbours' mean at a 1-sigma as large, the rule before session 22;
-    ``radius_m``: the floor of a lost step's length, :func:`~bodyslam.steps.lost_step_floor_m`).
+    :func:`~bodyslam.steps.lost_to_motion`; None: every missing step takes its neighbours' mean at a 1-sigma as
+    large, the rule before session 22; ``radius_m``: the floor of a lost step's length,
+    :func:`~bodyslam.steps.lost_step_floor_m`).
     ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
     assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
     that share is taken out of the steps and added back as one error correlated along the path

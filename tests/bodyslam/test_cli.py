@@ -63,6 +63,10 @@ def test_exit_codes_done_problems_unusable(tmp_path):
     assert p.returncode == 3, p.stdout + p.stderr
     assert (tmp_path / "b" / seq.name / "mask.png").is_file()
     # unusable input: 1, one line, and a failed run leaves no output directory behind
+    p = run("localize", str(seq), "--out", str(tmp_path / "loc3"), "--motion", str(tmp_path / "loc" / "motion.csv"),
+            "--radius-m", "-0.01")
+    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "positive" in p.stderr
+    assert not (tmp_path / "loc3").exists()
     (seq / "rf.csv").write_text("t,sensor,rss_dbm\n")
     p = run("localize", str(seq), "--out", str(tmp_path / "loc2"), "--motion", str(tmp_path / "loc" / "motion.csv"))
     assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "RF" in p.stderr
