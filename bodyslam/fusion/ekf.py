@@ -118,11 +118,12 @@ def step_noise(s: StepMotion, last_t: np.ndarray, scale_sd_rel: float = 0.0,
     a step without an estimate repeats ``last_t`` (the last estimated step: constant velocity), and so does a
     ``rotation`` step, with its own rotation 1-sigma (its translation is unknown). ``long_m``: the estimated steps
     so far at their :data:`~bodyslam.steps.LOST_STEP_QUANTILE`, at least the lumen radius's floor
-    (:meth:`~bodyslam.steps.StepLengths.lost_length_m`; 0: not used). A step lost to motion (:func:`~bodyslam.steps.lost_to_motion`: matching loses the long steps) is
-    ``last_t`` stretched to at least that length, and every step without an estimate has at least that 1-sigma
-    (the path travelled's rule, :func:`bodyslam.vision.tracking.path_from_lengths`, made causal). With a scale
-    state (``scale_sd_rel > 0``) the radius's part of the step's 1-sigma
-    (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`) is taken out: the state carries it."""
+    (:meth:`~bodyslam.steps.StepLengths.lost_length_m`; 0: not used). A step lost to motion
+    (:func:`~bodyslam.steps.lost_to_motion`: matching loses the long steps) is ``last_t`` stretched to at least
+    that length, and every step without an estimate has at least that 1-sigma (the path travelled's rule,
+    :func:`bodyslam.vision.tracking.path_from_lengths`, made causal). With a scale state (``scale_sd_rel > 0``)
+    the radius's part of the step's 1-sigma (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`) is taken
+    out: the state carries it."""
     if s.has_estimate:
         t = np.asarray(s.t_c1_c2_m, float)
         sig = s.sigma_t_m
