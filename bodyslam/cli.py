@@ -97,6 +97,9 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--no-rotation-steps", action="store_true",
                        help="do not measure the rotation alone of a step the tube fit fails on (fast steps; by "
                             "default guided matching measures it: status rotation, distance unknown)")
+        q.add_argument("--no-rescue", action="store_true",
+                       help="fast mode: do not try SIFT on the full frame where tracking and the smaller detections "
+                            "fail (faster on fast motion, fewer steps estimated)")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
                        help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
@@ -219,7 +222,7 @@ def _motion_settings(args):
                           mask=getattr(args, "mask", None) if args.cmd != "batch" else None,
                           classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps,
                           wall_steps="drop" if args.drop_wall_steps else "estimate",
-                          rotation_steps=not args.no_rotation_steps)
+                          rotation_steps=not args.no_rotation_steps, rescue=not args.no_rescue)
 
 
 def _print_problems(problems: list, limit: int = 20) -> int:

@@ -81,7 +81,7 @@ def descriptor_distances(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
 
 def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray,
                    params: np.ndarray, camera: CameraModel, radius_m: float, window_rad: float,
-                   min_sep_px: float = 2.0) -> Matches:
+                   min_sep_px: float = 2.0, level: str = "default") -> Matches:
     """Verified matches under the motion ``params``: each frame-1 keypoint (``pts1``) takes the nearest
     descriptor (``dist12``: :func:`descriptor_distances`) among the frame-2 keypoints (``pts2``, in ``tree``)
     within ``window_rad`` (x the camera's focal length in pixels) of its predicted position, if that passes the
@@ -89,7 +89,7 @@ def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: c
     p1, p2 = guided_candidates(pts1, pts2, tree, dist12, params, camera, radius_m, window_rad, min_sep_px)
     if len(p1) == 0:
         return Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
-    return matcher.verify(p1, p2)
+    return matcher.verify(p1, p2, level)
 
 
 def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray, params: np.ndarray,
@@ -134,17 +134,19 @@ def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12:
 def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: float,
                       start: np.ndarray | None = None) -> StepMotion | None:
     """The rotation of a step the ordinary matches could not fit (module docstring), as a step with status
-    ``rotation``; None when guided matching finds fewer than :data:`MIN_GUIDED_MATCHES` (the matcher mode's).
-    ``start``: the ordinary fit's 10-vector, when there was one (an ``uncertain`` step), tried beside the
-    hypotheses."""
-    min_matches = MIN_GUIDED_MATCHES[matcher.mode]
-    (pts1, d1), (pts2, d2) = matcher.keypoints(f1), matcher.keypoints(f2)
+    ``rotation``; None when guided matching finds fewer than :data:`MIN_GUIDED_MATCHES` (the matcher mode's; in
+    fast mode with its rescue, :attr:`~bodyslam.vision.matching.Matcher.rescue`, the keypoints are the rescue's
+    full-frame ones, ``sift`` mode's budget, and so is the threshold). ``start``: the ordinary fit's 10-vector,
+    when there was one (an ``uncertain`` step), tried beside the hypotheses."""
+    level = "full" if matcher.rescue else "default"
+    min_matches = MIN_GUIDED_MATCHES["sift" if level == "full" else matcher.mode]
+    (pts1, d1), (pts2, d2) = matcher.keypoints(f1, level), matcher.keypoints(f2, level)
     if d1 is None or d2 is None or len(pts1) < min_matches or len(pts2) < min_matches:
         return None
     tree, dist12 = cKDTree(pts2), descriptor_distances(d1, d2)
 
     def matches(x, window_rad):
-        return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad)
+        return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad, level=level)
 
     starts = ([] if start is None else [np.asarray(start, float)]) + hypotheses(radius_m)
     # The first hypothesis (in the order above) with the most verified matches. Verification (a RANSAC per
@@ -156,7 +158,7 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
         n = len(cands[h][0])
         if n == 0 or n < len(best) or (n == len(best) and h > best_h):
             break
-        m = matcher.verify(*cands[h])
+        m = matcher.verify(*cands[h], level=level)
         if len(m) > len(best) or (len(m) == len(best) and h < best_h):
             best, best_h = m, h
     _, x = fit_tube(best, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf, start="rotation")

@@ -17,7 +17,12 @@ Modes
   detection time), at most 800 keypoints, at most 200 matches to verify (:meth:`Matcher.cascade`). The 0.5 try
   costs ~30 ms per pair against ~75 for 0.7 (both frames' detection, matching, fit; one core) and fits all 25
   of the 250 first whole-exam pairs tracking fails on (distance error 0.0067 cm against 0.0059); on thesis
-  motion it fits fewer and 0.7 follows (README).
+  motion it fits fewer and 0.7 follows (README). Where those fail too, the *rescue* (``rescue``, on by default):
+  SIFT on the full frame, at most :data:`RESCUE_FEATURES` = 3000 keypoints, FLANN, at most 400 matches to verify
+  (``sift`` mode's budget), and guided matching (:mod:`bodyslam.vision.guided`) on those keypoints. It costs only
+  the pairs the cheaper tries fail on, and gives fast mode ``sift`` mode's coverage on fast motion (realistic
+  tuning seeds 504-506, 200 frames each: steps with an estimate 64 / 61 / 63% -> 65 / 70 / 70%, ``sift`` 68 / 71 /
+  69%; steps lost to motion 132 -> 65; thesis seed 7: 80.9 -> 85.6%, ``asift`` 83%; docs/RESULTS.md).
   Cheaper detectors were measured on a thesis frame pair (420x420) and fail on capsule motion:
   ORB found 13-17 verified matches of 1500 keypoints; pyramidal Lucas-Kanade kept 44 of 600 corners in the image
   and 22 of 400 in the unrolled image (a capsule rolls ~8 degrees and the near wall's angular depth jumps by up to
@@ -65,6 +70,11 @@ ASIFT_VIEWS = ("compact", "standard")
 MODE_DEFAULTS = {"asift": (0.85, 3000, 400), "sift": (1.0, 3000, 400), "fast": (0.7, 800, 200)}
 # fast mode's first SIFT try: detection on the frame scaled by 0.5, before ``detect_scale`` (module docstring)
 COARSE_SCALE = 0.5
+# fast mode's rescue, its last try where the cheaper ones fail (module docstring): SIFT on the full frame, at most
+# as many keypoints and matches to verify as ``sift`` mode
+RESCUE_FEATURES, RESCUE_MATCHES = MODE_DEFAULTS["sift"][1:]
+# keypoint levels and where a frame keeps each (:meth:`Matcher.keypoints`)
+LEVELS = {"default": "kp", "coarse": "kp_coarse", "full": "kp_full"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,6 +98,7 @@ class FrameFeatures:
     kp: tuple[np.ndarray, np.ndarray | None] | None = None
     corners: np.ndarray | None = None
     kp_coarse: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's first SIFT try (COARSE_SCALE)
+    kp_full: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's last try (full size, RESCUE_FEATURES)
 
 
 MIN_OVERLAY_PIXELS = 16  # a constant blob inside the field smaller than this is a speck, not burned-in text
@@ -188,12 +199,13 @@ class Matcher:
         subset); ``None``: the mode's default (``MODE_DEFAULTS``).
     asift_views, asift_max_tilt : ASIFT's simulated views (module docstring): ``compact`` or ``standard`` (tilts
         up to ``asift_max_tilt``).
+    rescue : fast mode's last try where the cheaper ones fail (module docstring); ignored in other modes.
     """
 
     def __init__(self, camera: CameraModel, mode: str = "asift", mask: np.ndarray | None = None,
                  ratio: float = 0.8, ransac_deg: float = 0.5, border_px: int = 4, asift_max_tilt: float = 1.42,
                  max_matches: int | None = None, max_features: int | None = None,
-                 detect_scale: float | None = None, asift_views: str = "compact"):
+                 detect_scale: float | None = None, asift_views: str = "compact", rescue: bool = True):
         if mode not in MATCH_MODES:
             raise ConfigError(f"match mode must be one of {MATCH_MODES}, got {mode!r}")
         d_scale, d_feat, d_match = MODE_DEFAULTS[mode]
@@ -229,8 +241,10 @@ class Matcher:
         else:
             self._det = cv2.SIFT_create(contrastThreshold=0.01)
         self._flann = mode == "asift"
-        self._bf = (cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32)) if self._flann
-                    else cv2.BFMatcher(cv2.NORM_L2))
+        self._bf = cv2.BFMatcher(cv2.NORM_L2)
+        self._flann_matcher = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
+        # fast mode's last try (:data:`RESCUE_FEATURES`), where tracking and the smaller detections fail
+        self.rescue = mode == "fast" and rescue
         # fast mode tracks first (module docstring): at most lk_corners corners, forward-backward check
         self.lk_corners, self.lk_fb_px, self.lk_min_matches = 300, 0.5, 60
         # 11 x 11 windows, 2 pyramid levels: 3.3 ms per exam pair instead of 5.0 (15 x 15, 3 levels); pairs
@@ -259,16 +273,20 @@ class Matcher:
         size = (max(1, round(m8.shape[1] * scale)), max(1, round(m8.shape[0] * scale)))
         return cv2.resize(m8, size, interpolation=cv2.INTER_NEAREST)
 
-    def keypoints(self, f: "FrameFeatures", coarse: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(pts_px (n, 2), descriptors)`` of a frame, detected once: on the frame scaled by ``detect_scale``,
-        or (``coarse``, fast mode) by :data:`COARSE_SCALE`."""
-        if coarse and self._mask_coarse is None:
-            raise ConfigError(f"coarse keypoints are fast mode's, this matcher is {self.mode!r}")
-        cached = f.kp_coarse if coarse else f.kp
+    def keypoints(self, f: "FrameFeatures", level: str = "default") -> tuple[np.ndarray, np.ndarray | None]:
+        """``(pts_px (n, 2), descriptors)`` of a frame, detected once per level: ``default``, on the frame scaled
+        by ``detect_scale``; fast mode's ``coarse`` (:data:`COARSE_SCALE`) and ``full`` (the full frame, at most
+        :data:`RESCUE_FEATURES` keypoints)."""
+        if level not in LEVELS:
+            raise ConfigError(f"keypoint level must be one of {LEVELS}, got {level!r}")
+        if level != "default" and self.mode != "fast":
+            raise ConfigError(f"{level} keypoints are fast mode's, this matcher is {self.mode!r}")
+        attr = LEVELS[level]
+        cached = getattr(f, attr)
         if cached is not None:
             return cached
         gray = f.gray
-        small_mask = self._mask_coarse if coarse else self._mask_small
+        small_mask = {"coarse": self._mask_coarse, "full": self.mask}.get(level, self._mask_small)
         if small_mask.shape != self.mask.shape:
             small = cv2.resize(gray, small_mask.shape[::-1], interpolation=cv2.INTER_AREA)
             kp, desc = self._det.detectAndCompute(small, small_mask)
@@ -287,19 +305,18 @@ class Matcher:
             if not inside.all():
                 keep = np.nonzero(inside)[0]
                 kp, desc = [kp[i] for i in keep], desc[keep]
-        if len(kp) > self.max_features:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
-            keep = np.argsort([-k.response for k in kp], kind="stable")[: self.max_features]
+        cap = RESCUE_FEATURES if level == "full" else self.max_features
+        if len(kp) > cap:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
+            keep = np.argsort([-k.response for k in kp], kind="stable")[:cap]
             kp, desc = [kp[i] for i in keep], desc[keep]
         out = (np.array([k.pt for k in kp], np.float64).reshape(-1, 2), desc)
-        if coarse:
-            f.kp_coarse = out
-        else:
-            f.kp = out
+        setattr(f, attr, out)
         return out
 
     def match_features(self, f1: "FrameFeatures", f2: "FrameFeatures", method: str | None = None) -> Matches:
         """Verified matches from frame 1 to frame 2. ``method``: ``"lk"`` (tracking), ``"descriptors"``,
-        ``"coarse"`` (fast mode: descriptors detected at :data:`COARSE_SCALE`), or ``None``: the mode's first
+        ``"coarse"`` (fast mode: descriptors detected at :data:`COARSE_SCALE`), ``"full"`` (fast mode's rescue: on
+        the full frame, :data:`RESCUE_FEATURES`), or ``None``: the mode's first
         choice (fast: tracking, then descriptors when tracking verifies too few)."""
         if method is None:
             if self.mode == "fast":
@@ -309,21 +326,22 @@ class Matcher:
             method = "descriptors"
         if method == "lk":
             return self._track(f1, f2)
-        if method not in ("descriptors", "coarse"):
-            raise ConfigError(f"match method must be 'lk', 'coarse' or 'descriptors', got {method!r}")
-        coarse = method == "coarse"
-        (pts1, d1), (pts2, d2) = self.keypoints(f1, coarse), self.keypoints(f2, coarse)
+        if method not in ("descriptors", "coarse", "full"):
+            raise ConfigError(f"match method must be 'lk', 'coarse', 'descriptors' or 'full', got {method!r}")
+        level = "default" if method == "descriptors" else method
+        (pts1, d1), (pts2, d2) = self.keypoints(f1, level), self.keypoints(f2, level)
         if d1 is None or d2 is None or len(pts1) < 2 or len(pts2) < 2:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
-        q, t = self._ratio_matches(d1, d2, pts2)
+        q, t = self._ratio_matches(d1, d2, pts2, flann=self._flann or level == "full")
         if len(q) == 0:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0)
         p1, p2 = pts1[q], pts2[t]
         # one match per point of frame 2 (ASIFT finds the same point in several views)
         _, keep = np.unique(np.round(p2, 1), axis=0, return_index=True)
         p1, p2 = p1[np.sort(keep)], p2[np.sort(keep)]
-        if len(p1) > self.max_matches:  # an even, deterministic subset: enough for a 10-parameter fit
-            sel = np.linspace(0, len(p1) - 1, self.max_matches).astype(int)
+        cap = RESCUE_MATCHES if level == "full" else self.max_matches
+        if len(p1) > cap:  # an even, deterministic subset: enough for a 10-parameter fit
+            sel = np.linspace(0, len(p1) - 1, cap).astype(int)
             p1, p2 = p1[sel], p2[sel]
         n_cand = len(p1)
         inl = self._verify(p1, p2)
@@ -332,7 +350,8 @@ class Matcher:
     def cascade(self, f1: "FrameFeatures", f2: "FrameFeatures") -> Iterator[Matches]:
         """The matches to try for a pair, cheapest first; the caller stops at the first its estimator accepts.
         Fast mode: the Lucas-Kanade tracks (when at least ``lk_min_matches`` verify), then descriptors detected
-        at :data:`COARSE_SCALE`, then at ``detect_scale`` (module docstring); other modes: their descriptors."""
+        at :data:`COARSE_SCALE`, then at ``detect_scale``, then (``rescue``) on the full frame (module docstring);
+        other modes: their descriptors."""
         if self.mode != "fast":
             yield self.match_features(f1, f2, "descriptors")
             return
@@ -341,15 +360,18 @@ class Matcher:
             yield m
         yield self.match_features(f1, f2, "coarse")
         yield self.match_features(f1, f2, "descriptors")
+        if self.rescue:
+            yield self.match_features(f1, f2, "full")
 
     def match(self, rgb1: np.ndarray, rgb2: np.ndarray) -> Matches:
         return self.match_features(self.features(rgb1), self.features(rgb2))
 
-    def verify(self, p1: np.ndarray, p2: np.ndarray) -> Matches:
+    def verify(self, p1: np.ndarray, p2: np.ndarray, level: str = "default") -> Matches:
         """The matches ``p1 -> p2`` (pixels) that a RANSAC essential matrix keeps (at most ``max_matches``, an
-        even subset, are tried)."""
-        if len(p1) > self.max_matches:
-            sel = np.linspace(0, len(p1) - 1, self.max_matches).astype(int)
+        even subset, are tried; :data:`RESCUE_MATCHES` for matches of ``full`` keypoints)."""
+        cap = RESCUE_MATCHES if level == "full" else self.max_matches
+        if len(p1) > cap:
+            sel = np.linspace(0, len(p1) - 1, cap).astype(int)
             p1, p2 = p1[sel], p2[sel]
         inl = self._verify(p1, p2)
         return Matches(p1[inl], p2[inl], len(p1))
@@ -387,10 +409,10 @@ class Matcher:
         return Matches(a[inl], b[inl], len(a), "lk")
 
     def _ratio_matches(self, d1: np.ndarray, d2: np.ndarray, pts2: np.ndarray, k: int = 4,
-                       min_sep_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+                       min_sep_px: float = 2.0, flann: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Indices ``(query, train)`` passing the ratio test against the nearest neighbour that is a different
         point of frame 2 (more than ``min_sep_px`` away); a match with no such neighbour among ``k`` passes."""
-        idx, dist = self._knn(d1, d2, k)
+        idx, dist = self._knn(d1, d2, k, flann)
         have = idx[:, 0] >= 0
         idx, dist = idx[have], dist[have]
         query = np.nonzero(have)[0]
@@ -405,12 +427,13 @@ class Matcher:
         good = dist[:, 0] < self.ratio * second
         return query[good], idx[good, 0]
 
-    def _knn(self, d1: np.ndarray, d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(idx, dist)`` ``(n1, k)`` of each descriptor's ``k`` nearest in ``d2``; -1 / inf where fewer."""
+    def _knn(self, d1: np.ndarray, d2: np.ndarray, k: int, flann: bool) -> tuple[np.ndarray, np.ndarray]:
+        """``(idx, dist)`` ``(n1, k)`` of each descriptor's ``k`` nearest in ``d2`` (``flann``: FLANN's kd-trees,
+        else brute force); -1 / inf where fewer."""
         k = min(k, len(d2))
-        if self._flann:
+        if flann:
             cv2.setRNGSeed(0x5EED)  # FLANN's random trees: the same for every pair (module docstring)
-        knn = self._bf.knnMatch(d1, d2, k=k)
+        knn = (self._flann_matcher if flann else self._bf).knnMatch(d1, d2, k=k)
         idx = np.full((len(knn), k), -1, np.int64)
         dist = np.full((len(knn), k), np.inf)
         for i, ms in enumerate(knn):

@@ -99,6 +99,8 @@ class MotionSettings:
     #                        end frames directly (0: off); see README "gap bridging"
     rotation_steps: bool = True  # a step the tube fit fails on (too few matches, uncertain) gets its rotation by
     #                              guided matching when it can (status rotation; bodyslam.vision.guided)
+    rescue: bool = True  # fast mode: where tracking and the smaller detections fail, SIFT on the full frame
+    #                      (bodyslam.vision.matching, "rescue"); off: such a step fails as before session 24
 
     def __post_init__(self) -> None:
         for name, allowed in (("match_mode", MATCH_MODES), ("estimator", ESTIMATORS), ("unroll_mode", UNROLL_MODES)):
@@ -152,7 +154,7 @@ class VisualOdometry:
         if not (isinstance(radius_m, (int, float)) and math.isfinite(radius_m) and radius_m > 0):
             raise ConfigError(f"lumen radius must be a positive number of metres, got {radius_m!r}")
         self.camera, self.settings, self.radius_m = camera, settings, float(radius_m)
-        self.matcher = Matcher(camera, settings.match_mode, mask=mask)
+        self.matcher = Matcher(camera, settings.match_mode, mask=mask, rescue=settings.rescue)
         self.unroller = Unroller(camera, mode=settings.unroll_mode) if settings.estimator == "thesis" else None
         self.fov = camera.fov_mask() if mask is None else mask
         self.classifier = None
@@ -179,8 +181,8 @@ class VisualOdometry:
     def estimate_pair(self, f1, f2, estimator: str | None = None, rotation: bool = True) -> StepMotion:
         """Match two frames' features and estimate the step from the first matches of the matcher's cascade
         (:meth:`~bodyslam.vision.matching.Matcher.cascade`) the estimate succeeds on: in fast mode tracking, then
-        coarse descriptors, then descriptors, so the cheap tries never cost coverage. A step the tube fit still
-        fails on gets its rotation by guided matching where it can (status ``rotation``,
+        coarse descriptors, then descriptors, then the full-frame rescue, so the cheap tries never cost coverage. A
+        step the tube fit still fails on gets its rotation by guided matching where it can (status ``rotation``,
         :mod:`bodyslam.vision.guided`; ``rotation=False`` or ``MotionSettings.rotation_steps`` off: not tried), and
         one that stays without an estimate is ``lost`` to motion when both frames are rich in features and the pair
         verified no more matches than unrelated frames give (:data:`LOST_MIN_KEYPOINTS_FRAC`,

@@ -104,7 +104,7 @@ def test_guided_candidates_match_a_keypoint_by_keypoint_reading_of_the_rule():
     captured = {}
 
     class Recorder:
-        def verify(self, p1, p2):
+        def verify(self, p1, p2, level="default"):
             captured["p1"], captured["p2"] = p1, p2
             return p1
 
@@ -144,9 +144,9 @@ def test_verifying_only_hypotheses_that_could_win_picks_what_verifying_all_would
     verified = []
     real_verify = matcher.verify
 
-    def counting_verify(p1, p2):
+    def counting_verify(p1, p2, level="default"):
         verified.append(len(p1))
-        return real_verify(p1, p2)
+        return real_verify(p1, p2, level)
 
     matcher.verify = counting_verify
     got = estimate_rotation(matcher, f1, f2, CAM, R_TUBE)

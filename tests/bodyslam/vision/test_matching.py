@@ -76,7 +76,7 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
 
     from bodyslam.io import read_image
     from bodyslam.meta import read_meta
-    from bodyslam.vision.matching import COARSE_SCALE
+    from bodyslam.vision.matching import COARSE_SCALE, RESCUE_FEATURES
 
     demo = Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0"
     cam = read_meta(demo).camera_model()
@@ -85,7 +85,7 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
     mt.lk_min_matches = 0  # (thesis motion: tracking verifies few tracks on this pair) offer them anyway
     a, b = mt.features(f1), mt.features(f2)
     tries = list(mt.cascade(a, b))
-    assert [m.method for m in tries] == ["lk", "descriptors", "descriptors"]
+    assert [m.method for m in tries] == ["lk", "descriptors", "descriptors", "descriptors"]
     # the coarse try detects on the frame scaled by COARSE_SCALE (fewer keypoints), in full-frame pixels
     (pc, _), (pf, _) = a.kp_coarse, a.kp
     assert 20 < len(pc) < len(pf)
@@ -93,15 +93,21 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
     ij = np.rint(pc).astype(int)
     assert (mt.mask[ij[:, 1], ij[:, 0]] > 0).all()
     assert len(tries[1]) < 20 <= len(tries[2])  # a thesis-motion pair that needs the full-scale try
+    # the rescue: SIFT on the full frame, up to sift mode's keypoint budget (more than the 0.7-scale try keeps)
+    (pr, _) = a.kp_full
+    assert len(pf) <= mt.max_features < len(pr) <= RESCUE_FEATURES and tries[3].n_candidates > tries[2].n_candidates
+    assert len(list(Matcher(cam, "fast", rescue=False).cascade(a, b))) == 3 - (len(tries[0]) < 60)
     # tracking that verifies too few is not offered; a cascade stopped early detects nothing it did not need
     mt.lk_min_matches = len(tries[0]) + 1
     c, d = mt.features(f1), mt.features(f2)
     first = next(mt.cascade(c, d))
-    assert first.method == "descriptors" and c.kp_coarse is not None and c.kp is None
+    assert first.method == "descriptors" and c.kp_coarse is not None and c.kp is None and c.kp_full is None
     sift = Matcher(cam, "sift")
     assert len(list(sift.cascade(sift.features(f1), sift.features(f2)))) == 1
     with pytest.raises(ConfigError, match="coarse"):
-        sift.keypoints(sift.features(f1), coarse=True)
+        sift.keypoints(sift.features(f1), "coarse")
+    with pytest.raises(ConfigError, match="level"):
+        mt.keypoints(c, "huge")
 
 
 def test_brightness_percentiles_from_the_histogram_are_numpys():
