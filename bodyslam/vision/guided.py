@@ -48,7 +48,8 @@ __all__ = ["estimate_rotation", "hypotheses", "guided_matches", "descriptor_dist
 # ``fast`` (800 keypoints at 0.7 scale; 332 failed steps, FT/FL not classified): 14.9 deg for 30-40 (35), 10.9
 # for 40-50 (159), 4.7 for 50-65 (86), 0.3 above (51). ``asift`` keeps 3000 keypoints as ``sift`` does and takes
 # its threshold (not measured separately). Below these a step carries no information and would break the stated
-# 1-sigma
+# 1-sigma. ``fast`` with its rescue (the default: bodyslam.vision.matching) matches the rescue's full-frame
+# keypoints, ``sift``'s budget, at ``sift``'s threshold; ``fast``'s own is for ``--no-rescue``
 MIN_GUIDED_MATCHES = {"sift": 80, "asift": 80, "fast": 50}
 # 1-sigma of a rotation step's rotation: on the tuning seeds the kept steps' roll error is 2.4 deg at the 68th
 # percentile and 3.8 deg RMS, the tilt's 2.5 at the 68th percentile
