@@ -900,6 +900,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
                "lumen_shape_sd_rel": exam.shape_sd_rel,
+               "vision": _vision_text(settings.motion),
                # does the per-step 1-sigma hold? (k-frame motions against their single steps)
                "step_consistency": (_checkpoint(d / "consistency.json", "step_consistency") or {}).get(
                    "step_consistency")}
@@ -1017,6 +1018,18 @@ STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)"
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
 
+def _vision_text(m: MotionSettings) -> str:
+    """How the steps were measured, in words (summary.json ``vision``, the report): the matcher and its tries, the
+    estimator, what was done with steps facing the wall and with steps the fit failed on."""
+    tries = {"fast": "tracking, then SIFT at 0.5 and 0.7 scale" + (", then on the full frame" if m.rescue else ""),
+             "sift": "SIFT", "asift": "ASIFT"}[m.match_mode]
+    est = "tube fit" if m.estimator == "tube" else f"the dissertation's equations ({m.unroll_mode} unrolling)"
+    wall = ("not classified" if not m.classify else "facing the wall: fitted"
+            if m.wall_steps == "estimate" and m.estimator == "tube" else "facing the wall: dropped")
+    rot = "failed steps: their rotation by guided matching" if m.rotation_steps else "failed steps: no rotation"
+    return f"{m.match_mode} matcher ({tries}); {est}; {wall}; {rot}"
+
+
 def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, path_var, marks: list[list],
             fused: bool) -> None:
     """The exam's plots (``trajectory.png``: 3-D and three projections with the 1-sigma and the marked frames;
@@ -1050,6 +1063,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
             ["lumen shape", f"steps +- {exam.shape_sd_rel:.0%} (1-sigma) for a lumen that is not a cylinder"
              if exam.shape_sd_rel > 0 else "a cylinder (each step's 1-sigma has no shape share)"],
+            ["steps measured by", sm["vision"]],
             ["per-step 1-sigma check", _consistency_text(sm.get("step_consistency"))],
             ["assumed", "; ".join(sm["assumed"]) or "nothing"],
             ["problems", f"{sm['problems']} (problems.csv)"]]

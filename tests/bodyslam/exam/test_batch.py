@@ -72,6 +72,8 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     # what a person looks at: the page with the marked frames in its table and its 3-D view, and the plots
     page = (d / "report.html").read_text()
     assert "polyp" in page and 'class="view3d"' in page and 'src="trajectory.png"' in page
+    # how the steps were measured is said (the default: fast mode with its full-frame rescue)
+    assert rep.exams[0]["vision"].startswith("fast matcher (tracking") and "then on the full frame" in page
     assert (d / "trajectory.png").stat().st_size > 10000 and (d / "path.png").stat().st_size > 10000
     # the k-step check of the per-step 1-sigma is reported (the demo has runs of 3 estimated steps)
     c = rep.exams[0]["step_consistency"]
