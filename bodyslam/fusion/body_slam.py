@@ -410,8 +410,8 @@ def _gap_ends(steps: list[StepMotion], min_len: int) -> list[int]:
 
 def rts_smooth(res: FusionResult) -> FusionResult:
     """Rauch-Tung-Striebel smoother over the committed filter run (error-state, rotations composed on the
-    right; with the RSS bias states, they are smoothed too). Memory: the run's stored passes; time linear in
-    the frames."""
+    right; the scale state is smoothed too, the RSS bias states are marginalised in the stored passes). Memory: the
+    run's stored passes; time linear in the frames."""
     ps_ = res.passes
     n = len(ps_.post_p)
     m = 0 if ps_.post_b is None else ps_.post_b.shape[1]

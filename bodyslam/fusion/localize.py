@@ -42,7 +42,8 @@ from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_
 from bodyslam.steps import StepMotion, lost_step_floor_m
 from bodyslam.vision.tracking import path_travelled
 
-__all__ = ["RfInput", "Localization", "localize", "online_inflation", "write_localization", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
+__all__ = ["RfInput", "Localization", "localize", "online_inflation", "net_of_bias", "write_localization",
+           "write_uncertainty", "UNCERTAINTY_COLUMNS"]
 
 UNCERTAINTY_COLUMNS = ["frame", "t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m", "sd_heading_rad", "path_m",
                        "sd_path_m"]
@@ -123,13 +124,14 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel,
                lost_floor_m=floor)
     rts = smoothed = rts_smooth(ekf)
+    rss_net = net_of_bias(ekf, rss)  # the readings less the filter's RSS bias states (step 4)
     if refine and mode == "rss":
-        smoothed = refine_map(rts, steps, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, lost_floor_m=floor)
+        smoothed = refine_map(rts, steps, rss_net, rf.sensors_w_m, rf.normals_w, rf.pathloss, lost_floor_m=floor)
     channel = kappa_online = kappa_smoothed = None
     if honest_cov:
         memory = filter_memory(ekf)  # the online factor's taper, and the smoother's two-sided one
         kappa_online = online_inflation(ekf, rss, rf, memory)
-        channel = residual_correlation(normalised_residuals(rss, smoothed.positions_w_m, rf.sensors_w_m,
+        channel = residual_correlation(normalised_residuals(rss_net, smoothed.positions_w_m, rf.sensors_w_m,
                                                             rf.normals_w, rf.pathloss))
         kappa_smoothed = smoother_inflation(channel, memory)
         ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
@@ -141,11 +143,23 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
 
 def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput,
                      memory: np.ndarray | None = None) -> np.ndarray:
-    """Per frame ``k``, the correlation factor of the readings of frames ``0 .. k`` at an online run's positions,
-    over the filter's own memory (:func:`bodyslam.fusion.channel.causal_inflation`; ``memory``: the run's
-    :func:`filter_memory`, computed here when not given)."""
-    return causal_inflation(normalised_residuals(rss, res.positions_w_m, rf.sensors_w_m, rf.normals_w, rf.pathloss),
+    """Per frame ``k``, the correlation factor of the readings of frames ``0 .. k`` (less the run's RSS bias states,
+    :func:`net_of_bias`) at an online run's positions, over the filter's own memory
+    (:func:`bodyslam.fusion.channel.causal_inflation`; ``memory``: the run's :func:`filter_memory`, computed here
+    when not given)."""
+    return causal_inflation(normalised_residuals(net_of_bias(res, rss), res.positions_w_m, rf.sensors_w_m,
+                                                 rf.normals_w, rf.pathloss),
                             memory=filter_memory(res) if memory is None else memory)
+
+
+def net_of_bias(res: FusionResult, rss: np.ndarray) -> np.ndarray:
+    """The readings ``rss (n, m)`` less the filter run's RSS bias states after each frame's update (causal: frame
+    ``k``'s from readings ``0 .. k``; :mod:`bodyslam.fusion.ekf`), or ``rss`` itself for a run without them. What the
+    filter counts as independent noise is what is left: the whole-exam solve fits it, and its measured correlation
+    scales the stated covariances (the factor measured on the raw readings would count the correlation the bias
+    states already carry a second time)."""
+    bias = None if res.passes is None else res.passes.post_bias_db
+    return rss if bias is None else rss - bias
 
 
 def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2: np.ndarray,

@@ -418,6 +418,35 @@ def test_rss_bias_states_find_a_sensor_offset():
                                                     bias_corr_m=0.0).positions_w_m)
 
 
+def test_bias_states_are_marginalised_in_the_stored_passes_and_taken_off_the_readings():
+    """With the RSS bias states the stored passes keep the pose block only (memory of a 6-state filter whatever the
+    number of sensors) and the biases after each update beside them; the smoother runs on that block, and
+    ``net_of_bias`` takes the biases off the readings (the whole-exam solve's and the 1-sigma's input). Without the
+    states it hands the readings back as they are."""
+    from bodyslam.fusion.localize import net_of_bias
+
+    *data, gt = synthetic_run(5, n=120)
+    steps, fixes, rss, pos, nrm, pl = data
+    rss = rss.copy()
+    rss[:, :4] += 6.0  # four sensors read 6 dB high for the whole run
+    R0 = Rotation.from_rotvec([0.4, -0.3, 0.2])  # synthetic_run's true start
+    res = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", init=(R0, gt[0]), bias_corr_m=10.0, bias_sd_db=6.0)
+    ps = res.passes
+    n, m = rss.shape
+    assert ps.prior_P.shape == ps.post_P.shape == (n, 6, 6) and ps.F.shape == (n - 1, 6, 6)
+    assert ps.post_bias_db.shape == (n, m) and ps.post_b.shape == (n, 0)
+    # the four offsets found by the end (the filter's own test above: 4.9-6.7 dB), the others near zero
+    assert ps.post_bias_db[-1, :4].mean() > 4.0 and np.abs(ps.post_bias_db[-1, 4:]).mean() < 2.0
+    net = net_of_bias(res, rss)
+    assert np.array_equal(net, rss - ps.post_bias_db)
+    sm = rts_smooth(res)
+    e_f = np.linalg.norm(res.positions_w_m - gt, axis=1).mean()
+    e_s = np.linalg.norm(sm.positions_w_m - gt, axis=1).mean()
+    assert np.isfinite(sm.cov).all() and e_s < e_f, (e_s, e_f)
+    plain = fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", init=(R0, gt[0]))
+    assert plain.passes.post_bias_db is None and net_of_bias(plain, rss) is rss
+
+
 def _scaled(steps, factor):
     """The steps as a vision that assumed a radius ``factor`` times too large would give them."""
     from dataclasses import replace
