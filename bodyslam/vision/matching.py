@@ -339,13 +339,7 @@ class Matcher:
         # one match per point of frame 2 (ASIFT finds the same point in several views)
         _, keep = np.unique(np.round(p2, 1), axis=0, return_index=True)
         p1, p2 = p1[np.sort(keep)], p2[np.sort(keep)]
-        cap = RESCUE_MATCHES if level == "full" else self.max_matches
-        if len(p1) > cap:  # an even, deterministic subset: enough for a 10-parameter fit
-            sel = np.linspace(0, len(p1) - 1, cap).astype(int)
-            p1, p2 = p1[sel], p2[sel]
-        n_cand = len(p1)
-        inl = self._verify(p1, p2)
-        return Matches(p1[inl], p2[inl], n_cand)
+        return self.verify(p1, p2, level)
 
     def cascade(self, f1: "FrameFeatures", f2: "FrameFeatures") -> Iterator[Matches]:
         """The matches to try for a pair, cheapest first; the caller stops at the first its estimator accepts.
@@ -368,7 +362,8 @@ class Matcher:
 
     def verify(self, p1: np.ndarray, p2: np.ndarray, level: str = "default") -> Matches:
         """The matches ``p1 -> p2`` (pixels) that a RANSAC essential matrix keeps (at most ``max_matches``, an
-        even subset, are tried; :data:`RESCUE_MATCHES` for matches of ``full`` keypoints)."""
+        even subset, are tried: enough for a 10-parameter fit; :data:`RESCUE_MATCHES` for matches of ``full``
+        keypoints); ``n_candidates`` counts the tried ones."""
         cap = RESCUE_MATCHES if level == "full" else self.max_matches
         if len(p1) > cap:
             sel = np.linspace(0, len(p1) - 1, cap).astype(int)
