@@ -112,6 +112,7 @@ class BatchSettings:
     motion: MotionSettings = MotionSettings(match_mode="fast")
     chunk_frames: int | None = None  # None: chosen from the study's length and the workers (auto_chunk_frames)
     fusion: str = "rss"
+    rss_bias_states: bool = False  # per-sensor RSS bias states in the fusion (bodyslam.fusion.localize.localize)
 
 
 CHUNKS_PER_WORKER = 4  # the last round leaves at most ~1/4 of a worker's share idle
@@ -889,7 +890,9 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
-                              + (" and refined)" if settings.fusion == "rss" else ")")),
+                              + (" and refined" if settings.fusion == "rss" else "")
+                              + ("; per-sensor RSS bias states)" if settings.rss_bias_states and settings.fusion == "rss"
+                                 else ")")),
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors;
                # kappa is the whole exam's, kappa_smoothed_mean the smoother's (its window's share, per frame)
                "rss_error_correlation": (
@@ -971,7 +974,7 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
         steps = read_motion_steps(d / "motion.csv", frame_idx[1:])
         loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
-                       radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m)
+                       radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m, bias_states=settings.rss_bias_states)
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
         return None

@@ -18,6 +18,9 @@ guard); where it starts and restarts is :mod:`bodyslam.fusion.orientation_search
 - Re-start after long gaps: after ``regap_steps`` (5) or more steps in a row without a visual estimate the
   orientation is searched again from the filter's predicted pose (position and its covariance kept). Measured on
   seeds 300-309, which had two runs diverging after such gaps: EKF 2.09 -> 1.28 cm, smoother 1.57 -> 0.73.
+- The start checked once (``recheck_start``): when its window ends, the start's orientation is searched again,
+  every candidate run from frame 0 and compared with the committed run on the next window's readings; a clear
+  winner (``recheck_min_nll``) turns the start, and the committed run starts again from it.
 - Online output while a search is open (the start's and each re-start's window): the candidates' mixture on the
   readings so far, so no estimate uses later readings except through the start's alignment window. The
   committed run (one candidate per decision) is what the RTS smoother smooths.
@@ -30,6 +33,7 @@ Units: metres, radians; covariances m^2 / rad^2.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -45,7 +49,9 @@ from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.steps import StepLengths, StepMotion
 from bodyslam.vision.tracking import SCALE_CORR_M
 
-__all__ = ["FusionSettings", "FusionResult", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
+log = logging.getLogger(__name__)
+
+__all__ = ["FusionSettings", "FusionResult", "RSS_BIAS_STATES", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
            "kf_thesis", "step_pose"]
 
 
@@ -60,13 +66,16 @@ class FusionSettings:
     init_search: bool = True  # check the alignment against other orientations
     search_frames: int = 80  # the window of a search (its decision lag)
     regap_steps: int | None = 5  # search again after this many steps without an estimate (None: never)
-    # search again once the start's decision window has passed, from the filter's own pose then, and turn only if
-    # another orientation explains the next window's readings better by more than recheck_min_nll nats once the
-    # readings' measured correlation is taken out (the margin over kappa, bodyslam.fusion.channel): a start
-    # committed far off is otherwise never revisited. The margin: re-decisions on the tuning seeds gained at most
-    # 19 nats on thesis 502-507 (kappa ~1; they turned good starts 10-70 deg) and 2.3 over kappa on realistic
-    # 503-509 (46 nats, kappa 20); a start put 150 deg off in a synthetic run gains 54, and the one gross failure
-    # seen on the testbed (thesis reporting seed 707, strictly causal, committed 142 deg off) 320
+    # search the start again once its decision window has passed: every candidate run from frame 0 (the start's
+    # position and covariance, fresh bias states), and turn only if one explains the next window's readings better
+    # than the committed run does by more than recheck_min_nll nats once the readings' measured correlation is taken
+    # out (the margin over kappa, bodyslam.fusion.channel): a start committed far off is otherwise never revisited.
+    # The margin (session 26): on the tuning seeds at most 10.1 nats on thesis 502-507 (kappa ~1) and 4.0 over kappa
+    # on realistic 503-509 (6.2 with bias states); a start put 150 deg off in a synthetic run gains 554 (129 with
+    # bias states), and the one gross failure seen on the testbed (thesis reporting seed 707, strictly causal,
+    # committed 142 deg off) 2202.
+    # Session 14's recheck searched from the committed run's pose at frame 80 (19 / 2.3 / 54 / 320 nats): with bias
+    # states that pose and its biases had absorbed the misfit, and it turned a forced start the wrong way
     recheck_start: bool = True
     recheck_min_nll: float = 30.0
     # strictly causal start: no alignment to the first window's fixes (which uses fixes up to frame 40-80 for
@@ -75,7 +84,7 @@ class FusionSettings:
     # only
     causal_start: bool = False
     # per-sensor RSS bias states (bodyslam.fusion.ekf): correlation distance along the path (0: off) and stationary
-    # 1-sigma (dB) of the persistent part of each sensor's readings
+    # 1-sigma (dB) of the persistent part of each sensor's readings; RSS_BIAS_STATES: the opt-in values
     bias_corr_m: float = 0.0
     bias_sd_db: float = 4.0
     # visual scale state (bodyslam.fusion.ekf): relative 1-sigma of the lumen radius the vision assumed (0: off)
@@ -87,12 +96,18 @@ class FusionSettings:
     lost_floor_m: float = 0.0
 
 
+# The per-sensor RSS bias states' values where a user turns them on (``bodyslam localize|batch --rss-bias-states``,
+# ``localize(bias_states=True)``): chosen on the realistic tuning seeds 503-509 (a grid of 1 / 3 / 10 cm x 2 / 4 / 6
+# dB, flat at 1-3 cm and 2-4 dB; docs/RESULTS.md). Off by default: on the ideal channel they cost accuracy, and the
+# filter runs ~5x slower (38 states with 32 sensors instead of 6-7).
+RSS_BIAS_STATES = {"bias_corr_m": 0.03, "bias_sd_db": 2.0}
+
+
 class _Recheck(NamedTuple):
     """A recheck of the start whose margin passed at some frame of its window (:func:`fuse`)."""
 
     found: SearchResult
     passed: np.ndarray  # (f,) bool: frames whose margin on the readings so far passed the threshold
-    R_from: Rotation  # the orientation the search started from (the committed run's, predicted)
     positions_w_m: np.ndarray  # (f, 3): the committed run without a turn over the window
     rotations: np.ndarray  # (f, 3, 3)
     cov: np.ndarray  # (f, 6, 6)
@@ -276,6 +291,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         dr[k] = dr[k - 1] + Rdr @ t_s
         Rdr = Rdr @ ekf.R_steps[k - 1]
     searches: list[SearchResult] = []
+    start_of = None  # the start's search: the start position that goes with an orientation (the recheck's too)
     if init is None and cfg.causal_start:
         f0 = fixes[0]
         p0 = f0.position_w_m if f0.status == "ok" else np.zeros(3)  # else: the middle of the body frame
@@ -283,7 +299,11 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         P = np.diag([*var_p] + [np.radians(45.0) ** 2] * 3)  # each candidate covers its 44-deg cell
         R0 = Rotation.identity()
         alignment = (R0, p0)
-        found = search_orientation(searcher, 0, min(n, cfg.search_frames), R0, lambda R: p0, P, [])
+
+        def start_of(R):
+            return p0
+
+        found = search_orientation(searcher, 0, min(n, cfg.search_frames), R0, start_of, P, [])
         R0, p0 = found.R, found.p_w_m
         searches.append(found)
     elif init is None:
@@ -321,28 +341,38 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
     rechecked: dict[int, _Recheck] = {}  # the rechecks whose margin passed at some frame
 
     def decide(k_end, p_b, R_b, P_b, bias_b):
-        """At the end of a long gap, or of the start's window (a recheck): search the orientation from the
-        predicted pose (position kept)."""
+        """At the end of a long gap: search the orientation from the predicted pose (position kept). At the end of
+        the start's window (a recheck): search the start's orientation again, every candidate run from frame 0
+        (the start's position and covariance, fresh bias states), compared on the next window's readings."""
         if k_end not in gap_ends and k_end != recheck_at:
             return None
         R_b = Rotation.from_matrix(R_b)
+        k1 = min(n, k_end + cfg.search_frames)
         sig = max(float(np.sqrt(np.trace(P_b[3:6, 3:6]) / 3)), np.radians(30.0))
-        found = search_orientation(searcher, k_end, min(n, k_end + cfg.search_frames), R_b, lambda R: p_b,
-                                   with_orientation_sigma(P_b, sig), [], bias_b)
-        if k_end not in gap_ends:  # the recheck
-            k1 = k_end + len(found.lead_nll)
-            margin = found.lead_nll / _window_inflation(rss, found.mixture_positions_w_m, k_end, sensors_w_m,
-                                                        normals_w, pl)
+        if k_end in gap_ends:
+            found = search_orientation(searcher, k_end, k1, R_b, lambda R: p_b, with_orientation_sigma(P_b, sig),
+                                       [], bias_b)
+        else:  # the recheck
+            found = search_orientation(searcher, 0, k1, R0, start_of, P, [], score_from=k_end)
+            # the committed run over the window, without a turn; the margin: how far the best candidate's
+            # negative log-likelihood lies below its on the readings so far (the candidates, run from frame 0,
+            # miss the re-starts after gaps that the committed run had)
+            cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
+            margin = (cont[3][0] - found.least_nll) / _window_inflation(rss, found.mixture_positions_w_m, k_end,
+                                                                        sensors_w_m, normals_w, pl)
             passed = margin > cfg.recheck_min_nll
+            log.debug("start recheck over frames %d-%d: margin %.1f nats over kappa at the end, %.1f at most "
+                      "(threshold %.1f), best candidate %.0f deg from the committed start", k_end, k1 - 1, margin[-1],
+                      margin.max(), cfg.recheck_min_nll, found.turn_from_centre_deg)
             if not passed.any():
                 return None  # the start stands, and the output is the committed run's
             # the output inside the window must not depend on the decision (made on its last frame): frame by
             # frame, the committed run without the turn until the margin on the readings so far passes the
             # threshold, the candidates' mixture from then on -- whichever way the decision goes
-            cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
-            rechecked[k_end] = _Recheck(found, passed, R_b, cont[0][0], cont[1][0], cont[2][0])
-            if not passed[-1]:
-                return None  # the start stands after the window
+            rechecked[k_end] = _Recheck(found, passed, cont[0][0], cont[1][0], cont[2][0])
+            if passed[-1]:  # the start turns: the committed run is run again from it (below)
+                searches.append(found)
+            return None
         searches.append(found)
         return found.R, sig
 
@@ -355,9 +385,8 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         # then sees one consistent run instead of a reset that cuts the orientation's link to the frames before
         # it. Frames up to the recheck's end keep the online output above (decided on the readings so far).
         rc = rechecked[recheck_at]
-        turn = rc.found.R * rc.R_from.inv()  # in the world frame: new = turn * old
         searches[:] = [s for s in searches if s.frames[0] in (0, recheck_at)]  # the gaps are searched again
-        R0, recheck_at = turn * R0, None
+        R0, p0, recheck_at = rc.found.R, rc.found.p_w_m, None
         resets = {}
         pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0,
                                            n, keep=True, resets=resets, decide=decide)

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from bodyslam.errors import InputError
-from bodyslam.fusion.body_slam import FusionResult, fuse, rts_smooth
+from bodyslam.fusion.body_slam import RSS_BIAS_STATES, FusionResult, fuse, rts_smooth
 from bodyslam.fusion.refine import refine_map
 from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, filter_memory, inflate,
                                      normalised_residuals, residual_correlation, smoother_inflation)
@@ -92,7 +92,8 @@ class Localization:
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
              frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True,
-             radius_sd_rel: float = 0.0, refine: bool = True, radius_m: float | None = None) -> Localization:
+             radius_sd_rel: float = 0.0, refine: bool = True, radius_m: float | None = None,
+             bias_states: bool = False) -> Localization:
     """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring). ``honest_cov``:
     scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
     ``radius_sd_rel``: relative 1-sigma of the lumen radius the steps assumed; above 0 the fusion estimates the
@@ -100,7 +101,9 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`). ``refine``: solve the whole exam at once from the
     smoother's trajectory (step 4; raw-RSS mode only). ``radius_m``: the lumen radius the steps assumed (the
     floor of a lost step's length, in the filters and in the path travelled,
-    :func:`bodyslam.vision.tracking.path_travelled`).
+    :func:`bodyslam.vision.tracking.path_travelled`). ``bias_states``: per-sensor RSS bias states in the raw-RSS
+    filter (:data:`bodyslam.fusion.body_slam.RSS_BIAS_STATES`; off by default, docs/RESULTS.md); the whole-exam
+    solve and the 1-sigma then take the readings less the filter's biases.
 
     Raises
     ------
@@ -122,7 +125,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
                          f"need at least 3 (readings in time with the frames, from 3+ sensors)")
     floor = lost_step_floor_m(radius_m)
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel,
-               lost_floor_m=floor)
+               lost_floor_m=floor, **(RSS_BIAS_STATES if bias_states else {}))
     rts = smoothed = rts_smooth(ekf)
     rss_net = net_of_bias(ekf, rss)  # the readings less the filter's RSS bias states (step 4)
     if refine and mode == "rss":

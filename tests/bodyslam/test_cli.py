@@ -3,6 +3,7 @@ rule (0 done, 3 done with problems listed, 1 unusable input, 130 interrupted).""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 
@@ -86,8 +87,18 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
 
     p = run("localize", str(DEMO), "--out", str(tmp_path / "loc"), "--mode", "fast", "--jobs", "1")
     assert p.returncode == 0, p.stderr
-    p = run("batch", str(DEMO), "--out", str(tmp_path / "b"), "--jobs", "1")
+    # the opt-in per-sensor RSS bias states: another trajectory from the same steps, the same files
+    p = run("localize", str(DEMO), "--out", str(tmp_path / "loc_b"), "--motion", str(tmp_path / "loc" / "motion.csv"),
+            "--rss-bias-states")
     assert p.returncode == 0, p.stderr
+    assert (tmp_path / "loc_b" / "trajectory.tum").read_text() != (tmp_path / "loc" / "trajectory.tum").read_text()
+    for cmd in ("localize", "batch"):  # states of the raw-RSS filter: refused with fix fusion, not ignored
+        p = run(cmd, str(DEMO), "--out", str(tmp_path / f"{cmd}_fix"), "--fusion", "fix", "--rss-bias-states")
+        assert p.returncode == 1 and "--fusion rss" in p.stderr and not (tmp_path / f"{cmd}_fix").exists()
+    p = run("batch", str(DEMO), "--out", str(tmp_path / "b"), "--jobs", "1", "--rss-bias-states")
+    assert p.returncode == 0, p.stderr
+    summary = json.loads((tmp_path / "b" / "demo_seed0" / "summary.json").read_text())
+    assert "bias states" in summary["trajectory"], summary["trajectory"]
     p = run("batch", str(DEMO / "frames"), "--out", str(tmp_path / "b2"), "--jobs", "1")
     assert p.returncode == 0, p.stderr
     for f in (tmp_path / "loc" / "uncertainty.csv", tmp_path / "b" / "demo_seed0" / "uncertainty.csv",

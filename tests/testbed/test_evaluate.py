@@ -17,7 +17,8 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     assert p.returncode == 0, p.stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["n_runs"] == 1 and rep["seeds"] == [0] and rep["frames_per_run"] == 20
-    for alg in ("rf_ml", "rf_nls", "dead_reckoning", "thesis_kf", "ekf_fixes", "ekf_rss", "ekf_rss_rts"):
+    for alg in ("rf_ml", "rf_nls", "dead_reckoning", "thesis_kf", "ekf_fixes", "ekf_rss", "ekf_rss_rts", "ekf_rss_bias",
+                "ekf_rss_bias_rts"):
         a = rep["algorithms"][alg]
         assert set(a) == {"mean_error_cm", "rmse_cm", "median_error_cm", "p90_error_cm", "max_error_cm",
                           "rmse_over_sqrt_pcrb"}
@@ -26,7 +27,8 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     t41 = rep["table_4_1"]
     # the scale-aligned error (each run's best factor, testbed.score) is never above the raw one
     assert t41["mae_distance_scale_aligned_cm"] <= t41["mae_distance_cm"] and t41["distance_scale"] > 0
-    for alg in ("ekf_rss", "ekf_rss_causal", "ekf_rss_rts"):  # honest uncertainty and orientation, per filter
+    for alg in ("ekf_rss", "ekf_rss_causal", "ekf_rss_rts", "ekf_rss_bias", "ekf_rss_bias_rts"):  # per filter:
+        # honest uncertainty and orientation
         c = rep["consistency"][alg]
         assert c["mean_nees"] > 0 and 0 <= c["inside_68pct_ellipsoid"] <= 1 and 0 <= c["axis_inside_1sigma"] <= 1
         assert 0 <= rep["orientation_error_deg"][alg]["mean"] <= rep["orientation_error_deg"][alg]["p90"] <= 180

@@ -327,6 +327,31 @@ def test_start_search_recovers_a_wrong_alignment_and_the_online_output_is_causal
     assert not np.allclose(ref.positions_w_m[90:], moved.positions_w_m[90:])
 
 
+def test_a_search_scored_from_a_later_frame_compares_the_candidates_on_those_frames_only():
+    """``score_from`` (the start's recheck): the candidates run from ``k0`` but their likelihoods, the mixture and
+    the leader are taken over frames ``score_from ..`` only; from ``k0`` itself it is the plain search."""
+    from bodyslam.fusion.ekf import ErrorStateEkf
+    from bodyslam.fusion.orientation_search import search_orientation
+
+    *data, gt = synthetic_run(1)
+    ekf = ErrorStateEkf(*data, "rss", 5, bias_corr_m=0.03, bias_sd_db=2.0)
+    centre = Rotation.from_rotvec(np.radians([0.0, 0.0, 150.0]))
+    P = np.diag([1e-4] * 3 + [np.radians(45.0) ** 2] * 3)
+    plain = search_orientation(ekf, 0, 100, centre, lambda R: gt[0], P, [])
+    same = search_orientation(ekf, 0, 100, centre, lambda R: gt[0], P, [], score_from=0)
+    assert same.frames == plain.frames == (0, 100) and same.R.approx_equal(plain.R)
+    assert np.array_equal(same.mixture_positions_w_m, plain.mixture_positions_w_m)
+    later = search_orientation(ekf, 0, 100, centre, lambda R: gt[0], P, [], score_from=60)
+    assert later.frames == (60, 100) and len(later.mixture_positions_w_m) == len(later.lead_nll) == 40
+    # the centre candidate's score: its cumulative nll over frames 60..99, the run from frame 0 less frames 0..59
+    nll = ekf.run(gt[0], centre, P, 0, 100)[3][0]
+    assert later.least_nll[-1] == pytest.approx(later.nll_best) and later.nll_best <= later.nll_centre
+    assert later.nll_centre == pytest.approx(nll[-1] - nll[59], rel=1e-9)
+    assert later.nll_centre < plain.nll_centre  # 40 frames' worth, not 100
+    with pytest.raises(ValueError, match="outside the run"):
+        search_orientation(ekf, 0, 100, centre, lambda R: gt[0], P, [], score_from=100)
+
+
 @pytest.mark.parametrize("mode", ["rss", "fix"])
 @pytest.mark.parametrize("max_rejections", [5, 1])
 def test_candidates_run_together_equal_candidates_run_alone(mode, max_rejections):
@@ -576,6 +601,8 @@ def test_a_start_committed_far_off_is_turned_by_the_recheck_and_the_output_stays
     steps, fixes, rss, pos, nrm, pl = data
     plain = fuse(*data, mode="rss", causal_start=True)
     assert [s.frames[0] for s in plain.searches] == [0]
+    bias = dict(bias_corr_m=0.03, bias_sd_db=2.0)  # per-sensor RSS bias states (below)
+    plain_b = fuse(*data, mode="rss", causal_start=True, **bias)
 
     real_search = bs.search_orientation
     calls = []
@@ -605,6 +632,14 @@ def test_a_start_committed_far_off_is_turned_by_the_recheck_and_the_output_stays
     assert np.array_equal(on.positions_w_m[:120], moved.positions_w_m[:120])
     assert np.array_equal(on.rotations_w_c[:120].as_matrix(), moved.rotations_w_c[:120].as_matrix())
     assert not np.allclose(on.positions_w_m[120:], moved.positions_w_m[120:])
+    # With per-sensor RSS bias states (3 cm, 2 dB) the committed run absorbs part of the misfit in the biases and
+    # had drifted 11-14 cm by the window's end; a recheck searched from that pose turned 120 deg the wrong way
+    # (10-12 cm after frame 160). Its candidates now run from frame 0 (measured: 0.8 cm after frame 160, the
+    # unforced run 0.8)
+    on_b = run(rss, **bias)
+    e_on_b = np.linalg.norm(on_b.positions_w_m[160:] - gt[160:], axis=1).mean()
+    e_plain_b = np.linalg.norm(plain_b.positions_w_m[160:] - gt[160:], axis=1).mean()
+    assert [s.frames[0] for s in on_b.searches] == [0, 80] and e_on_b < max(2 * e_plain_b, 0.015), (e_on_b, e_plain_b)
 
 
 def _bend_window_by_growing(q, m0, spread_m):
