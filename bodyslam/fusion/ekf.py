@@ -214,6 +214,9 @@ class ErrorStateEkf:
         self.n_scale = 1 if scale_sd_rel > 0 else 0
         self.m_extra = self.n_scale + self.m_bias  # the states after the pose: [scale], [biases]
         self.D = 6 + self.m_extra
+        # the RSS update's form (ErrorStateEkf.update): the Kalman form's m x m solve where the bias states make the
+        # state outnumber the readings, the information form's D x D inverses otherwise (the same posterior)
+        self.kalman_form = self.m_bias > 0
         self.bias_sd_db = float(bias_sd_db)
         self.scale_sd_rel = float(scale_sd_rel)
         step_len = np.linalg.norm(self.t_applied, axis=1)
@@ -327,7 +330,8 @@ class ErrorStateEkf:
                 H[:, np.arange(len(idx)), 6 + self.n_scale + idx] = 1.0
                 y = y - self.b[:, self.n_scale + idx]
                 sigma = np.sqrt(np.maximum(sigma**2 - self.bias_sd_db**2, 1.0))
-            dS = np.sum((H @ P) * H, axis=2) + sigma**2  # the innovations' variances (the diagonal of S)
+            HP = H @ P
+            dS = np.sum(HP * H, axis=2) + sigma**2  # the innovations' variances (the diagonal of S)
             z2 = y * y / dS
             nll = nll + 0.5 * np.sum(np.minimum(z2, Z_GATE_999**2) + np.log(dS), axis=1)
             keep = z2 < Z_GATE_999**2  # per-reading 99.9% gate
@@ -339,18 +343,33 @@ class ErrorStateEkf:
                 P = P.copy()
                 P[guard, :3, :3] += _I3 * GUARD_RSS_SIGMA_M**2
                 P[guard, 3:6, 3:6] += _I3 * GUARD_THETA_RAD**2
+                HP = H @ P
             keep[guard] = True
             streak = np.where(guard, 0, streak)
             do = keep.sum(axis=1) >= 1
-            # Information form: the readings are independent given the state (diagonal noise), so the update is
-            # P' = (P^-1 + H^T W H)^-1, dx = P' H^T W y with W = 1 / sigma^2 -- 0 for a reading outside the gate,
-            # exactly the update without it. The same posterior as the Kalman form, with D x D inverses instead of
-            # an m x m one per frame (m = 32 sensors, D = 6-7; the searches run 90 candidates at once).
-            W = np.where(keep, 1.0 / sigma**2, 0.0)
-            HtW = H.transpose(0, 2, 1) * W[:, None, :]
-            P_new = np.linalg.inv(np.linalg.inv(P) + HtW @ H)
-            P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
-            dx = (P_new @ (HtW @ y[..., None]))[..., 0]
+            if not self.kalman_form:
+                # Information form: the readings are independent given the state (diagonal noise), so the update
+                # is P' = (P^-1 + H^T W H)^-1, dx = P' H^T W y with W = 1 / sigma^2 -- 0 for a reading outside the
+                # gate, exactly the update without it. The same posterior as the Kalman form, with D x D inverses
+                # instead of an m x m one per frame (m = 32 sensors, D = 6-7; the searches run 90 candidates at
+                # once).
+                W = np.where(keep, 1.0 / sigma**2, 0.0)
+                HtW = H.transpose(0, 2, 1) * W[:, None, :]
+                P_new = np.linalg.inv(np.linalg.inv(P) + HtW @ H)
+                P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
+                dx = (P_new @ (HtW @ y[..., None]))[..., 0]
+            else:
+                # Kalman form with the bias states, where the state outnumbers the readings (D = 6 + m): one solve
+                # with the m x m innovation covariance S = H P H^T + diag(sigma^2) instead of two D x D inverses
+                # (the same posterior; localize on a 200-frame realistic run 2.66 -> 1.8 s). A reading outside the
+                # gate gets no row of H and a zero innovation: exactly the update without it.
+                HPk = np.where(keep[..., None], HP, 0.0)  # (C, m, D): H P = (P H^T)^T, P symmetric
+                S = HPk @ np.where(keep[..., None], H, 0.0).transpose(0, 2, 1)
+                S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += np.where(keep, sigma**2, 1.0)
+                KT = np.linalg.solve(S, HPk)  # K^T = S^-1 H P, S symmetric
+                dx = np.einsum("cm,cmd->cd", np.where(keep, y, 0.0), KT)
+                P_new = P - HPk.transpose(0, 2, 1) @ KT
+                P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
         # commit the correction and covariance for the candidates that updated; the others keep theirs
         R_new = R @ rotvec_to_matrix(dx[:, 3:6])
         if self.m_extra:
