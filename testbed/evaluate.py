@@ -201,6 +201,10 @@ def _rotation_summary(blocks: list[dict]) -> dict:
         out[k] = sum(b[k] * b["n_steps_scored"] for b in blocks) / n
     out["rms_roll_error_deg"] = float(np.sqrt(sum(b["rms_roll_error_deg"] ** 2 * b["n_steps_scored"]
                                                   for b in blocks) / n))
+    stated = [b for b in blocks if "rotation_within_68pct" in b]  # the steps that state a rotation 1-sigma
+    if stated:
+        out["rotation_within_68pct"] = (sum(b["rotation_within_68pct"] * b["n_steps_scored"] for b in stated)
+                                        / sum(b["n_steps_scored"] for b in stated))
     return out
 
 
@@ -211,7 +215,9 @@ def _rotation_html(rot: dict) -> str:
     return (f"<p>Steps with only their rotation measured (status rotation: fast steps, distance unknown): "
             f"{rot['n_steps_scored']}, roll error {rot['mae_roll_deg']:.2f} deg mean "
             f"({rot['rms_roll_error_deg']:.2f} RMS; their true roll {rot['mean_true_roll_deg']:.2f} deg), "
-            f"tilt error {rot['mae_tilt_deg']:.2f} deg (true {rot['mean_true_tilt_deg']:.2f}).</p>")
+            f"tilt error {rot['mae_tilt_deg']:.2f} deg (true {rot['mean_true_tilt_deg']:.2f})"
+            + (f"; inside their stated 68% radius: {rot['rotation_within_68pct']:.0%}" if "rotation_within_68pct" in rot
+               else "") + ".</p>")
 
 
 def _stats(e_m: np.ndarray, pcrb_m2: np.ndarray) -> dict:
@@ -343,7 +349,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         # Table 4.1, and whether the per-step 1-sigma holds (distance_within_1sigma: 0.683 if honest)
         # (distance_scale: each run's best factor, testbed.score; its mean over the runs)
         "table_4_1": {k: float(np.nanmean([m.get(k, np.nan) for m in motion])) for k in motion[0]
-                      if k.endswith(("_cm", "_deg", "sigma")) or k == "distance_scale"},
+                      if k.endswith(("_cm", "_deg", "sigma", "_68pct")) or k == "distance_scale"},
         # what became of every step over all seeds (bodyslam.steps.StepStatus), and the fractions with an estimate:
         # measured from the pair (ok, wall), with the bridged gaps' shares, and with the rotation steps
         "step_status_counts": dict(sorted(step_counts.items())),

@@ -67,6 +67,9 @@ def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
         # is the stated per-step 1-sigma honest? the fraction of steps whose distance error is within it (0.683
         # for an honest Gaussian 1-sigma), over the steps that state one
         **_within_sigma(e_d, es["sigma_distance_m"][idx]),
+        # the same for the rotation: its error angle (roll and swing, small angles) against the stated 1-sigma
+        # (the largest axis's) at the 3-D 68.3% radius; an honest one holds 0.683 or more of the steps
+        **_rotation_within_sigma(np.hypot(e_r, e_v), es["sigma_rotation_rad"][idx]),
     }
 
 
@@ -87,12 +90,14 @@ def _rotation_block(tr: dict, es: dict, idx: np.ndarray) -> dict:
     if len(idx) == 0:
         return {"n_steps_scored": 0}
     e_r, e_t = _angle_errors(tr, es, idx)
+    e_v = np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx])
     return {"n_steps_scored": int(len(idx)),
             "mean_true_roll_deg": float(np.degrees(np.mean(np.abs(tr["roll_rad"][idx])))),
             "mae_roll_deg": float(np.degrees(np.mean(e_r))),
             "rms_roll_error_deg": float(np.degrees(np.sqrt(np.mean(e_r**2)))),
             "mean_true_tilt_deg": float(np.degrees(np.mean(tr["tilt_rad"][idx]))),
-            "mae_tilt_deg": float(np.degrees(np.mean(e_t)))}
+            "mae_tilt_deg": float(np.degrees(np.mean(e_t))),
+            **_rotation_within_sigma(np.hypot(e_r, e_v), es["sigma_rotation_rad"][idx])}
 
 
 def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
@@ -101,6 +106,18 @@ def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
         return {}
     return {"distance_within_1sigma": float(np.mean(err[ok] <= sigma[ok])),
             "distance_within_2sigma": float(np.mean(err[ok] <= 2 * sigma[ok]))}
+
+
+CHI_3_683 = 1.8786  # sqrt of the chi-square (3 dof) 68.3% quantile: the radius holding 68.3% of a 3-D Gaussian
+
+
+def _rotation_within_sigma(err_rad: np.ndarray, sigma_rad: np.ndarray) -> dict:
+    ok = np.isfinite(sigma_rad) & (sigma_rad > 0)
+    if not ok.any():
+        return {}
+    return {"rotation_within_68pct": float(np.mean(err_rad[ok] <= CHI_3_683 * sigma_rad[ok])),
+            # 1.54 for an honest 1-sigma on every axis (the median of a chi distribution with 3 degrees of freedom)
+            "median_rotation_error_over_sigma": float(np.median(err_rad[ok] / sigma_rad[ok]))}
 
 
 def score_path(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike, scale_sd_rel: float,
@@ -145,8 +162,8 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
     keys = ("distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad")
     tr = {c: np.array([truth[k][c] for k in frames]) for c in keys}
     es = {c: np.array([est[k][c] if k in est else math.nan for k in frames]) for c in keys}
-    es["sigma_distance_m"] = np.array([est[k].get("sigma_distance_m", math.nan) if k in est else math.nan
-                                       for k in frames])
+    for c in ("sigma_distance_m", "sigma_rotation_rad"):
+        es[c] = np.array([est[k].get(c, math.nan) if k in est else math.nan for k in frames])
     status = np.array([est[k]["status"] if k in est else "missing" for k in frames])
     label = np.array([truth[k]["label"] for k in frames])
     has = np.isin(status, MEASURED) & np.isfinite(es["distance_m"]) & np.isfinite(es["roll_rad"])
@@ -196,5 +213,14 @@ def format_table(rep: dict) -> str:
     f = rep.get("rotation_only", {})
     if f.get("n_steps_scored"):
         lines.append(f"steps with only their rotation ({f['n_steps_scored']}): roll {f['mae_roll_deg']:.3f} deg "
-                     f"(true {f['mean_true_roll_deg']:.2f}), tilt {f['mae_tilt_deg']:.3f} deg")
+                     f"(true {f['mean_true_roll_deg']:.2f}), tilt {f['mae_tilt_deg']:.3f} deg"
+                     + (f", inside the stated 68% radius {f['rotation_within_68pct']:.2f}"
+                        if "rotation_within_68pct" in f else ""))
+    honest = [f"{what} {a[k]:.2f}" for k, what in (("distance_within_1sigma", "distance within 1-sigma"),
+                                                    ("rotation_within_68pct", "rotation within the 68% radius"))
+              if k in a]
+    if honest:
+        lines.append("stated uncertainty (0.68 if honest): " + ", ".join(honest)
+                     + (f"; median rotation error {a['median_rotation_error_over_sigma']:.2f} sigma (1.54 if honest)"
+                        if "median_rotation_error_over_sigma" in a else ""))
     return "\n".join(lines)

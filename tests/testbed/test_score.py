@@ -52,6 +52,28 @@ def test_rotation_steps_are_scored_for_their_rotation_only(tmp_path):
     assert "steps with only their rotation (2)" in format_table(rep)
 
 
+def test_the_stated_rotation_sigma_is_scored_against_the_3d_68pct_radius(tmp_path):
+    """The rotation's 1-sigma (the largest axis's) against the error angle (roll and swing): inside when the angle
+    is within 1.8786 sigma, the radius that holds 68.3% of a 3-D Gaussian with that sigma on every axis. Six ok
+    steps of 0.01 rad 1-sigma: roll errors 0.005 / 0.015 / 0.018 rad, a swing error of 0.02 (pitch), 0.012 roll with
+    0.012 yaw (0.017 together: inside), 0.03 roll; a rotation step with 0.05 rad 1-sigma and 0.04 rad of roll error
+    is scored in its own block."""
+    head = HEADER + ",n_matches,status,sigma_distance_m,sigma_rotation_rad"
+    truth = [HEADER + ",label"] + [f"{k},{k * 0.5},0.01,0.0,0.0,0.0,0.0,FT" for k in range(1, 9)]
+    (tmp_path / "motion_truth.csv").write_text("\n".join(truth) + "\n")
+    rows = ["1,0.5,0.01,0.005,0,0,0,50,ok,0.002,0.01", "2,1.0,0.01,0.015,0,0,0,50,ok,0.002,0.01",
+            "3,1.5,0.01,0.018,0,0,0,50,ok,0.002,0.01", "4,2.0,0.01,0,0.02,0,0.02,50,ok,0.002,0.01",
+            "5,2.5,0.01,0.012,0,0.012,0.012,50,ok,0.002,0.01", "6,3.0,0.01,0.03,0,0,0,50,ok,0.002,0.01",
+            "7,3.5,nan,0.04,0,0,0,90,rotation,nan,0.05", "8,4.0,nan,nan,nan,nan,nan,3,too_few_matches,nan,nan"]
+    (tmp_path / "motion.csv").write_text("\n".join([head] + rows) + "\n")
+    rep = score_motion(tmp_path, tmp_path / "motion.csv")
+    a = rep["all"]
+    assert a["rotation_within_68pct"] == pytest.approx(4 / 6)  # 0.005, 0.015, 0.018 and 0.017 inside 0.0188
+    assert a["median_rotation_error_over_sigma"] == pytest.approx((1.8 + math.hypot(1.2, 1.2)) / 2)
+    assert rep["rotation_only"]["rotation_within_68pct"] == 1.0
+    assert "rotation within the 68% radius 0.67" in format_table(rep)
+
+
 def test_a_run_whose_distances_are_all_off_by_one_scale_scores_zero_once_scale_aligned(tmp_path):
     """Every step 1.2 cm for a true 1 cm (the radius told 20% too large): the raw error is 2 mm a step, the
     scale-aligned one 0 at the factor 1/1.2; an error that no single factor explains stays, and the aligned error
