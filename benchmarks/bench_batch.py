@@ -8,10 +8,11 @@ its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole pr
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
     .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
-        [--jobs 1,2] [--dask 2] [--repeat 3]
+        [--rss-bias-states] [--jobs 1,2] [--dask 2] [--repeat 3]
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
-so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85).
+so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85). ``--rss-bias-states``:
+that run with the opt-in per-sensor RSS bias states.
 
 ``--repeat N``: each exam N times (with ``--rf`` the runs without and with RF alternated), then the median and
 range of frames/s and of the ratio: one run on a machine whose speed drifts is not a measurement of a target.
@@ -127,6 +128,8 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=Path("/tmp/bench_batch"))
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--rf", action="store_true", help="also run the exam with its RF and print the throughput ratio")
+    ap.add_argument("--rss-bias-states", action="store_true",
+                    help="with --rf: the fusion with per-sensor RSS bias states (bodyslam batch --rss-bias-states)")
     ap.add_argument("--jobs", default=None,
                     help="comma-separated worker counts (e.g. 1,2,4,8,16): frames/s against jobs for each length, "
                          "and whether every count gives byte-identical motion.csv / trajectory.tum")
@@ -136,6 +139,8 @@ def main() -> None:
     ap.add_argument("--dask", type=int, default=0, metavar="N",
                     help="also run on a Dask LocalCluster of N worker processes and compare with the local run")
     args = ap.parse_args()
+    if args.rss_bias_states and not args.rf:
+        raise SystemExit("--rss-bias-states is a setting of the run with RF: give --rf too")
     if args.repeat < 1:
         raise SystemExit(f"--repeat {args.repeat}: give at least 1 run")
     if args.dask < 0:
@@ -197,7 +202,8 @@ def main() -> None:
                 out_rf = args.keep / f"out_{args.mode}_{n}_rf"
                 shutil.rmtree(out_rf, ignore_errors=True)
                 el_rf, peak_rf, rc_rf = run_measured([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out",
-                                                      str(out_rf), "--mode", args.mode])
+                                                      str(out_rf), "--mode", args.mode,
+                                                      *(["--rss-bias-states"] if args.rss_bias_states else [])])
                 traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
                 if rep == 0:
                     res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,
