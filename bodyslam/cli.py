@@ -571,6 +571,12 @@ def _localize(args) -> int:
           f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate "
           f"({sum(s.has_rotation and not s.has_estimate for s in steps)} of them with their rotation); "
           f"{len(loc.rf_problems)} RF line(s) skipped")
+    if loc.rss_bias_db is not None:
+        mean = loc.rss_bias_db.mean(axis=0)
+        j = int(np.argmax(np.abs(mean)))
+        print(f"RSS bias states: sensor {loc.sensor_names[j]} read {mean[j]:+.1f} dB off the calibration on average, "
+              f"the largest of {len(mean)}; {np.mean(np.abs(mean) > 1.0):.0%} of the sensors more than 1 dB "
+              f"({out / 'rss_bias.csv'})")
     return _print_problems(problems + loc.rf_problems)
 
 

@@ -891,8 +891,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
                               + (" and refined" if settings.fusion == "rss" else "")
-                              + ("; per-sensor RSS bias states)" if settings.rss_bias_states and settings.fusion == "rss"
-                                 else ")")),
+                              + ("; per-sensor RSS bias states)"
+                                 if settings.rss_bias_states and settings.fusion == "rss" else ")")),
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors;
                # kappa is the whole exam's, kappa_smoothed_mean the smoother's (its window's share, per frame)
                "rss_error_correlation": (
@@ -968,7 +968,7 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
           problems: list[list]):
     """The exam's localization (:func:`bodyslam.fusion.localize.localize`), or None with the reason listed."""
     from bodyslam.io import read_motion_steps, write_tum
-    from bodyslam.fusion.localize import RfInput, localize
+    from bodyslam.fusion.localize import RfInput, localize, write_rss_bias
 
     try:
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
@@ -980,6 +980,7 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: Ba
         return None
     problems.extend([exam.rf, "", "warning", msg] for msg in rf.problems)
     write_tum(d / "trajectory_filter.tum", t, loc.filtered.positions_w_m, loc.filtered.rotations_w_c)
+    write_rss_bias(d / "rss_bias.csv", loc)
     return loc
 
 

@@ -18,8 +18,9 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
 
 :func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
 (online filter), ``uncertainty.csv`` (:data:`UNCERTAINTY_COLUMNS`, also written by dead reckoning and the other
-papers' localizers), ``rf_fixes.csv``, ``trajectory.png`` (3-D view and three projections with the 1-sigma and
-the marked frames), ``path.png`` (path travelled with its 1-sigma) and ``report.html`` (a 3-D view to turn).
+papers' localizers), ``rf_fixes.csv``, ``rss_bias.csv`` (with the bias states: :func:`write_rss_bias`),
+``trajectory.png`` (3-D view and three projections with the 1-sigma and the marked frames), ``path.png`` (path
+travelled with its 1-sigma) and ``report.html`` (a 3-D view to turn).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from bodyslam.steps import StepMotion, lost_step_floor_m
 from bodyslam.vision.tracking import path_travelled
 
 __all__ = ["RfInput", "Localization", "localize", "online_inflation", "net_of_bias", "write_localization",
-           "write_uncertainty", "UNCERTAINTY_COLUMNS"]
+           "write_rss_bias", "write_uncertainty", "UNCERTAINTY_COLUMNS"]
 
 UNCERTAINTY_COLUMNS = ["frame", "t", "sd_x_m", "sd_y_m", "sd_z_m", "sd_position_m", "sd_heading_rad", "path_m",
                        "sd_path_m"]
@@ -88,6 +89,13 @@ class Localization:
     rts: FusionResult | None = None  # the RTS smoother before the refinement (its covariance scaled the same way)
     # the factor the smoother's covariance was scaled by, per frame (bodyslam.fusion.channel.smoother_inflation)
     kappa_smoothed: np.ndarray | float | None = None
+    sensor_names: tuple[str, ...] = ()  # the readings' columns (RfInput.sensor_names)
+
+    @property
+    def rss_bias_db(self) -> np.ndarray | None:
+        """(n, m) the online filter's per-sensor RSS bias estimates after each frame (dB; None without the bias
+        states, ``localize(bias_states=True)``)."""
+        return None if self.filtered.passes is None else self.filtered.passes.post_bias_db
 
 
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
@@ -141,7 +149,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     path, var = path_travelled(steps, radius_sd_rel, radius_m)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
-                        kappa_online, rts, kappa_smoothed)
+                        kappa_online, rts, kappa_smoothed, tuple(rf.sensor_names))
 
 
 def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput,
@@ -187,6 +195,19 @@ def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2
                 cell(head[k]), cell(pm[k]), cell(psd[k])] for k in range(n)])
 
 
+def write_rss_bias(path: str | os.PathLike, loc: Localization) -> bool:
+    """With the RSS bias states: per sensor, what its readings ran above the path-loss calibration by the online
+    filter (dB; its mean over the exam and its last value) and how many readings it gave. Returns whether it
+    wrote (nothing without the bias states)."""
+    bias = loc.rss_bias_db
+    if bias is None:
+        return False
+    write_csv(path, ["sensor", "bias_mean_db", "bias_last_db", "readings"],
+              [[name, float(np.mean(bias[:, j])), float(bias[-1, j]), int(np.isfinite(loc.rss_dbm[:, j]).sum())]
+               for j, name in enumerate(loc.sensor_names)])
+    return True
+
+
 def write_localization(out: str | os.PathLike, loc: Localization, title: str = "Body-SLAM") -> None:
     """The output set of a localization run (module docstring) into the directory ``out`` (marked frames are
     ``bodyslam batch``'s: ``--mark``)."""
@@ -203,6 +224,7 @@ def write_localization(out: str | os.PathLike, loc: Localization, title: str = "
     fx = np.array([f.position_w_m for f in loc.fixes])
     write_csv(out / "rf_fixes.csv", ["frame", "t", "x_m", "y_m", "z_m", "status"],
               [[int(loc.frames[k]), t, *fx[k], loc.fixes[k].status] for k, t in enumerate(loc.stamps_s)])
+    write_rss_bias(out / "rss_bias.csv", loc)
     fixes_ok = np.where(np.array([f.status == "ok" for f in loc.fixes])[:, None], fx, np.nan)
     paths = [Path3D(f"{title} (smoothed)", res.positions_w_m, (214, 39, 40), 1.8, res.cov[:, :3, :3]),
              Path3D(f"{title} (online filter)", ekf.positions_w_m, (31, 119, 180), 1.0),

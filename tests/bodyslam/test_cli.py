@@ -92,6 +92,9 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
             "--rss-bias-states")
     assert p.returncode == 0, p.stderr
     assert (tmp_path / "loc_b" / "trajectory.tum").read_text() != (tmp_path / "loc" / "trajectory.tum").read_text()
+    # each sensor's bias estimate, written and pointed at (without the states: no such file)
+    assert len((tmp_path / "loc_b" / "rss_bias.csv").read_text().splitlines()) == 33 and "rss_bias.csv" in p.stdout
+    assert not (tmp_path / "loc" / "rss_bias.csv").exists()
     for cmd in ("localize", "batch"):  # states of the raw-RSS filter: refused with fix fusion, not ignored
         p = run(cmd, str(DEMO), "--out", str(tmp_path / f"{cmd}_fix"), "--fusion", "fix", "--rss-bias-states")
         assert p.returncode == 1 and "--fusion rss" in p.stderr and not (tmp_path / f"{cmd}_fix").exists()
@@ -99,6 +102,7 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
     assert p.returncode == 0, p.stderr
     summary = json.loads((tmp_path / "b" / "demo_seed0" / "summary.json").read_text())
     assert "bias states" in summary["trajectory"], summary["trajectory"]
+    assert (tmp_path / "b" / "demo_seed0" / "rss_bias.csv").is_file()
     p = run("batch", str(DEMO / "frames"), "--out", str(tmp_path / "b2"), "--jobs", "1")
     assert p.returncode == 0, p.stderr
     for f in (tmp_path / "loc" / "uncertainty.csv", tmp_path / "b" / "demo_seed0" / "uncertainty.csv",
