@@ -51,8 +51,8 @@ from bodyslam.vision.tracking import SCALE_CORR_M
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FusionSettings", "FusionResult", "RSS_BIAS_STATES", "predict", "DeadReckoner", "fuse", "rts_smooth", "align_to_fixes",
-           "kf_thesis", "step_pose"]
+__all__ = ["FusionSettings", "FusionResult", "RSS_BIAS_STATES", "predict", "DeadReckoner", "fuse", "rts_smooth",
+           "align_to_fixes", "kf_thesis", "step_pose"]
 
 
 @dataclass(frozen=True)
@@ -98,8 +98,9 @@ class FusionSettings:
 
 # The per-sensor RSS bias states' values where a user turns them on (``bodyslam localize|batch --rss-bias-states``,
 # ``localize(bias_states=True)``): chosen on the realistic tuning seeds 503-509 (a grid of 1 / 3 / 10 cm x 2 / 4 / 6
-# dB, flat at 1-3 cm and 2-4 dB; docs/RESULTS.md). Off by default: on the ideal channel they cost accuracy, and the
-# filter runs ~3x slower (38 states with 32 sensors instead of 6-7).
+# dB, flat at 1-3 cm and 2-4 dB; docs/RESULTS.md). Off by default: they gain 4% on the realistic channel's reporting
+# seeds and nothing on the ideal one, make the 1-sigma conservative on both, and the filter runs ~3x slower (38
+# states with 32 sensors instead of 6-7).
 RSS_BIAS_STATES = {"bias_corr_m": 0.03, "bias_sd_db": 2.0}
 
 
@@ -355,8 +356,8 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         else:  # the recheck
             found = search_orientation(searcher, 0, k1, R0, start_of, P, [], score_from=k_end)
             # the committed run over the window, without a turn; the margin: how far the best candidate's
-            # negative log-likelihood lies below its on the readings so far (the candidates, run from frame 0,
-            # miss the re-starts after gaps that the committed run had)
+            # negative log-likelihood lies below the committed run's on the readings so far (not the centre
+            # candidate's: the candidates, run from frame 0, miss the re-starts after gaps the committed run had)
             cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
             margin = (cont[3][0] - found.least_nll) / _window_inflation(rss, found.mixture_positions_w_m, k_end,
                                                                         sensors_w_m, normals_w, pl)
