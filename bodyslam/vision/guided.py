@@ -19,7 +19,8 @@ forward hypothesis finds matches along them whatever the true distance: the dist
 hypotheses (mean error 0.48 cm of 0.83) and is not reported. The roll and tilt hold: with at least
 :data:`MIN_GUIDED_MATCHES` matches after the second pass (80 in ``sift`` mode: 140 of the 220 steps) the roll
 errs 2.4 deg at the 68th percentile (3.8 RMS) and the tilt 2.5, where those steps' true roll is ~11 deg RMS.
-The step is written with its rotation, ``distance_m`` NaN, and the 1-sigma :data:`ROTATION_SIGMA_RAD`; the
+The step is written with its rotation, ``distance_m`` NaN, and a 1-sigma that falls with the matches that
+verified (:func:`rotation_sigma_rad`); the
 filters apply the rotation and treat the translation as unknown (the last estimated step again, stretched to the
 estimated steps so far at their 90th percentile: a step matching loses is a long one; with that length as
 1-sigma; :func:`bodyslam.fusion.ekf.step_noise`).
@@ -39,7 +40,7 @@ from bodyslam.vision.matching import Matcher, Matches
 from bodyslam.vision.motion import fit_tube, tube_predict
 
 __all__ = ["estimate_rotation", "hypotheses", "guided_matches", "descriptor_distances", "MIN_GUIDED_MATCHES",
-           "ROTATION_SIGMA_RAD"]
+           "rotation_sigma_rad"]
 
 # fewer verified guided matches than this after the second pass: no estimate, per matcher mode (the count a wrong
 # hypothesis reaches along the radial epipolar lines grows with the keypoints). Chosen on the tuning seeds
@@ -51,9 +52,13 @@ __all__ = ["estimate_rotation", "hypotheses", "guided_matches", "descriptor_dist
 # 1-sigma. ``fast`` with its rescue (the default: bodyslam.vision.matching) matches the rescue's full-frame
 # keypoints, ``sift``'s budget, at ``sift``'s threshold; ``fast``'s own is for ``--no-rescue``
 MIN_GUIDED_MATCHES = {"sift": 80, "asift": 80, "fast": 50}
-# 1-sigma of a rotation step's rotation: on the tuning seeds the kept steps' roll error is 2.4 deg at the 68th
-# percentile and 3.8 deg RMS, the tilt's 2.5 at the 68th percentile
-ROTATION_SIGMA_RAD = math.radians(4.0)
+# 1-sigma of a rotation step's rotation (rotation_sigma_rad): SIGMA_AT_MIN_RAD * (n / threshold) ** -SIGMA_POWER,
+# at least SIGMA_FLOOR_RAD. Fitted on realistic tuning seeds 503-509 (sift mode, 248 rotation steps): the error
+# angle's 68th percentile over 1.8786 (the 3-D 68% radius) is 6.0 / 3.7 / 2.2 / 1.8 / 0.84 deg for 80-90 /
+# 90-100 / 100-120 / 120-160 / 160+ verified matches; this gives 5.5 / 4.1 / 2.7 / 1.4 / 0.7. Sessions 12-25 stated
+# 4 deg for every step (the steps' roll error at its 68th percentile), over-trusting the few-match steps that hold
+# most of the gross errors (36% over 10 deg at 80-90 matches) and under-trusting the many-match ones
+SIGMA_AT_MIN_RAD, SIGMA_POWER, SIGMA_FLOOR_RAD = math.radians(6.5), 2.7, math.radians(0.5)
 # windows around the prediction, as angles at the image centre (x the camera's pixels per radian): ~30 px and
 # ~12 px on the testbed's 420 px frames
 WINDOW_RAD, REFINE_WINDOW_RAD = 0.19, 0.08
@@ -172,4 +177,10 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
                     start="rotation")
     if x is None:
         return None
-    return rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), ROTATION_SIGMA_RAD)
+    return rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), rotation_sigma_rad(len(refined), min_matches))
+
+
+def rotation_sigma_rad(n_matches: int, min_matches: int) -> float:
+    """The stated 1-sigma (rad, largest axis) of a rotation step that ``n_matches`` guided matches verified, the
+    mode's threshold being ``min_matches`` (:data:`MIN_GUIDED_MATCHES`; the fit above)."""
+    return max(SIGMA_AT_MIN_RAD * (n_matches / min_matches) ** -SIGMA_POWER, SIGMA_FLOOR_RAD)
