@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 import pytest
 
@@ -180,3 +181,22 @@ def test_the_true_channel_changes_the_bound_and_nothing_the_pipeline_does(tmp_pa
         assert np.array_equal(ideal["estimates"][a], real["estimates"][a], equal_nan=True)
     assert np.all(real["pcrb_m2"] > ideal["pcrb_m2"])
     assert np.all(real["smoothing_bound_m2"] > ideal["smoothing_bound_m2"])
+
+
+def test_orientation_consistency_takes_the_error_in_the_filters_camera_frame():
+    """The orientation's NEES in the EKF's error convention (R_true = R_est Exp(e), e in the camera frame): with a
+    covariance tight about camera x (0.01 rad) and loose about y and z (0.5 rad), 0.1 rad about camera x is far
+    outside (NEES 100), the same turn about the world's x -- camera z here, the camera turned 90 deg about y -- is
+    inside (0.04); and 1-sigma turns along each loose axis give NEES 1."""
+    from testbed.evaluate import orientation_consistency
+
+    truth = Rotation.from_rotvec([[0.0, np.pi / 2, 0.0]] * 4)
+    cov = np.repeat(np.diag([0.01**2, 0.5**2, 0.5**2])[None], 4, axis=0)
+    camera_x = truth * Rotation.from_rotvec([-0.1, 0.0, 0.0])  # R_est = R_true Exp(-e): e = 0.1 about camera x
+    world_x = Rotation.from_rotvec([-0.1, 0.0, 0.0]) * truth
+    loose = truth * Rotation.from_rotvec([[0.0, -0.5, 0.0], [0.0, 0.0, 0.5], [0.0, 0.3, 0.4], [0.0, 0.0, 0.0]])
+    got = {name: orientation_consistency(est, cov, truth) for name, est in
+           (("camera_x", camera_x), ("world_x", world_x), ("loose", loose))}
+    assert np.allclose(got["camera_x"]["orientation_nees"], 100.0) and not got["camera_x"]["orientation_inside_68"].any()
+    assert np.allclose(got["world_x"]["orientation_nees"], 0.04) and got["world_x"]["orientation_inside_68"].all()
+    assert np.allclose(got["loose"]["orientation_nees"], [1.0, 1.0, 1.0, 0.0])
