@@ -36,10 +36,12 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-def _angle_errors(tr: dict, es: dict, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(|roll error|, |tilt error|)`` (rad) of the steps ``idx``."""
+def _angle_errors(tr: dict, es: dict, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(|roll error|, |tilt error|, |swing error|)`` (rad) of the steps ``idx``; the swing error is the pitch and
+    yaw errors as one vector."""
     return (np.abs(_wrap(es["roll_rad"][idx] - tr["roll_rad"][idx])),
-            np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx]))
+            np.abs(es["tilt_rad"][idx] - tr["tilt_rad"][idx]),
+            np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx]))
 
 
 def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
@@ -48,8 +50,7 @@ def _block(tr: dict, es: dict, idx: np.ndarray) -> dict:
     d_est, d_true = es["distance_m"][idx], tr["distance_m"][idx]
     e_d = np.abs(d_est - d_true)
     scale = _l1_scale(d_est, d_true)
-    e_r, e_t = _angle_errors(tr, es, idx)
-    e_v = np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx])
+    e_r, e_t, e_v = _angle_errors(tr, es, idx)
     return {
         "n_steps_scored": int(len(idx)),
         "mean_true_distance_cm": float(np.mean(np.abs(d_true)) * 100),
@@ -89,8 +90,7 @@ def _rotation_block(tr: dict, es: dict, idx: np.ndarray) -> dict:
     """Roll and tilt errors of steps that measured only their rotation (status ``rotation``; no distance)."""
     if len(idx) == 0:
         return {"n_steps_scored": 0}
-    e_r, e_t = _angle_errors(tr, es, idx)
-    e_v = np.hypot(es["pitch_rad"][idx] - tr["pitch_rad"][idx], es["yaw_rad"][idx] - tr["yaw_rad"][idx])
+    e_r, e_t, e_v = _angle_errors(tr, es, idx)
     return {"n_steps_scored": int(len(idx)),
             "mean_true_roll_deg": float(np.degrees(np.mean(np.abs(tr["roll_rad"][idx])))),
             "mae_roll_deg": float(np.degrees(np.mean(e_r))),

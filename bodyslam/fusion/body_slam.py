@@ -347,35 +347,33 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         (the start's position and covariance, fresh bias states), compared on the next window's readings."""
         if k_end not in gap_ends and k_end != recheck_at:
             return None
-        R_b = Rotation.from_matrix(R_b)
         k1 = min(n, k_end + cfg.search_frames)
-        sig = max(float(np.sqrt(np.trace(P_b[3:6, 3:6]) / 3)), np.radians(30.0))
         if k_end in gap_ends:
-            found = search_orientation(searcher, k_end, k1, R_b, lambda R: p_b, with_orientation_sigma(P_b, sig),
-                                       [], bias_b)
-        else:  # the recheck
-            found = search_orientation(searcher, 0, k1, R0, start_of, P, [], score_from=k_end)
-            # the committed run over the window, without a turn; the margin: how far the best candidate's
-            # negative log-likelihood lies below the committed run's on the readings so far (not the centre
-            # candidate's: the candidates, run from frame 0, miss the re-starts after gaps the committed run had)
-            cont = searcher.run(p_b[None], R_b.as_matrix()[None], P_b[None], k_end, k1, b=bias_b[None])
-            margin = (cont[3][0] - found.least_nll) / _window_inflation(rss, found.mixture_positions_w_m, k_end,
-                                                                        sensors_w_m, normals_w, pl)
-            passed = margin > cfg.recheck_min_nll
-            log.debug("start recheck over frames %d-%d: margin %.1f nats over kappa at the end, %.1f at most "
-                      "(threshold %.1f), best candidate %.0f deg from the committed start", k_end, k1 - 1, margin[-1],
-                      margin.max(), cfg.recheck_min_nll, found.turn_from_centre_deg)
-            if not passed.any():
-                return None  # the start stands, and the output is the committed run's
+            sig = max(float(np.sqrt(np.trace(P_b[3:6, 3:6]) / 3)), np.radians(30.0))
+            found = search_orientation(searcher, k_end, k1, Rotation.from_matrix(R_b), lambda R: p_b,
+                                       with_orientation_sigma(P_b, sig), [], bias_b)
+            searches.append(found)
+            return found.R, sig
+        # the recheck
+        found = search_orientation(searcher, 0, k1, R0, start_of, P, [], score_from=k_end)
+        # the committed run over the window, without a turn; the margin: how far the best candidate's negative
+        # log-likelihood lies below the committed run's on the readings so far (not the centre candidate's: the
+        # candidates, run from frame 0, miss the re-starts after gaps the committed run had)
+        cont = searcher.run(p_b[None], R_b[None], P_b[None], k_end, k1, b=bias_b[None])
+        margin = (cont[3][0] - found.least_nll) / _window_inflation(rss, found.mixture_positions_w_m, k_end,
+                                                                    sensors_w_m, normals_w, pl)
+        passed = margin > cfg.recheck_min_nll
+        log.debug("start recheck over frames %d-%d: margin %.1f nats over kappa at the end, %.1f at most "
+                  "(threshold %.1f), best candidate %.0f deg from the committed start", k_end, k1 - 1, margin[-1],
+                  margin.max(), cfg.recheck_min_nll, found.turn_from_centre_deg)
+        if passed.any():
             # the output inside the window must not depend on the decision (made on its last frame): frame by
             # frame, the committed run without the turn until the margin on the readings so far passes the
             # threshold, the candidates' mixture from then on -- whichever way the decision goes
             rechecked[k_end] = _Recheck(found, passed, cont[0][0], cont[1][0], cont[2][0])
             if passed[-1]:  # the start turns: the committed run is run again from it (below)
                 searches.append(found)
-            return None
-        searches.append(found)
-        return found.R, sig
+        return None  # no reset: the start stands, or the whole run starts again from the turned start
 
     resets: dict = {}
     pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0, n,

@@ -346,6 +346,7 @@ def test_a_search_scored_from_a_later_frame_compares_the_candidates_on_those_fra
     # the centre candidate's score: its cumulative nll over frames 60..99, the run from frame 0 less frames 0..59
     nll = ekf.run(gt[0], centre, P, 0, 100)[3][0]
     assert later.least_nll[-1] == pytest.approx(later.nll_best) and later.nll_best <= later.nll_centre
+    # (rel 1e-9: the search runs the centre batched with the other candidates, the reference alone -- rounding only)
     assert later.nll_centre == pytest.approx(nll[-1] - nll[59], rel=1e-9)
     assert later.nll_centre < plain.nll_centre  # 40 frames' worth, not 100
     with pytest.raises(ValueError, match="outside the run"):
