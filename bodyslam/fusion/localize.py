@@ -10,7 +10,8 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
    which start the filter;
 4. the error-state EKF (:func:`bodyslam.fusion.body_slam.fuse`, on raw RSS or on the fixes) and its RTS smoothing,
    then (raw RSS) the whole exam solved at once from the smoother's trajectory (:func:`bodyslam.fusion.refine.
-   refine_map`): the smoothed output; the plain smoother's is kept beside it (``Localization.rts``);
+   refine_map`, with its own covariances): the smoothed output; the plain smoother's is kept beside it
+   (``Localization.rts``);
 5. their covariances scaled by the readings' measured correlation (:mod:`bodyslam.fusion.channel`: the smoother's
    by the whole exam's, the online filter's frame ``k`` by frames ``0 .. k``'s), so that the stated 1-sigma
    admits a channel that is not the calibration's independent shadowing (1.0 on an ideal one);

@@ -25,8 +25,12 @@ cost falls by less than a millionth of itself, or after ``max_iter`` (30; the tu
 two rules, with the same errors at 15 as at 60). The normal equations are block tridiagonal: built block by
 block without the Jacobian (the readings in chunks of frames) and solved as a banded system, so time is linear in
 the frames and memory little more than the trajectory's (a 10,000-frame exam: ~1.5 s, 6 iterations, +15 MB).
-Covariances: the smoother's (the same information, linearised elsewhere; the caller scales them by the readings'
-measured correlation at the refined positions).
+Covariances: the solution's own, each pose's block of the inverse of the Gauss-Newton system at the solution
+(:func:`marginal_covariances`, ``O(n)``; the caller scales them by the readings' measured correlation at the
+refined positions). Until session 26 the smoother's were stated (within 4% in position, docs/RESULTS.md), but they
+were linearised along the filter's run: where the refinement turned the orientation, its 1-sigma stayed the
+smoother's (realistic tuning: 91% of frames inside the orientation's 68% ellipsoid, 83% with the solution's own).
+With RSS bias states the solve takes the filter's biases as known, so its 1-sigma leaves their uncertainty out.
 
 Measured on tuning seeds only (docs/RESULTS.md, "The whole exam solved at once"), smoother -> refined, mean
 position error / orientation error (optical axis):
@@ -66,7 +70,7 @@ from bodyslam.steps import StepMotion
 
 log = logging.getLogger(__name__)
 
-__all__ = ["refine_map", "MapProblem"]
+__all__ = ["refine_map", "MapProblem", "marginal_covariances"]
 
 CHUNK_FRAMES = 4096  # frames per block of the readings' terms (~3 MB per array at 32 sensors)
 
@@ -190,10 +194,12 @@ class MapProblem:
 
 def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray,
                normals_w: np.ndarray, pl: PathLossModel, max_iter: int = 30, tol: float = 1e-6,
-               rel_tol: float = 1e-6, lost_floor_m: float = 0.0) -> FusionResult:
+               rel_tol: float = 1e-6, lost_floor_m: float = 0.0, own_cov: bool = True) -> FusionResult:
     """The smoothed run ``res`` (:func:`bodyslam.fusion.body_slam.rts_smooth`) refined to the whole exam's joint
-    optimum (module docstring); a copy with the refined positions and orientations, everything else as ``res``.
-    ``lost_floor_m``: the filters' least length of a step lost to motion (:func:`bodyslam.fusion.ekf.process_noise`)."""
+    optimum (module docstring); a copy with the refined positions, orientations and their covariances
+    (``own_cov``; False: the smoother's, as ``res``; also where the system is singular), everything else as
+    ``res``. ``lost_floor_m``: the filters' least length of a step lost to motion
+    (:func:`bodyslam.fusion.ekf.process_noise`)."""
     prob = MapProblem(steps, rss, sensors_w_m, normals_w, pl, res.scale, lost_floor_m=lost_floor_m)
     p = np.array(res.positions_w_m, float)
     R = res.rotations_w_c.as_matrix()
@@ -217,7 +223,39 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
         if lam > 1e6 or np.abs(dx).max() < tol or f_before - f < rel_tol * f:
             break
     log.info("whole-exam refinement: cost %.1f -> %.1f in %d iterations", f_start, f, it)
-    return replace(res, positions_w_m=p, rotations_w_c=Rotation.from_matrix(R))
+    cov = None
+    if own_cov:
+        D, O, _ = prob.normal_equations(p, R)
+        cov = marginal_covariances(D, O)
+        if cov is None:
+            log.warning("whole-exam refinement: its information matrix is singular; the smoother's covariances kept")
+    return replace(res, positions_w_m=p, rotations_w_c=Rotation.from_matrix(R), cov=res.cov if cov is None else cov)
+
+
+def marginal_covariances(D: np.ndarray, O: np.ndarray) -> np.ndarray | None:
+    """``(n, 6, 6)`` the diagonal blocks of ``H^-1`` for the symmetric block-tridiagonal ``H`` (diagonal blocks
+    ``D``, blocks ``O`` at ``(k, k+1)``): each pose's marginal covariance at the solution, in ``O(n)``. A forward
+    pass of Schur complements ``S_k = D_k - O_{k-1}^T S_{k-1}^-1 O_{k-1}`` (the information of frames ``0..k``
+    about pose ``k``, as a filter's), then a backward pass ``C_k = S_k^-1 + G_k C_{k+1} G_k^T`` with
+    ``G_k = S_k^-1 O_k`` (the RTS smoother's form). None where ``H`` is not positive definite."""
+    n = len(D)
+    Sinv = np.empty_like(D)
+    S = D[0]
+    for k in range(n):
+        if k:
+            S = D[k] - O[k - 1].T @ Sinv[k - 1] @ O[k - 1]
+        try:
+            L = np.linalg.cholesky(0.5 * (S + S.T))
+        except np.linalg.LinAlgError:
+            return None
+        Li = np.linalg.inv(L)
+        Sinv[k] = Li.T @ Li
+    C = np.empty_like(D)
+    C[-1] = Sinv[-1]
+    for k in range(n - 2, -1, -1):
+        G = Sinv[k] @ O[k]
+        C[k] = Sinv[k] + G @ C[k + 1] @ G.T
+    return C
 
 
 def _solve_damped(D: np.ndarray, O: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray | None:
