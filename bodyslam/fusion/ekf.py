@@ -187,6 +187,7 @@ class FilterPasses:
     # (n, m) the RSS bias states after each update (dB; None without them). They are not in the stored P, F and
     # prior/post_b: the passes keep the pose and scale block, the biases marginalised (ErrorStateEkf.run)
     post_bias_db: np.ndarray | None = None
+    post_bias_var_db2: np.ndarray | None = None  # (n, m) their variances (the diagonal of their covariance block)
 
 
 class ErrorStateEkf:
@@ -410,6 +411,7 @@ class ErrorStateEkf:
             Fs = np.zeros((max(f - 1, 0), D, D))
             prior_b, post_b, post_P = np.zeros((f, self.n_scale)), np.zeros((f, self.n_scale)), np.zeros((f, D, D))
             post_bias = np.zeros((f, self.m_bias)) if self.m_bias else None
+            post_bias_var = np.zeros((f, self.m_bias)) if self.m_bias else None
         for k in range(k0, k1):
             i = k - k0
             if k > k0:
@@ -435,8 +437,9 @@ class ErrorStateEkf:
                 post_P[i], post_b[i] = self.P[0, :D, :D], self.b[0, :self.n_scale]
                 if post_bias is not None:
                     post_bias[i] = self.b[0, self.n_scale:]
+                    post_bias_var[i] = np.diagonal(self.P[0])[D:]
         passes = None
         if keep:
             passes = FilterPasses(prior_p, prior_R, prior_P, Fs, pos[0].copy(), rot[0].copy(), post_P, prior_b, post_b,
-                                  post_bias)
+                                  post_bias, post_bias_var)
         return pos, rot, covs, nll_k, passes

@@ -138,7 +138,9 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     rts = smoothed = rts_smooth(ekf)
     rss_net = net_of_bias(ekf, rss)  # the readings less the filter's RSS bias states (step 4)
     if refine and mode == "rss":
-        smoothed = refine_map(rts, steps, rss_net, rf.sensors_w_m, rf.normals_w, rf.pathloss, lost_floor_m=floor)
+        bias_var = None if ekf.passes is None else ekf.passes.post_bias_var_db2
+        smoothed = refine_map(rts, steps, rss_net, rf.sensors_w_m, rf.normals_w, rf.pathloss, lost_floor_m=floor,
+                              reading_var_db2=bias_var)
     channel = kappa_online = kappa_smoothed = None
     if honest_cov:
         memory = filter_memory(ekf)  # the online factor's taper, and the smoother's two-sided one

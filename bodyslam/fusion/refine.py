@@ -30,7 +30,8 @@ Covariances: the solution's own, each pose's block of the inverse of the Gauss-N
 refined positions). Until session 26 the smoother's were stated (within 4% in position, docs/RESULTS.md), but they
 were linearised along the filter's run: where the refinement turned the orientation, its 1-sigma stayed the
 smoother's (realistic tuning: 91% of frames inside the orientation's 68% ellipsoid, 83% with the solution's own).
-With RSS bias states the solve takes the filter's biases as known, so its 1-sigma leaves their uncertainty out.
+With RSS bias states the solve takes the filter's biases as known; its covariance adds their variances to the
+readings' (``reading_var_db2``).
 
 Measured on tuning seeds only (docs/RESULTS.md, "The whole exam solved at once"), smoother -> refined, mean
 position error / orientation error (optical axis):
@@ -140,19 +141,24 @@ class MapProblem:
         Jb[:, 3:, 3:] = np.eye(3) * ir
         return Ja, Jb, np.concatenate([rp, rr], axis=1)
 
-    def _reading_rows(self, p, rows=slice(None)):
+    def _reading_rows(self, p, rows=slice(None), extra_var=None):
         """The readings of the frames ``rows`` that count (finite, inside the gate): ``(z, Jz (f, m, 3), use)``,
         ``Jz = dz / dp`` of the reading's own frame, zero where not used
-        (``d mean / dp = (10 alpha / ln 10) (s - p) / d^2``)."""
+        (``d mean / dp = (10 alpha / ln 10) (s - p) / d^2``). ``extra_var (n, m)`` (dB^2): variance added to each
+        reading's (the gate still on the reading's own)."""
         z, diff, d, alpha, sigma = self._rss_terms(p, rows)
         use = np.isfinite(z) & (np.abs(z) < self.gate)
         Jz = -(10.0 * alpha / np.log(10.0) / (d**2 * sigma))[..., None] * diff
+        if extra_var is not None:
+            w = sigma / np.sqrt(sigma**2 + np.asarray(extra_var, float)[rows])
+            z, Jz = z * w, Jz * w[..., None]
         return np.where(use, z, 0.0), np.where(use[..., None], Jz, 0.0), use
 
-    def normal_equations(self, p, R):
+    def normal_equations(self, p, R, extra_var=None):
         """``(D, O, g)``: the Gauss-Newton system ``J^T J dx = -J^T r`` in blocks -- ``D (n, 6, 6)`` the diagonal
         blocks, ``O (n-1, 6, 6)`` the blocks ``(k, k+1)``, ``g (n, 6)`` the gradient ``J^T r`` -- without forming
-        ``J`` (:meth:`linearise`, the same system as a sparse matrix, is the reference the tests hold it to)."""
+        ``J`` (:meth:`linearise`, the same system as a sparse matrix, is the reference the tests hold it to).
+        ``extra_var``: variance added to the readings' (:meth:`_reading_rows`; the covariance's system only)."""
         Ja, Jb, r = self._step_blocks(p, R)
         JaT, JbT = np.swapaxes(Ja, 1, 2), np.swapaxes(Jb, 1, 2)
         D = np.zeros((self.n, 6, 6))
@@ -163,7 +169,7 @@ class MapProblem:
         g[:-1] += np.einsum("kij,kj->ki", JaT, r)
         g[1:] += np.einsum("kij,kj->ki", JbT, r)
         for rows in self._chunks():  # the readings: position rows of their own frame only
-            z, Jz, _ = self._reading_rows(p, rows)
+            z, Jz, _ = self._reading_rows(p, rows, extra_var)
             D[rows, :3, :3] += np.einsum("kmi,kmj->kij", Jz, Jz)
             g[rows, :3] += np.einsum("kmi,km->ki", Jz, z)
         return D, O, g
@@ -194,12 +200,15 @@ class MapProblem:
 
 def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray,
                normals_w: np.ndarray, pl: PathLossModel, max_iter: int = 30, tol: float = 1e-6,
-               rel_tol: float = 1e-6, lost_floor_m: float = 0.0, own_cov: bool = True) -> FusionResult:
+               rel_tol: float = 1e-6, lost_floor_m: float = 0.0, own_cov: bool = True,
+               reading_var_db2: np.ndarray | None = None) -> FusionResult:
     """The smoothed run ``res`` (:func:`bodyslam.fusion.body_slam.rts_smooth`) refined to the whole exam's joint
     optimum (module docstring); a copy with the refined positions, orientations and their covariances
     (``own_cov``; False: the smoother's, as ``res``; also where the system is singular), everything else as
     ``res``. ``lost_floor_m``: the filters' least length of a step lost to motion
-    (:func:`bodyslam.fusion.ekf.process_noise`)."""
+    (:func:`bodyslam.fusion.ekf.process_noise`). ``reading_var_db2 (n, m)``: variance (dB^2) the covariance adds
+    to each reading's, where ``rss`` is net of estimated offsets (the filter's RSS bias states' variances): the
+    solution takes them as known, its 1-sigma should not."""
     prob = MapProblem(steps, rss, sensors_w_m, normals_w, pl, res.scale, lost_floor_m=lost_floor_m)
     p = np.array(res.positions_w_m, float)
     R = res.rotations_w_c.as_matrix()
@@ -225,7 +234,7 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
     log.info("whole-exam refinement: cost %.1f -> %.1f in %d iterations", f_start, f, it)
     cov = None
     if own_cov:
-        D, O, _ = prob.normal_equations(p, R)
+        D, O, _ = prob.normal_equations(p, R, reading_var_db2)
         cov = marginal_covariances(D, O)
         if cov is None:
             log.warning("whole-exam refinement: its information matrix is singular; the smoother's covariances kept")

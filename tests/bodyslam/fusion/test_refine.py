@@ -133,6 +133,14 @@ def test_the_refined_covariance_is_the_solutions_own():
         assert np.allclose(ref.cov[k], Hinv[6 * k:6 * k + 6, 6 * k:6 * k + 6], rtol=1e-8, atol=1e-12)
     assert not np.allclose(ref.cov, rts.cov)
     assert np.array_equal(refine_map(rts, steps, rss, pos, nrm, pl, own_cov=False).cov, rts.cov)
+    # variance added to the readings (offsets taken as known, their uncertainty not): the same solution, a wider
+    # covariance (the difference positive semi-definite on every frame), none added the same covariance
+    zero = refine_map(rts, steps, rss, pos, nrm, pl, reading_var_db2=np.zeros(rss.shape))
+    assert np.allclose(zero.cov, ref.cov, rtol=1e-12, atol=0)
+    wide = refine_map(rts, steps, rss, pos, nrm, pl, reading_var_db2=np.full(rss.shape, 4.0))
+    assert np.array_equal(wide.positions_w_m, ref.positions_w_m)
+    assert np.linalg.eigvalsh(wide.cov - ref.cov).min() > -1e-12 and np.trace(wide.cov[:, :3, :3] - ref.cov[:, :3, :3],
+                                                                               axis1=1, axis2=2).min() > 0
 
 
 def _turned_start(seed, deg):
@@ -220,6 +228,10 @@ def test_localize_with_bias_states_finds_sensors_reading_high_and_writes_them(de
     rows = list(csv.DictReader((tmp_path / "rss_bias.csv").open()))
     assert [r["sensor"] for r in rows] == list(rf.sensor_names)
     assert float(rows[0]["bias_mean_db"]) == pytest.approx(mean[0]) and int(rows[0]["readings"]) == len(stamps)
+    # their variances, kept for the whole-exam solve's 1-sigma: below the 2 dB prior's, above nothing
+    var = loc.filtered.passes.post_bias_var_db2
+    assert var.shape == loc.rss_bias_db.shape and 0 < var.min() and var.max() <= 2.0**2 + 1e-9
     plain = localize(steps, stamps, rf, 2.0)
     assert plain.rss_bias_db is None and not write_rss_bias(tmp_path / "none.csv", plain)
+    assert plain.filtered.passes.post_bias_var_db2 is None
     assert not (tmp_path / "none.csv").exists()
