@@ -37,6 +37,10 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
         mine = rep["per_seed"][0]["consistency"][alg]
         assert abs(mine["inside_68pct_ellipsoid"] - c["inside_68pct_ellipsoid"]) < 1e-4
         assert abs(mine["mean_nees"] - c["mean_nees"]) < 1e-3
+        # the chi-square test over one run: chi2(3)'s 2.5% and 97.5% points, and every frame in one of three places
+        b = c["nees_chi2"]
+        assert b["runs"] == 1 and b["band"] == [0.216, 9.348]
+        assert b["frames_inside"] + b["frames_below"] + b["frames_above"] == pytest.approx(1.0)
         o = rep["per_seed"][0]["orientation_error_deg"][alg]  # rounded to 0.01 deg
         assert abs(o["mean"] - rep["orientation_error_deg"][alg]["mean"]) < 0.01
     # re-scoring the kept sequences without rendering or motion gives the same figures
@@ -94,6 +98,24 @@ def test_consistency_of_an_honest_and_an_overconfident_estimate():
     assert abs(c["axis_inside_1sigma"].mean() - 0.683) < 0.02
     over = consistency(e, cov / 4, np.zeros((n, 3)))
     assert over["nees"].mean() > 10 and over["inside_68"].mean() < 0.3
+
+
+def test_the_nees_chi_square_band_holds_honest_runs_and_flags_the_others():
+    """Bar-Shalom's test over 20 runs: the band is chi2(60)'s 2.5% and 97.5% points over 20; NEES drawn honestly
+    (chi-square with 3 degrees of freedom) put the runs' mean inside it on ~95% of 400 frames (measured 0.975 with
+    this seed; 0.9 allows the test's own spread), twice too large above it on nearly all, half below it."""
+    from testbed.evaluate import nees_band
+
+    rng = np.random.default_rng(0)
+    runs = [(rng.normal(size=(400, 3)) ** 2).sum(axis=1) for _ in range(20)]
+    b = nees_band(runs)
+    assert b["runs"] == 20 and b["band"] == [2.024, 4.165]
+    assert b["frames_inside"] > 0.9
+    assert nees_band([2 * r for r in runs])["frames_above"] > 0.9
+    assert nees_band([0.5 * r for r in runs])["frames_below"] > 0.9
+    runs[3] = runs[3][:300]  # a shorter run: the frames every run has
+    runs[5][10] = np.nan  # a frame some run lacks is left out
+    assert nees_band(runs)["frames_inside"] > 0.9
 
 
 def test_frames_without_a_position_are_counted_not_averaged():
