@@ -606,5 +606,15 @@ def main_report_line(report: dict) -> str:
             f"Body-SLAM smoothed (RTS + refinement) {a['ekf_rss_rts']['mean_error_cm']:.2f} cm; "
             f"sqrt(PCRB) {report['sqrt_mean_pcrb_cm']:.2f} cm (a filter at the bound: mean error "
             f"{report['pcrb_mean_error_cm']:.2f} cm), EKF RMSE/sqrt(PCRB) "
-            f"{a['ekf_rss']['rmse_over_sqrt_pcrb']:.2f}")
+            f"{a['ekf_rss']['rmse_over_sqrt_pcrb']:.2f}" + _honesty_clause(report.get("consistency", {})))
+
+
+def _honesty_clause(cons: dict) -> str:
+    """The stated 1-sigma of the online and smoothed filters in a few words: frames inside the 68% ellipsoid
+    (0.68 if honest) and inside the NEES's 95% chi-square band (0.95 if honest)."""
+    parts = [f"{name} {c['inside_68pct_ellipsoid']:.0%} inside its 68% ellipsoid, "
+             f"{c['nees_chi2']['frames_inside']:.0%} of frames in the NEES's 95% band"
+             for name, c in (("EKF", cons.get("ekf_rss")), ("smoothed", cons.get("ekf_rss_rts")))
+             if c and "nees_chi2" in c]
+    return "; 1-sigma: " + ", ".join(parts) if parts else ""
 

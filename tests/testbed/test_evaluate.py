@@ -47,6 +47,10 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     p = subprocess.run([sys.executable, "-m", "testbed.cli", "evaluate", "demo", "--seeds", "1", "--frames", "20",
                         "--out", str(out), "--reuse"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
+    # the closing line tells how honest the stated 1-sigma is, with the figures report.json holds
+    c = rep["consistency"]["ekf_rss_rts"]
+    assert (f"smoothed {c['inside_68pct_ellipsoid']:.0%} inside its 68% ellipsoid, "
+            f"{c['nees_chi2']['frames_inside']:.0%} of frames in the NEES's 95% band") in p.stdout + p.stderr
     again = json.loads((out / "report.json").read_text())
     assert again["algorithms"] == rep["algorithms"] and again["seconds"]["render_total"] < 1.0
     for png in ("trajectory.png", "error_vs_time.png", "error_histogram.png", "error_cdf.png"):
