@@ -33,10 +33,16 @@ removed by the true value, still misses the forward motion (distance error 0.54 
 Matching is 2-NN with Lowe's ratio test; the second neighbour must lie more than 2 px from the first
 (ASIFT finds one scene point in several affine views, and a ratio against the same point's twin rejects good
 matches: measured on 40 pairs, distance error 0.030 -> 0.007 cm). Nearest neighbours: FLANN kd-trees (4 trees,
-32 checks) in ``asift`` mode (3000 keypoints: 34 ms per pair against 129 brute force), exact brute force otherwise
-(``sift``: the reference; ``fast``: 800 keypoints, 8.6 ms per pair, FLANN no faster). FLANN's trees are random: OpenCV's RNG is re-seeded
-before every match, so a pair's matches do not depend on which pairs a process matched before (chunked and
-resumed runs give the same result as one run).
+32 checks) in ``asift`` mode and fast mode's rescue (3000 keypoints), exact otherwise (``sift``: the reference;
+``fast``'s coarse and default tries). FLANN's trees are random: OpenCV's RNG is re-seeded before every match, so a
+pair's matches do not depend on which pairs a process matched before (chunked and resumed runs give the same
+result as one run). The exact neighbours are :func:`knn_l2`'s (session 28): one matrix product per block of rows;
+SIFT's integer descriptors make it OpenCV's brute-force matcher to the bit (tested), in a quarter of the time (one
+thread, per pair: 1.5 ms for 500 keypoints a frame against 5.7, 2.1 for 800 against 8.8, 28 for 2,760 against
+114). Exact neighbours at 3000 keypoints would also beat FLANN's time (26 ms against 32 per pair; FLANN's nearest
+was the true one for 57% of the keypoints), and they let more fast steps through: on thesis seed 7 (320x320, 300
+frames) ``asift`` went from 0.819 to 0.856 of the steps estimated, but the distance error from 0.0027 to 0.0094
+cm, one of the new steps fitted at zero distance where the capsule moved 1.12 cm (docs/RESULTS.md). Not adopted.
 
 Every mode keeps features inside the valid field-of-view mask (eroded by ``border_px``: the rim of the image
 circle is a strong edge that moves with the lens, not with the scene), and verifies matches geometrically with a
@@ -62,7 +68,8 @@ from bodyslam.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask", "essential_ransac"]
+__all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask", "essential_ransac",
+           "knn_l2"]
 
 from bodyslam.choices import MATCH_MODES  # noqa: E402
 ASIFT_VIEWS = ("compact", "standard")
@@ -240,11 +247,10 @@ class Matcher:
                 self._det.setViewParams([1.0, t, t], [0.0, 0.0, 90.0])
         else:
             self._det = cv2.SIFT_create(contrastThreshold=0.01)
-        self._flann = mode == "asift"
-        self._bf = cv2.BFMatcher(cv2.NORM_L2)
-        self._flann_matcher = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
         # fast mode's last try (:data:`RESCUE_FEATURES`), where tracking and the smaller detections fail
         self.rescue = mode == "fast" and rescue
+        self._flann = mode == "asift"
+        self._flann_matcher = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
         # fast mode tracks first (module docstring): at most lk_corners corners, forward-backward check
         self.lk_corners, self.lk_fb_px, self.lk_min_matches = 300, 0.5, 60
         # 11 x 11 windows, 2 pyramid levels: 3.3 ms per exam pair instead of 5.0 (15 x 15, 3 levels); pairs
@@ -424,11 +430,12 @@ class Matcher:
 
     def _knn(self, d1: np.ndarray, d2: np.ndarray, k: int, flann: bool) -> tuple[np.ndarray, np.ndarray]:
         """``(idx, dist)`` ``(n1, k)`` of each descriptor's ``k`` nearest in ``d2`` (``flann``: FLANN's kd-trees,
-        else brute force); -1 / inf where fewer."""
+        else exact: :func:`knn_l2`); -1 / inf where fewer."""
         k = min(k, len(d2))
-        if flann:
-            cv2.setRNGSeed(0x5EED)  # FLANN's random trees: the same for every pair (module docstring)
-        knn = (self._flann_matcher if flann else self._bf).knnMatch(d1, d2, k=k)
+        if not flann:
+            return knn_l2(d1, d2, k)
+        cv2.setRNGSeed(0x5EED)  # FLANN's random trees: the same for every pair (module docstring)
+        knn = self._flann_matcher.knnMatch(d1, d2, k=k)
         idx = np.full((len(knn), k), -1, np.int64)
         dist = np.full((len(knn), k), np.inf)
         for i, ms in enumerate(knn):
@@ -460,6 +467,42 @@ class Matcher:
         r1, v1 = self.camera.unproject(p1)
         r2, v2 = self.camera.unproject(p2)
         return essential_ransac(r1, r2, self.ransac_rad, v1 & v2)[4]
+
+
+KNN_BLOCK_ROWS = 512  # knn_l2's rows per block: 512 x 3000 float32 distances, 6 MB
+
+
+def knn_l2(d1: np.ndarray, d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Exact Euclidean ``k`` nearest neighbours ``(idx, dist)`` ``(n1, k)`` of each row of ``d1`` among the rows of
+    ``d2``, nearest first, ties to the lower index; -1 / inf where ``d2`` has fewer than ``k`` rows.
+
+    One matrix product per block of rows. SIFT descriptors are integers (OpenCV rounds them) with squared norms
+    about 512^2, so every squared distance ``|a|^2 + |b|^2 - 2 a.b`` is an integer below 2^24, computed exactly in
+    float32: the neighbours and distances are OpenCV's brute-force matcher's (tests/bodyslam/vision/test_matching.py),
+    which with its lists of matches takes ~4x as long (800 keypoints a frame: 2.1 ms per pair against 8.8, one
+    thread). Other descriptors get the same neighbours up to float32 rounding."""
+    a, b = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
+    n1, n2 = len(a), len(b)
+    idx = np.full((n1, k), -1, np.int64)
+    dist = np.full((n1, k), np.inf)
+    k_ = min(k, n2)
+    if n1 == 0 or k_ == 0:
+        return idx, dist
+    nb = (b * b).sum(axis=1)
+    for r0 in range(0, n1, KNN_BLOCK_ROWS):
+        blk = a[r0:r0 + KNN_BLOCK_ROWS]
+        rows = np.arange(len(blk))
+        sq = blk @ b.T
+        sq *= -2.0
+        sq += (blk * blk).sum(axis=1)[:, None]
+        sq += nb
+        np.maximum(sq, 0.0, out=sq)
+        for j in range(k_):  # k is small (4): k arg-min passes beat a partition; argmin takes the lowest index
+            c = sq.argmin(axis=1)
+            idx[r0 + rows, j] = c
+            dist[r0 + rows, j] = np.sqrt(sq[rows, c])
+            sq[rows, c] = np.inf
+    return idx, dist
 
 
 def essential_ransac(r1: np.ndarray, r2: np.ndarray, threshold_rad: float, valid: np.ndarray | None = None):

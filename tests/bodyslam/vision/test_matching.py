@@ -122,3 +122,48 @@ def test_brightness_percentiles_from_the_histogram_are_numpys():
         m = (rng.random((h, w)) < rng.random()).astype(np.uint8) * 255
         want = [float(x) for x in np.percentile(g[m > 0], (1, 99))] if (m > 0).any() else None
         assert _masked_percentiles_u8(g, m, (1.0, 99.0)) == want
+
+
+def _sift_descriptors(seed=0, size=160):
+    """Real SIFT descriptors (integer-valued floats, as OpenCV rounds them) of a random smoothed texture."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (size, size)).astype(np.uint8), (0, 0), 1.5)
+    _, d = cv2.SIFT_create(contrastThreshold=0.01).detectAndCompute(img, None)
+    return d
+
+
+def test_knn_l2_is_opencvs_brute_force_matcher_exactly():
+    import cv2
+
+    from bodyslam.vision import matching
+
+    d1, d2 = _sift_descriptors(0), _sift_descriptors(1)
+    assert len(d1) > 100 and len(d2) > 100 and np.array_equal(d1, np.rint(d1))
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=4)
+    ref_idx = np.array([[m.trainIdx for m in ms] for ms in knn])
+    ref_dist = np.array([[m.distance for m in ms] for ms in knn])
+    idx, dist = matching.knn_l2(d1, d2, 4)
+    assert np.array_equal(idx, ref_idx)  # the same neighbours in the same order (exact integer distances)
+    assert np.array_equal(dist, ref_dist)
+    small = matching.KNN_BLOCK_ROWS
+    try:  # blocks of rows give the same answer as one block
+        matching.KNN_BLOCK_ROWS = 7
+        idx7, dist7 = matching.knn_l2(d1, d2, 4)
+    finally:
+        matching.KNN_BLOCK_ROWS = small
+    assert np.array_equal(idx7, idx) and np.array_equal(dist7, dist)
+
+
+def test_knn_l2_breaks_ties_to_the_lower_index_and_pads_short_sets():
+    from bodyslam.vision.matching import knn_l2
+
+    d2 = np.array([[3.0, 0], [1.0, 0], [1.0, 0], [0.0, 5]], np.float32)  # rows 1 and 2 tie for every query
+    idx, dist = knn_l2(np.array([[0.0, 0], [2.0, 0]], np.float32), d2, 3)
+    assert idx.tolist() == [[1, 2, 0], [0, 1, 2]]  # the second query is 1 from rows 0, 1 and 2
+    assert np.allclose(dist, [[1, 1, 3], [1, 1, 1]])
+    idx, dist = knn_l2(np.zeros((2, 2), np.float32), d2[:2], 4)  # fewer rows than k: -1 / inf
+    assert (idx[:, 2:] == -1).all() and np.isinf(dist[:, 2:]).all() and (idx[:, :2] >= 0).all()
+    idx, dist = knn_l2(np.zeros((0, 2), np.float32), d2, 4)
+    assert idx.shape == (0, 4)
