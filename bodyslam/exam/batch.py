@@ -1022,6 +1022,16 @@ STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)"
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
 
+def duration_text(seconds: float) -> str:
+    """An exam's length as a person reads it: ``"1.5 s"``, ``"4.2 min"``, ``"7 h 38 min"``."""
+    if not math.isfinite(seconds) or seconds < 120:
+        return f"{seconds:.1f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    h, m = divmod(int(round(seconds / 60)), 60)
+    return f"{h} h {m:02d} min"
+
+
 def _vision_text(m: MotionSettings) -> str:
     """How the steps were measured, in words (summary.json ``vision``, the report): the matcher and its tries, the
     estimator, what was done with steps facing the wall and with steps the fit failed on."""
@@ -1059,7 +1069,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
     rows = [["source", f"{sm['source']} ({sm['kind']})"],
             ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"
              + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
-            ["duration", f"{sm['duration_s'] / 60:.1f} min at {sm['frame_rate_hz']:g} frames/s"],
+            ["duration", f"{duration_text(sm['duration_s'])} at {sm['frame_rate_hz']:g} frames/s"],
             ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"],
             ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())],
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],

@@ -327,3 +327,12 @@ def test_the_automatic_chunk_size_keeps_every_worker_busy_and_a_resume_keeps_its
     run_batch(open_exams([str(DEMO)]), out7, BatchSettings(chunk_frames=7), jobs=2)
     resumed = run_batch(open_exams([str(DEMO)]), out7, BatchSettings(), jobs=1)
     assert resumed.chunks_computed == 0 and resumed.chunks_reused == 6
+
+
+def test_the_reports_duration_reads_as_a_person_would():
+    from bodyslam.exam.batch import duration_text
+
+    assert duration_text(1.5) == "1.5 s"  # a short clip is not "0.0 min"
+    assert duration_text(250.0) == "4.2 min"
+    assert duration_text(27480.0) == "7 h 38 min"  # a whole exam of 55,000 frames at 2 frames/s
+    assert duration_text(float("nan")) == "nan s"
