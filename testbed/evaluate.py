@@ -35,7 +35,7 @@ from bodyslam.plots import Figure
 from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION, lost_step_floor_m
 from bodyslam.fusion.rf import locate_nls
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
-from testbed.score import score_motion, score_path
+from testbed.score import CHI2_3_683, score_motion, score_path
 from testbed.simulate import prepare_output_dir, simulate
 from testbed.rf import ChannelModel
 from testbed.scenario import rf_channel
@@ -134,7 +134,7 @@ def _write_trajectories(out: Path, stamps_s: np.ndarray, est: dict, with_cov: di
                   world="body frame" if res is not None else "body frame; orientation not estimated: identity")
 
 
-CHI2_3_683 = 3.527  # the 3-D region holding 68.3% of a Gaussian: what "inside 1-sigma" means for a position
+# CHI2_3_683 (testbed.score): the 3-D region holding 68.3% of a Gaussian, what "inside 1-sigma" means for a position
 
 
 def consistency(positions_w_m: np.ndarray, cov_m2: np.ndarray, truth_w_m: np.ndarray) -> dict:

@@ -29,7 +29,7 @@ from bodyslam.errors import InputError
 from bodyslam.io import read_motion_csv
 from bodyslam.steps import MEASURED, StepStatus
 
-__all__ = ["score_motion", "score_path", "format_table"]
+__all__ = ["score_motion", "score_path", "format_table", "CHI2_3_683", "CHI_3_683"]
 
 
 def _wrap(a):
@@ -108,7 +108,11 @@ def _within_sigma(err: np.ndarray, sigma: np.ndarray) -> dict:
             "distance_within_2sigma": float(np.mean(err[ok] <= 2 * sigma[ok]))}
 
 
-CHI_3_683 = 1.8786  # sqrt of the chi-square (3 dof) 68.3% quantile: the radius holding 68.3% of a 3-D Gaussian
+# The chi-square (3 dof) quantile at 68.27% (a 1-sigma's mass, erf(1 / sqrt 2)): a 3-D Gaussian's NEES lies below it
+# on 68.27% of draws; its square root is the radius holding that share of a Gaussian with that sigma on every axis.
+# (scipy.stats.chi2.ppf(0.6827, 3); tests/testbed/test_score.py checks it.) One constant for every "inside 1-sigma".
+CHI2_3_683 = 3.5268
+CHI_3_683 = math.sqrt(CHI2_3_683)
 
 
 def _rotation_within_sigma(err_rad: np.ndarray, sigma_rad: np.ndarray) -> dict:

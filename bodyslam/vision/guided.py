@@ -54,7 +54,7 @@ __all__ = ["estimate_rotation", "hypotheses", "guided_matches", "descriptor_dist
 MIN_GUIDED_MATCHES = {"sift": 80, "asift": 80, "fast": 50}
 # 1-sigma of a rotation step's rotation (rotation_sigma_rad): SIGMA_AT_MIN_RAD * (n / threshold) ** -SIGMA_POWER,
 # at least SIGMA_FLOOR_RAD. Fitted on realistic tuning seeds 503-509 (sift mode, 248 rotation steps): the error
-# angle's 68th percentile over 1.8786 (the 3-D 68% radius) is 6.0 / 3.7 / 2.2 / 1.8 / 0.84 deg for 80-90 /
+# angle's 68th percentile over 1.878 (the 3-D 68% radius) is 6.0 / 3.7 / 2.2 / 1.8 / 0.84 deg for 80-90 /
 # 90-100 / 100-120 / 120-160 / 160+ verified matches; this gives 5.5 / 4.1 / 2.7 / 1.4 / 0.7. Sessions 12-25 stated
 # 4 deg for every step (the steps' roll error at its 68th percentile), over-trusting the few-match steps that hold
 # most of the gross errors (36% over 10 deg at 80-90 matches) and under-trusting the many-match ones

@@ -54,7 +54,7 @@ def test_rotation_steps_are_scored_for_their_rotation_only(tmp_path):
 
 def test_the_stated_rotation_sigma_is_scored_against_the_3d_68pct_radius(tmp_path):
     """The rotation's 1-sigma (the largest axis's) against the error angle (roll and swing): inside when the angle
-    is within 1.8786 sigma, the radius that holds 68.3% of a 3-D Gaussian with that sigma on every axis. Six ok
+    is within 1.878 sigma, the radius that holds 68.3% of a 3-D Gaussian with that sigma on every axis. Six ok
     steps of 0.01 rad 1-sigma: roll errors 0.005 / 0.015 / 0.018 rad, a swing error of 0.02 (pitch), 0.012 roll with
     0.012 yaw (0.017 together: inside), 0.03 roll; a rotation step with 0.05 rad 1-sigma and 0.04 rad of roll error
     is scored in its own block."""
@@ -125,3 +125,13 @@ def test_path_travelled_is_scored_at_the_end_and_per_frame_against_its_1_sigma(t
     # frame k is off by k mm against a 1-sigma of 0.5 sqrt(k) mm: never inside (k <= 0.5 sqrt(k) needs k <= 0.25)
     assert p["frames_inside_1sigma"] == pytest.approx(0.0)
     assert p["mean_abs_error_m"] == pytest.approx(np.mean(np.arange(1, 9)) * 0.001)
+
+
+def test_one_chi_square_constant_for_every_inside_1_sigma():
+    from scipy.stats import chi2
+
+    from testbed import evaluate, score
+
+    assert score.CHI2_3_683 == pytest.approx(chi2.ppf(0.6827, 3), abs=1e-4)  # a 1-sigma's mass, erf(1 / sqrt 2)
+    assert score.CHI_3_683 == pytest.approx(math.sqrt(score.CHI2_3_683))
+    assert evaluate.CHI2_3_683 is score.CHI2_3_683  # positions and rotations are held to the same region
