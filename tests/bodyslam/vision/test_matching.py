@@ -167,3 +167,20 @@ def test_knn_l2_breaks_ties_to_the_lower_index_and_pads_short_sets():
     assert (idx[:, 2:] == -1).all() and np.isinf(dist[:, 2:]).all() and (idx[:, :2] >= 0).all()
     idx, dist = knn_l2(np.zeros((0, 2), np.float32), d2, 4)
     assert idx.shape == (0, 4)
+
+
+def test_flann_neighbours_come_out_as_the_matchers_lists():
+    """The FLANN branch (asift, fast mode's rescue) turns OpenCV's lists of matches into arrays in flat passes: the
+    same arrays as element by element, with -1 / inf where a list is short."""
+    import cv2
+
+    d1, d2 = _sift_descriptors(2), _sift_descriptors(3)
+    m = Matcher(FisheyeCamera.equidistant(160, 160, 156.0), mode="asift")
+    idx, dist = m._knn(d1, d2, 4, flann=True)
+    cv2.setRNGSeed(0x5EED)
+    knn = m._flann_matcher.knnMatch(d1, d2, k=4)
+    for i, ms in enumerate(knn):
+        assert idx[i, :len(ms)].tolist() == [x.trainIdx for x in ms]
+        assert dist[i, :len(ms)].tolist() == [x.distance for x in ms]
+        assert (idx[i, len(ms):] == -1).all() and np.isinf(dist[i, len(ms):]).all()
+    assert idx.shape == (len(d1), 4)
