@@ -78,11 +78,16 @@ def hypotheses(radius_m: float) -> list[np.ndarray]:
 
 
 def descriptor_distances(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-    """Euclidean distances ``(n1, n2)`` between two sets of descriptors, float32 (one matrix product: 3000 x 3000
-    SIFT descriptors take ~0.03 s and ~35 MB on one thread)."""
+    """Euclidean distances ``(n1, n2)`` between two sets of descriptors, float32 (one matrix product; in place
+    after it, in the same order of operations as ``sqrt(max(|a|^2 + |b|^2 - 2 a.b, 0))``: 3000 x 3000 SIFT
+    descriptors take ~0.033 s on one thread, against 0.099 with a temporary array per operation, and ~72 MB)."""
     a, b = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
-    sq = (a * a).sum(axis=1)[:, None] + (b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)
-    return np.sqrt(np.maximum(sq, 0.0))
+    sq = (a * a).sum(axis=1)[:, None] + (b * b).sum(axis=1)[None, :]
+    ab = a @ b.T
+    ab *= 2.0
+    sq -= ab
+    np.maximum(sq, 0.0, out=sq)
+    return np.sqrt(sq, out=sq)
 
 
 def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray,

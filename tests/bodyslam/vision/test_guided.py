@@ -211,3 +211,18 @@ def test_a_rotation_step_states_less_certainty_the_fewer_matches_verified_it():
     assert all(a >= b for a, b in zip(sig, sig[1:])) and min(sig) == pytest.approx(math.radians(0.5))
     # the same relative count in fast mode without its rescue (threshold 50) states the same
     assert rotation_sigma_rad(60, 50) == pytest.approx(rotation_sigma_rad(96, 80))
+
+
+def test_descriptor_distances_are_exact_on_integer_descriptors():
+    """SIFT descriptors are integers: every squared distance is an integer below 2^24, so the in-place float32
+    computation equals the exact distance (int64 sums, then the float32 square root) bit for bit."""
+    rng = np.random.default_rng(5)
+    d1 = rng.integers(0, 120, (70, 128)).astype(np.float32)
+    d2 = rng.integers(0, 120, (50, 128)).astype(np.float32)
+    d2[7] = d1[3]  # a distance of exactly zero
+    exact = np.sqrt((((d1.astype(np.int64)[:, None] - d2.astype(np.int64)[None]) ** 2).sum(axis=2)).astype(np.float32))
+    from bodyslam.vision import guided
+
+    got = guided.descriptor_distances(d1, d2)
+    assert got.dtype == np.float32 and got.shape == (70, 50)
+    assert np.array_equal(got, exact) and got[3, 7] == 0.0
