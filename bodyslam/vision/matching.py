@@ -301,7 +301,7 @@ class Matcher:
             kp, desc = self._det.detectAndCompute(gray, self.mask)
             s_xy = None
         # positions and responses as arrays (one list pass: a KeyPoint object per point cost ~1 us, ~3 ms a frame)
-        pts = cv2.KeyPoint_convert(kp) if kp else np.zeros((0, 2), np.float32)
+        pts = _keypoint_xy(kp)
         if s_xy is not None:  # pixel centres: full = (small + 0.5) * s - 0.5, kept in float32 as a KeyPoint keeps it
             pts = ((pts.astype(np.float64) + 0.5) * s_xy - 0.5).astype(np.float32)
         pts = pts.astype(np.float64).reshape(-1, 2)
@@ -471,6 +471,17 @@ class Matcher:
         r1, v1 = self.camera.unproject(p1)
         r2, v2 = self.camera.unproject(p2)
         return essential_ransac(r1, r2, self.ransac_rad, v1 & v2)[4]
+
+
+def _keypoint_xy(kp) -> np.ndarray:
+    """``(n, 2)`` float32 positions of OpenCV keypoints: ``cv2.KeyPoint.convert`` (one C++ pass), or a list pass where
+    a build lacks it."""
+    if not kp:
+        return np.zeros((0, 2), np.float32)
+    convert = getattr(cv2.KeyPoint, "convert", None)
+    if convert is not None:
+        return np.asarray(convert(kp), np.float32).reshape(-1, 2)
+    return np.array([k.pt for k in kp], np.float32).reshape(-1, 2)
 
 
 KNN_BLOCK_ROWS = 512  # knn_l2's rows per block: 512 x 3000 float32 distances, 6 MB

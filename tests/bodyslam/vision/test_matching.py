@@ -184,3 +184,16 @@ def test_flann_neighbours_come_out_as_the_matchers_lists():
         assert dist[i, :len(ms)].tolist() == [x.distance for x in ms]
         assert (idx[i, len(ms):] == -1).all() and np.isinf(dist[i, len(ms):]).all()
     assert idx.shape == (len(d1), 4)
+
+
+def test_keypoint_positions_with_and_without_opencvs_convert(monkeypatch):
+    import cv2
+
+    from bodyslam.vision import matching
+
+    kp = [cv2.KeyPoint(1.25, 2.5, 3.0), cv2.KeyPoint(40.75, 7.0, 2.0)]
+    fast = matching._keypoint_xy(kp)
+    monkeypatch.delattr(cv2.KeyPoint, "convert")  # a build without the static method: the list pass
+    slow = matching._keypoint_xy(kp)
+    assert fast.dtype == slow.dtype == np.float32 and np.array_equal(fast, slow)
+    assert fast.tolist() == [[1.25, 2.5], [40.75, 7.0]] and matching._keypoint_xy([]).shape == (0, 2)
