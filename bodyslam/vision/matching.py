@@ -300,7 +300,7 @@ class Matcher:
         else:
             kp, desc = self._det.detectAndCompute(gray, self.mask)
             s_xy = None
-        # positions and responses as arrays (one list pass: a KeyPoint object per point cost ~1 us, ~3 ms a frame)
+        # positions as one array (a rescaled KeyPoint object per point cost ~1 us: ~3 ms a frame at 3000 points)
         pts = _keypoint_xy(kp)
         if s_xy is not None:  # pixel centres: full = (small + 0.5) * s - 0.5, kept in float32 as a KeyPoint keeps it
             pts = ((pts.astype(np.float64) + 0.5) * s_xy - 0.5).astype(np.float32)
