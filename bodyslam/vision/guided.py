@@ -121,7 +121,8 @@ def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12:
     if len(pairs) == 0:
         return empty
     i = rows[pairs["i"]]
-    o = np.argsort(i, kind="stable")
+    # a stable sort on 16-bit keys is numpy's radix sort: ~10x faster than on int64, the same order
+    o = np.argsort(i.astype(np.int16) if len(pts1) <= np.iinfo(np.int16).max else i, kind="stable")
     i, j = i[o], pairs["j"][o]
     dist = dist12[i, j]
     starts = np.r_[0, np.nonzero(np.diff(i))[0] + 1]
