@@ -134,9 +134,6 @@ def _write_trajectories(out: Path, stamps_s: np.ndarray, est: dict, with_cov: di
                   world="body frame" if res is not None else "body frame; orientation not estimated: identity")
 
 
-# CHI2_3_683 (testbed.score): the 3-D region holding 68.3% of a Gaussian, what "inside 1-sigma" means for a position
-
-
 def consistency(positions_w_m: np.ndarray, cov_m2: np.ndarray, truth_w_m: np.ndarray) -> dict:
     """How honest a position's stated uncertainty is, per frame: NEES ``e^T C^-1 e`` (3 on average for an honest
     filter), whether the error is inside the 68.3% ellipsoid, and the fraction of the three axes with

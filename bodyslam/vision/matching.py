@@ -69,7 +69,7 @@ from bodyslam.errors import ConfigError
 log = logging.getLogger(__name__)
 
 __all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask", "essential_ransac",
-           "knn_l2"]
+           "knn_l2", "squared_distances"]
 
 from bodyslam.choices import MATCH_MODES  # noqa: E402
 ASIFT_VIEWS = ("compact", "standard")
@@ -484,6 +484,18 @@ def _keypoint_xy(kp) -> np.ndarray:
     return np.array([k.pt for k in kp], np.float32).reshape(-1, 2)
 
 
+def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared Euclidean distances ``(n1, n2)`` between the rows of two float32 descriptor arrays: one matrix
+    product, then in place on its result, ``max(-2 a.b + |a|^2 + |b|^2, 0)`` (a temporary array per operation took
+    3x as long at 3000 x 3000). SIFT descriptors are integers (OpenCV rounds them) with squared norms about 512^2,
+    so every value is an integer below 2^24, exact in float32 in any order of operations."""
+    sq = a @ b.T
+    sq *= -2.0
+    sq += (a * a).sum(axis=1)[:, None]
+    sq += (b * b).sum(axis=1)
+    return np.maximum(sq, 0.0, out=sq)
+
+
 KNN_BLOCK_ROWS = 512  # knn_l2's rows per block: 512 x 3000 float32 distances, 6 MB
 
 
@@ -491,11 +503,10 @@ def knn_l2(d1: np.ndarray, d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
     """Exact Euclidean ``k`` nearest neighbours ``(idx, dist)`` ``(n1, k)`` of each row of ``d1`` among the rows of
     ``d2``, nearest first, ties to the lower index; -1 / inf where ``d2`` has fewer than ``k`` rows.
 
-    One matrix product per block of rows. SIFT descriptors are integers (OpenCV rounds them) with squared norms
-    about 512^2, so every squared distance ``|a|^2 + |b|^2 - 2 a.b`` is an integer below 2^24, computed exactly in
-    float32: the neighbours and distances are OpenCV's brute-force matcher's (tests/bodyslam/vision/test_matching.py),
-    which with its lists of matches takes ~4x as long (800 keypoints a frame: 2.1 ms per pair against 8.8, one
-    thread). Other descriptors get the same neighbours up to float32 rounding."""
+    :func:`squared_distances` per block of rows, exact on SIFT's integer descriptors: the neighbours and distances
+    are OpenCV's brute-force matcher's (tests/bodyslam/vision/test_matching.py), which with its lists of matches
+    takes ~4x as long (800 keypoints a frame: 2.1 ms per pair against 8.8, one thread). Other descriptors get the
+    same neighbours up to float32 rounding."""
     a, b = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
     n1, n2 = len(a), len(b)
     idx = np.full((n1, k), -1, np.int64)
@@ -503,15 +514,10 @@ def knn_l2(d1: np.ndarray, d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
     k_ = min(k, n2)
     if n1 == 0 or k_ == 0:
         return idx, dist
-    nb = (b * b).sum(axis=1)
     for r0 in range(0, n1, KNN_BLOCK_ROWS):
         blk = a[r0:r0 + KNN_BLOCK_ROWS]
         rows = np.arange(len(blk))
-        sq = blk @ b.T
-        sq *= -2.0
-        sq += (blk * blk).sum(axis=1)[:, None]
-        sq += nb
-        np.maximum(sq, 0.0, out=sq)
+        sq = squared_distances(blk, b)
         for j in range(k_):  # k is small (4): k arg-min passes beat a partition; argmin takes the lowest index
             c = sq.argmin(axis=1)
             idx[r0 + rows, j] = c
