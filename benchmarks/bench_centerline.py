@@ -78,19 +78,24 @@ def main() -> None:
         ours = cl.points_w * 1000.0
         print(f"{what} at {args.pitch_mm} mm: {el:.1f} s, centre line {cl.length_m:.3f} m "
               f"(expert path {np.sum(np.linalg.norm(np.diff(ref, axis=0), axis=1)) / 1000:.3f} m)")
+        scores = {}
         for name, r in (("whole path (ICV..POL)", ref), ("small intestine proper (ICV..GDJ)", ref[: SI_PROPER + 1])):
-            sc = score_centerline(ours, r)
+            scores[name] = sc = score_centerline(ours, r)
             print(f"  {name}: " + ", ".join(f"{k} {v:.2f}" for k, v in sc.items()), flush=True)
-        summary.append((sc, cl.length_m))  # the small intestine proper's
+        # issue 15's mean and coverage on the small intestine proper; the precision (the share of our line within 5 mm
+        # of the expert line) against the whole path, which the mesh holds: against the small intestine proper alone,
+        # our line's correct stretch along the duodenum would count as off the line
+        summary.append((sc, cl.length_m, scores["whole path (ICV..POL)"]["precision"]))
     if len(summary) > 1:
-        mean = np.array([s["mean_mm"] for s, _ in summary])
-        cov = np.array([s["coverage"] for s, _ in summary])
-        prec = np.array([s["precision"] for s, _ in summary])
-        length = np.array([L for _, L in summary])
+        mean = np.array([s["mean_mm"] for s, _, _ in summary])
+        cov = np.array([s["coverage"] for s, _, _ in summary])
+        prec = np.array([p for _, _, p in summary])
+        length = np.array([L for _, L, _ in summary])
         met = int(np.sum((mean <= 3.0) & (cov >= 0.9)))
         print(f"{len(summary)} meshes, small intestine proper: mean {mean.min():.2f}-{mean.max():.2f} mm, within 5 mm "
               f"{cov.min():.2f}-{cov.max():.2f}, issue 15's target (<= 3 mm, >= 0.90) met on {met} of {len(summary)}; "
-              f"precision {prec.min():.2f}-{prec.max():.2f} (mean {prec.mean():.2f}); line {length.min():.2f}-"
+              f"precision (our line within 5 mm of the whole expert path) {prec.min():.2f}-{prec.max():.2f} (mean "
+              f"{prec.mean():.2f}); line {length.min():.2f}-"
               f"{length.max():.2f} m")
 
 
