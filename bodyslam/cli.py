@@ -57,7 +57,7 @@ COMMANDS = {
 FOV_HELP = ("valid field of view: 'auto' (default: detected from the frame(s), or the image circle where they agree), "
             "'circle', or a PNG (non-zero = valid)")
 RSS_BIAS_HELP = ("rss fusion: estimate a slowly varying bias per sensor (3 cm correlation along the path, 2 dB), for "
-                 "sensors whose calibration is in doubt; realistic testbed smoothed 3.67 -> 3.56 cm, ideal 0.62 -> "
+                 "sensors whose calibration is in doubt; realistic testbed smoothed 3.69 -> 3.56 cm, ideal 0.62 -> "
                  "0.61, a conservative online 1-sigma, ~3x slower fusion (docs/RESULTS.md)")
 
 

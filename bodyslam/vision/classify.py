@@ -6,7 +6,8 @@ Features (:func:`region_features`), from the segmentation inside the valid field
 - the dissertation's nine: size of the darkest region (fraction of the field of view), its length and width
   (major and minor axis of its second moments, as fractions of the field's diameter), its RGB mean and the RGB
   mean of the remaining regions (both /255). "Darkest" is the region of lowest mean luminance among those covering
-  at least 1% of the field (a dark speck of a few pixels is not a tunnel);
+  at least 1% of the field (a dark speck of a few pixels is not a tunnel) and at least :data:`MIN_WIDTH_PX` across
+  (a line along the field stop is not one either);
 - five more (``rich`` set): the darkest region's centroid distance from the image centre and its share of
   pixels on the field's rim (both fractions), its luminance over the rest's, its fill of the ellipse of its
   moments, and log(1 + number of regions).
@@ -44,6 +45,21 @@ FORMAT = "bodyslam-tunnel-svm/1"
 LABELS = ("FL", "FT")  # decision < 0: FL, > 0: FT
 
 
+# the least width (working pixels: the minor axis of a region's second moments, 4 standard deviations) of a region
+# that can be the darkest (region_features): a line one pixel wide has 0, a strip two pixels wide 2
+MIN_WIDTH_PX = 1.5
+
+
+def _axes(lab: np.ndarray, k: int) -> tuple[float, float]:
+    """``(length, width)`` of region ``k`` (pixels): 4 standard deviations along the major and minor axes of its
+    second moments (1, 1 for a single pixel)."""
+    ys, xs = np.nonzero(lab == k)
+    if len(xs) < 2:
+        return 1.0, 1.0
+    ev = np.sort(np.maximum(np.linalg.eigvalsh(np.cov(np.stack([xs, ys]).astype(float))), 0.0))[::-1]
+    return 4.0 * math.sqrt(ev[0]), 4.0 * math.sqrt(ev[1])
+
+
 def region_features(seg: Segmentation, min_region_frac: float = 0.01) -> np.ndarray:
     """The ``FEATURES_RICH`` vector of one segmentation (the first nine are the dissertation's)."""
     lab = seg.labels
@@ -52,18 +68,15 @@ def region_features(seg: Segmentation, min_region_frac: float = 0.01) -> np.ndar
     lum = seg.means @ np.array([0.299, 0.587, 0.114])
     big = seg.sizes >= max(1, min_region_frac * n_valid)
     cand = np.nonzero(big)[0] if big.any() else np.arange(seg.n_regions)
+    # never a sliver: a region under MIN_WIDTH_PX across (a line along the field stop, say) is not a tunnel
+    wide = [k for k in cand if _axes(lab, k)[1] >= MIN_WIDTH_PX]
+    cand = np.array(wide) if wide else cand
     d = int(cand[np.argmin(lum[cand])])
     ys, xs = np.nonzero(lab == d)
-    h, w = lab.shape
     vy, vx = np.nonzero(valid)
     cy, cx = vy.mean(), vx.mean()
     diam = 2.0 * math.sqrt(n_valid / math.pi)
-    if len(xs) > 1:
-        cov = np.cov(np.stack([xs, ys]).astype(float))
-        ev = np.sort(np.maximum(np.linalg.eigvalsh(cov), 0.0))[::-1]
-        length, width = 4.0 * math.sqrt(ev[0]), 4.0 * math.sqrt(ev[1])
-    else:
-        length = width = 1.0
+    length, width = _axes(lab, d)
     w_rest = seg.sizes.astype(float).copy()
     w_rest[d] = 0.0
     rest_mean = (seg.means * w_rest[:, None]).sum(axis=0) / w_rest.sum() if w_rest.sum() > 0 else seg.means[d]

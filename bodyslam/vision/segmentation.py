@@ -6,7 +6,9 @@ two regions ``R, R'`` merge when, in every colour channel, ``|mean(R) - mean(R')
 ``delta = 1 / (6 |I|^2)``; ``g = 256`` levels, ``|I|`` the number of pixels). ``Q`` sets the coarseness: the
 dissertation uses 16. ``b2`` is multiplied by ``relax = 0.1`` as in the reference implementation most users know
 (Fiji's SRM plug-in): with the paper's bound as printed (``relax = 1``) and Q = 16, a capsule frame merges into
-1-4 regions and the tunnel is lost (measured on testbed frames; STACK-NOTES.md), unlike Fig. 3.3. Only pixels inside the valid field-of-view mask take part; outside is label -1.
+1-4 regions and the tunnel is lost (measured on testbed frames; STACK-NOTES.md), unlike Fig. 3.3. Only pixels
+inside the valid field-of-view mask take part; outside is label -1 (at the working size, a pixel whose footprint
+straddles the mask's edge is outside too).
 
 Speed: the merge loop is sequential union-find (SRM's order matters), so numpy cannot vectorise it. It is
 compiled (``_srm_merge.c``, built by ``pip install`` where a C compiler is at hand: ~15 ns per pixel pair) and
@@ -34,6 +36,10 @@ from bodyslam.errors import ConfigError, InputError
 __all__ = ["Segmentation", "srm", "paint_regions"]
 
 log = logging.getLogger(__name__)
+
+# the share of a working pixel's footprint that must lie in the field of view (_resize_for_work): all of it, less
+# float rounding
+INSIDE_FRAC = 1.0 - 1e-6
 
 try:  # the merge loop compiled (setup.py builds it where a C compiler is at hand); else the same loop in Python
     from bodyslam.vision import _srm_merge as _merge_c
@@ -68,7 +74,12 @@ def _resize_for_work(rgb: np.ndarray, mask: np.ndarray, work_px: int | None):
     s = work_px / max(h, w)
     size = (max(1, round(w * s)), max(1, round(h * s)))
     small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-    m = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+    # A working pixel takes part only when every frame pixel it averages lies inside the field of view: one that
+    # straddles the field stop's edge averages in the black outside, and those pixels formed a dark one-pixel line
+    # along the stop that the classifier took for the darkest region (session 29: on all four real PillCam frames
+    # and on the realistic testbed's octagon-stopped frames, 1% of the field, width 0, on the rim). Until then a
+    # nearest-neighbour resize kept them.
+    m = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= INSIDE_FRAC
     return small, m
 
 

@@ -47,6 +47,35 @@ def test_region_features_describe_the_darkest_region():
     assert named["dark_offset"] == pytest.approx(12.5 / 46, abs=0.05)
 
 
+def test_the_working_size_keeps_no_pixel_that_straddles_the_field_stop():
+    # an octagon-like straight stop edge that falls inside a working pixel: that pixel averages in the black
+    # outside, so it must be left out (session 29: such pixels made a dark line the classifier took for the tunnel)
+    img = np.full((100, 100, 3), 150, np.uint8)
+    mask = np.zeros((100, 100), bool)
+    mask[:, :55] = True  # working pixels are 10 frame pixels wide: column 5 covers 50-59, half inside
+    img[~mask] = 0
+    seg = srm(img, mask, work_px=10)
+    assert (seg.labels[:, :5] >= 0).all()
+    assert (seg.labels[:, 5:] == -1).all()
+    assert seg.means.min() > 140  # no region mixes in the black outside
+
+
+def test_the_darkest_region_is_never_a_one_pixel_line():
+    # a dark line one pixel wide (a straight field-stop edge; 70 pixels, more than 1% of the field) and a less dark
+    # blob: the blob is the tunnel candidate
+    img, mask, dark = disc_frame(dark_radius=12, centre=(48, 48))
+    img[dark] = (90, 60, 50)
+    edge = np.zeros_like(mask)
+    edge[77] = mask[77]
+    img[edge] = (5, 5, 5)
+    seg = srm(img, mask, work_px=None)
+    line = np.bincount(seg.labels[edge]).argmax()
+    assert seg.sizes[line] >= 0.01 * mask.sum() and seg.means[line].max() < 20  # the line is its own dark region
+    named = dict(zip(FEATURES_RICH, region_features(seg)))
+    assert named["dark_size"] == pytest.approx(dark.sum() / mask.sum(), rel=0.1)
+    assert named["dark_width"] > 0.2 and named["dark_rim_share"] < 0.1
+
+
 def test_frames_without_content_get_a_defined_answer():
     _, mask, _ = disc_frame()
     assert frame_status(np.zeros((96, 96, 3), np.uint8), mask) == "dark"
