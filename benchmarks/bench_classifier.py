@@ -231,11 +231,13 @@ def main() -> None:
             cands.append((vs, px, fname, model, passes))
     # Validation chooses among the candidates that pass issue 16's check on the real frames (the lumen-facing ones
     # FT, the wall-facing one FL): the check only vetoes, it ranks nothing. None passing: validation alone, said.
+    def rank(c):  # validation, ties to the smaller (faster) working size
+        return round(c[0], 3), -c[1]
+
     ok = [c for c in cands if c[4]]
     if not ok:
         print("\nno candidate passes the real frames' check: chosen on validation alone")
-    best = max(ok or cands, key=lambda c: (round(c[0], 3), -c[1]))  # ties: the smaller (faster) working size
-    top = max(cands, key=lambda c: (round(c[0], 3), -c[1]))
+    best, top = max(ok or cands, key=rank), max(cands, key=rank)
     if best is not top:
         print(f"\nbest on validation: {top[2]} features at {top[1]} px (balanced {top[0]:.3f}), which fails the real "
               f"frames' check")

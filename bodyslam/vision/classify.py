@@ -68,15 +68,22 @@ def region_features(seg: Segmentation, min_region_frac: float = 0.01) -> np.ndar
     lum = seg.means @ np.array([0.299, 0.587, 0.114])
     big = seg.sizes >= max(1, min_region_frac * n_valid)
     cand = np.nonzero(big)[0] if big.any() else np.arange(seg.n_regions)
-    # never a sliver: a region under MIN_WIDTH_PX across (a line along the field stop, say) is not a tunnel
-    wide = [k for k in cand if _axes(lab, k)[1] >= MIN_WIDTH_PX]
-    cand = np.array(wide) if wide else cand
-    d = int(cand[np.argmin(lum[cand])])
+    # the darkest candidate that is no sliver (a region under MIN_WIDTH_PX across, a line along the field stop, say,
+    # is not a tunnel); the darkest of all where none is that wide. Candidates are measured darkest first (ties: the
+    # lower label, as argmin) until one is wide enough
+    d = None
+    for k in cand[np.argsort(lum[cand], kind="stable")]:
+        length, width = _axes(lab, int(k))
+        if width >= MIN_WIDTH_PX:
+            d = int(k)
+            break
+    if d is None:
+        d = int(cand[np.argmin(lum[cand])])
+        length, width = _axes(lab, d)
     ys, xs = np.nonzero(lab == d)
     vy, vx = np.nonzero(valid)
     cy, cx = vy.mean(), vx.mean()
     diam = 2.0 * math.sqrt(n_valid / math.pi)
-    length, width = _axes(lab, d)
     w_rest = seg.sizes.astype(float).copy()
     w_rest[d] = 0.0
     rest_mean = (seg.means * w_rest[:, None]).sum(axis=0) / w_rest.sum() if w_rest.sum() > 0 else seg.means[d]
