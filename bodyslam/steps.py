@@ -41,7 +41,8 @@ import numpy as np
 
 __all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "WITH_ROTATION", "StepMotion", "motion_from_transform",
            "rotation_step", "lost_to_motion", "StepLengths", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD",
-           "LOST_STEP_QUANTILE", "LOST_STEP_FLOOR_R", "lost_step_floor_m", "LOST_TO_MOTION"]
+           "LOST_STEP_QUANTILE", "LOST_STEP_FLOOR_R", "lost_step_floor_m", "LOST_TO_MOTION", "LOSS_SLOPE",
+           "STEP_MAX_R", "SPEED_JUMP_PROB", "MISSING_STEP_REL_SD"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -58,6 +59,21 @@ LOST_STEP_QUANTILE = 90.0
 # few and short: an 18-frame clip of a fast phase then a rest gave a path of 0.0 +- 0.01 cm for 12.9 cm travelled
 # (docs/RESULTS.md, "Short clips")
 LOST_STEP_FLOOR_R = 0.4
+# the path travelled's model of the steps matching loses (bodyslam.vision.tracking.missing_step_lengths;
+# docs/RESULTS.md, "The steps matching loses, from the speed around them"):
+# - the chance that ordinary matching loses a step of length d is a logistic in ln(d / radius), half at
+#   LOST_STEP_FLOOR_R and this slope (realistic tuning seeds 503-522, 3850 steps: fitted 0.45 radii and 3.66;
+#   3% lost at 0.1-0.2 radii, 26% at 0.3-0.4, 84% at 0.6-0.8, 99% at 0.8-1.0)
+LOSS_SLOPE = 3.5
+# - a step is at most this many lumen radii long (1.25 cm, 2.5 cm/s at 2 frames/s; papers 002/003 model the capsule
+#   at 0.05 +- 0.07 cm/s): the prior's upper end, chosen on tuning seeds among 0.8, 1.0, 1.2 and 1.5 radii
+STEP_MAX_R = 1.0
+# - the capsule's speed changes little from one step to the next, and with this chance per step jumps to any value
+#   (a phase of rest or of fast motion starting; stated choice: the path moved by < 1% between 0.02 and 0.2)
+SPEED_JUMP_PROB = 0.05
+# - a missing step's 1-sigma is at least this share of its length: on realistic tuning seeds 503-522 the model's
+#   lengths of 1019 lost steps were right on average (+4%), 68% of them within 38% (its own 1-sigma held 47%)
+MISSING_STEP_REL_SD = 0.4
 
 
 def lost_step_floor_m(radius_m: float | None) -> float:

@@ -49,10 +49,10 @@ same ``motion.csv``. Without RF, steps are accumulated with the fusion's process
 (:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one -- a step
 lost to motion stretched to the estimated steps so far at their 90th percentile -- with a
 1-sigma as large as that step). The path travelled -- the "how far along the gut" figure -- is
-:func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a run of steps without an
-estimate the mean length of its estimated neighbours, at least the exam's 90th percentile of estimated lengths for
-a step lost to motion (one rule at both ends of an exam, so it does not depend on the frame order), with the
-steps' variances summed.
+:func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a step without an estimate a
+length from the speed around it (:func:`bodyslam.vision.tracking.missing_step_lengths`: a model of the capsule's
+speed, which a step lost to motion says was beyond the matcher's reach; symmetric in time, so the path does not
+depend on the frame order), with the steps' variances summed (a run of missing steps' 1-sigmas added: one speed).
 """
 
 from __future__ import annotations

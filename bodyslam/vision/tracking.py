@@ -20,10 +20,11 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.steps import LOST_STEP_QUANTILE, StepMotion, lost_step_floor_m, lost_to_motion
+from bodyslam.steps import (LOSS_SLOPE, LOST_STEP_FLOOR_R, LOST_STEP_QUANTILE, MISSING_STEP_REL_SD, SPEED_JUMP_PROB,
+                            STEP_MAX_R, StepMotion, lost_step_floor_m, lost_to_motion)
 
-__all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "step_length", "scale_path_variance",
-           "segment_variance", "SCALE_CORR_M"]
+__all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "missing_step_lengths", "step_length",
+           "scale_path_variance", "segment_variance", "SCALE_CORR_M"]
 
 # the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
 # the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
@@ -83,13 +84,111 @@ def segment_variance(path_m: np.ndarray, var_m2: np.ndarray, j: int, k: int, sca
     return own + sv(path_m[k] - path_m[j])
 
 
+# the speed model's grid: step lengths from 1/1000 of the lumen radius to STEP_MAX_R radii, log-spaced
+_GRID_BINS = 100
+_GRID_LO_R = 1e-3
+# a measured length tells the speed to this relative 1-sigma at least (one step's error must not pin the speed)
+_MEASURED_REL_SD = 0.1
+# estimated steps taken into account on each side of a run of missing steps (the speed model forgets faster:
+# SPEED_JUMP_PROB per step)
+_CONTEXT_STEPS = 25
+# the spread of ln(step) from one step to the next where too few pairs of consecutive estimated steps say it
+_DEFAULT_LOG_STEP_SD = 0.5
+
+
+def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndarray,
+                         radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The length (m) and its 1-sigma of every step without an estimate (NaN in ``length_m``), from the speed
+    around it: ``(mean_m (n,), sd_m (n,))``, NaN at the estimated steps.
+
+    The capsule's step length is a hidden state on a log-spaced grid (``_GRID_LO_R`` to :data:`STEP_MAX_R` lumen
+    radii ``radius_m``: the radius the steps assumed) that changes little from step to step (a Gaussian in ln
+    length whose spread is the exam's own: consecutive estimated steps, robust) and with chance
+    :data:`SPEED_JUMP_PROB` jumps to any value. An estimated step observes it (its length, with its 1-sigma and at
+    least ``_MEASURED_REL_SD`` of it); a step lost to motion (:func:`~bodyslam.steps.lost_to_motion`) observes that
+    matching lost it, which a step of length d is with the chance ``1 / (1 + (d / d50)^-s)``, ``d50`` =
+    :data:`~bodyslam.steps.LOST_STEP_FLOOR_R` radii, ``s`` = :data:`~bodyslam.steps.LOSS_SLOPE` (the matcher's
+    measured loss curve); any other missing step (a dark, blurred, turbid frame: perhaps at rest) observes nothing.
+    Forward-backward on each run of missing steps with ``_CONTEXT_STEPS`` estimated steps on either side gives each
+    missing step's posterior mean and 1-sigma, the latter at least :data:`~bodyslam.steps.MISSING_STEP_REL_SD` of
+    the mean (the model's own spread was too narrow: it held 47% of the lost steps' true lengths). So a lone lost
+    step among slow ones is a little beyond the matcher's reach, and a long run of them a sustained fast phase,
+    near the prior's upper end: the rule before (the 90th percentile of the estimated steps) was 35% long on lone
+    lost steps and 40% short on runs of nine or more (realistic tuning seeds 503-522; docs/RESULTS.md, "The steps
+    matching loses, from the speed around them").
+    The model is symmetric in time: an exam played backwards gets the same lengths."""
+    length = np.asarray(length_m, float)
+    var = np.asarray(var_m2, float)
+    lost = np.asarray(lost, bool)
+    n = len(length)
+    mean, sd = np.full(n, np.nan), np.full(n, np.nan)
+    est = np.isfinite(length)
+    if est.all():
+        return mean, sd
+    u = np.linspace(math.log(_GRID_LO_R), math.log(STEP_MAX_R), _GRID_BINS)  # ln(length / radius)
+    d_grid = radius_m * np.exp(u)
+    floor_u = math.log(_GRID_LO_R)
+    le = np.where(est, np.log(np.maximum(np.abs(length), radius_m * _GRID_LO_R) / radius_m), np.nan)
+    dl = np.diff(le)
+    dl = dl[np.isfinite(dl) & (le[1:] > floor_u) & (le[:-1] > floor_u)]  # a capsule at rest says nothing of it
+    q = 1.4826 * float(np.median(np.abs(dl))) if len(dl) >= 5 else _DEFAULT_LOG_STEP_SD
+    q = max(q, 2.0 * (u[1] - u[0]))
+    T = np.exp(-0.5 * ((u[:, None] - u[None, :]) / q) ** 2)
+    T = (1.0 - SPEED_JUMP_PROB) * T / T.sum(axis=1, keepdims=True) + SPEED_JUMP_PROB / _GRID_BINS
+    p_lost = 1.0 / (1.0 + np.exp(-LOSS_SLOPE * (u - math.log(LOST_STEP_FLOOR_R))))
+    # windows: each run of missing steps with its context, overlapping windows merged
+    windows: list[list[int]] = []
+    miss = np.flatnonzero(~est)
+    ctx = np.flatnonzero(est)
+    for i in miss:
+        a = int(ctx[max(np.searchsorted(ctx, i) - _CONTEXT_STEPS, 0)]) if len(ctx) else 0
+        b = int(ctx[min(np.searchsorted(ctx, i) + _CONTEXT_STEPS - 1, len(ctx) - 1)]) + 1 if len(ctx) else n
+        a, b = min(a, int(i)), max(b, int(i) + 1)
+        if windows and a <= windows[-1][1]:
+            windows[-1][1] = max(windows[-1][1], b)
+        else:
+            windows.append([a, b])
+    for a, b in windows:
+        E = np.ones((b - a, _GRID_BINS))
+        e = est[a:b]
+        if e.any():
+            d = np.abs(length[a:b][e])[:, None]
+            s2 = var[a:b][e][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2 + (radius_m * _GRID_LO_R) ** 2
+            E[e] = np.exp(-0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2))
+            E[e] /= E[e].max(axis=1, keepdims=True)
+        E[~e & lost[a:b]] = p_lost
+        fwd = np.empty_like(E)
+        prev = np.full(_GRID_BINS, 1.0 / _GRID_BINS)
+        for k in range(b - a):
+            f = (prev @ T) * E[k]
+            fwd[k] = prev = f / f.sum()
+        post = fwd
+        back = np.ones(_GRID_BINS)
+        for k in range(b - a - 2, -1, -1):
+            back = T @ (E[k + 1] * back)
+            back /= back.sum()
+            post[k] = fwd[k] * back
+        post /= post.sum(axis=1, keepdims=True)
+        m = post @ d_grid
+        m2 = post @ d_grid**2
+        w = ~e
+        mean[a:b][w] = m[w]
+        sd[a:b][w] = np.maximum(np.sqrt(np.maximum(m2 - m * m, 0.0)), MISSING_STEP_REL_SD * m)[w]
+    return mean, sd
+
+
 def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0,
                    radius_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Path travelled from the first frame to each frame, and its variance: ``(path_m (n+1,), var_m2 (n+1,))``.
 
-    The length of an estimated step is :func:`step_length`, with its own 1-sigma. A run of steps without an
-    estimate is a capsule that still moved: each of its steps takes the mean length of the estimated steps that
-    border the run (both sides inside the exam, the one side at its start or end). A step lost to motion
+    The length of an estimated step is :func:`step_length`, with its own 1-sigma. A step without an estimate is a
+    capsule that may still have moved. With the radius the steps assumed (``radius_m``) and which steps were lost
+    to motion, its length and 1-sigma come from the speed around it (:func:`missing_step_lengths`); the steps of
+    one run of missing steps share one speed, so their 1-sigmas add (not their variances). With nothing estimated
+    and nothing lost to motion, as below. The rest of this docstring is the rule without ``radius_m`` (and, with
+    it, the rule before session 30): each step of a run without an estimate takes the mean length of the
+    estimated steps that border the run (both sides inside the exam, the one side at its start or end). A step
+    lost to motion
     (:func:`~bodyslam.steps.lost_to_motion`) takes at least the :data:`~bodyslam.steps.LOST_STEP_QUANTILE`
     percentile of the exam's estimated lengths instead: matching fails on the steps longer than it measures, so
     the neighbours' mean is biased low (realistic tuning seeds 503-509: the path's end -11% on average, 27% at
@@ -114,7 +213,8 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
     only these two numbers per step, and ``lost``: which steps were lost to motion,
     :func:`~bodyslam.steps.lost_to_motion`; None: every missing step takes its neighbours' mean at a 1-sigma as
-    large, the rule before session 22; ``radius_m``: the floor of a lost step's length,
+    large, the rule before session 22; ``radius_m``: the radius the steps assumed, for the missing steps' model,
+    :func:`missing_step_lengths`; None: the rule before session 30 without its floor,
     :func:`~bodyslam.steps.lost_step_floor_m`).
     ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
     assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
@@ -127,6 +227,22 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
         var[ok] = np.maximum(var[ok] - (scale_sd_rel * length[ok]) ** 2, 0.0)
     n = len(length)
     est = np.isfinite(length)
+    if lost is not None and radius_m is not None and radius_m > 0 and (est.any() or np.any(lost)):
+        fill, fill_sd = missing_step_lengths(length, var, lost, radius_m)
+        path = np.r_[0.0, np.cumsum(np.where(est, length, fill))]
+        cum = np.zeros(n + 1)
+        base = run_sd = 0.0
+        for k in range(n):  # a run of missing steps: one speed, so their 1-sigmas add
+            if est[k]:
+                base += var[k] + run_sd**2
+                run_sd = 0.0
+                cum[k + 1] = base
+            else:
+                run_sd += fill_sd[k]
+                cum[k + 1] = base + run_sd**2
+        if scale_sd_rel > 0:
+            cum = cum + scale_path_variance(path, scale_sd_rel, corr_m)
+        return path, cum
     floor = lost_step_floor_m(radius_m) if lost is not None else 0.0
     if not est.any():  # nothing measured: a lost step still moved at least the floor, the others are unknown
         if floor > 0:
