@@ -135,6 +135,7 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     q = max(q, 2.0 * (u[1] - u[0]))
     T = np.exp(-0.5 * ((u[:, None] - u[None, :]) / q) ** 2)
     T = (1.0 - SPEED_JUMP_PROB) * T / T.sum(axis=1, keepdims=True) + SPEED_JUMP_PROB / _GRID_BINS
+    T = T.astype(np.float32)
     p_lost = 1.0 / (1.0 + np.exp(-LOSS_SLOPE * (u - math.log(LOST_STEP_FLOOR_R))))
     # windows: each run of missing steps with its context, overlapping windows merged
     windows: list[list[int]] = []
@@ -149,31 +150,35 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
         else:
             windows.append([a, b])
     for a, b in windows:
-        E = np.ones((b - a, _GRID_BINS))
+        E = np.ones((b - a, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
         e = est[a:b]
-        if e.any():
-            d = np.abs(length[a:b][e])[:, None]
-            s2 = var[a:b][e][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2 + (radius_m * _GRID_LO_R) ** 2
-            E[e] = np.exp(-0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2))
-            E[e] /= E[e].max(axis=1, keepdims=True)
+        rows = np.flatnonzero(e)
+        for c in range(0, len(rows), 4096):  # in blocks: float64 temporaries of a few MB, whatever the exam
+            r = rows[c:c + 4096]
+            d = np.abs(length[a + r])[:, None]
+            s2 = var[a + r][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2 + (radius_m * _GRID_LO_R) ** 2
+            ll = -0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2)
+            E[r] = np.exp(ll - ll.max(axis=1, keepdims=True))
         E[~e & lost[a:b]] = p_lost
         fwd = np.empty_like(E)
-        prev = np.full(_GRID_BINS, 1.0 / _GRID_BINS)
+        prev = np.full(_GRID_BINS, 1.0 / _GRID_BINS, np.float32)
         for k in range(b - a):
             f = (prev @ T) * E[k]
             fwd[k] = prev = f / f.sum()
         post = fwd
-        back = np.ones(_GRID_BINS)
+        back = np.ones(_GRID_BINS, np.float32)
         for k in range(b - a - 2, -1, -1):
             back = T @ (E[k + 1] * back)
             back /= back.sum()
             post[k] = fwd[k] * back
-        post /= post.sum(axis=1, keepdims=True)
-        m = post @ d_grid
-        m2 = post @ d_grid**2
-        w = ~e
-        mean[a:b][w] = m[w]
-        sd[a:b][w] = np.maximum(np.sqrt(np.maximum(m2 - m * m, 0.0)), MISSING_STEP_REL_SD * m)[w]
+        w = np.flatnonzero(~e)
+        for c in range(0, len(w), 4096):
+            r = w[c:c + 4096]
+            p = post[r].astype(float)
+            p /= p.sum(axis=1, keepdims=True)
+            m, m2 = p @ d_grid, p @ d_grid**2
+            mean[a + r] = m
+            sd[a + r] = np.maximum(np.sqrt(np.maximum(m2 - m * m, 0.0)), MISSING_STEP_REL_SD * m)
     return mean, sd
 
 
