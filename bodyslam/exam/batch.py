@@ -1051,7 +1051,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
     3-D view to turn, the plots)."""
     from bodyslam.plots import Mark, Path3D, path_figure, trajectory_figure
     from bodyslam.report import table, view_3d, write_page
-    from bodyslam.steps import LOST_STEP_FLOOR_R
+    from bodyslam.steps import LOST_STEP_FLOOR_R, MISSING_STEP_REL_SD
 
     if len(t) < 2:
         return
@@ -1091,8 +1091,9 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
                + (". The 1-sigma is dead reckoning's: it grows with every step" if not fused else
                   " (x toward the patient's left, y anterior, z cranial). The 1-sigma is the filter's, scaled by the "
                   "RF readings' measured correlation")
-               + "; the path travelled is the sum of the visual steps, a step without a distance filled from its "
-                 "neighbours and one lost to motion (status rotation or lost) as a long one, at least "
-                 f"{LOST_STEP_FLOOR_R:g} lumen radii (its 1-sigma includes the lumen radius's and each filled "
-                 "step's own size).", body,
+               + "; the path travelled is the sum of the visual steps, a step without a distance given a length "
+                 "from the capsule's speed around it, one lost to motion (status rotation or lost) as one the "
+                 f"matcher could not reach (half of the steps are lost at {LOST_STEP_FLOOR_R:g} lumen radii); its "
+                 "1-sigma includes the lumen radius's and each filled step's (at least "
+                 f"{MISSING_STEP_REL_SD:.0%} of it).", body,
                ["trajectory.png", "path.png"])
