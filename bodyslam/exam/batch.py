@@ -48,8 +48,9 @@ Once an exam's chunks are in, its short gaps are bridged as ``bodyslam motion`` 
 same ``motion.csv``. Without RF, steps are accumulated with the fusion's process model
 (:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one -- a step
 lost to motion stretched to the estimated steps so far at their 90th percentile -- with a
-1-sigma as large as that step). The path travelled -- the "how far along the gut" figure -- is
-:func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a step without an estimate a
+1-sigma as large as that step); once the exam is read, those steps are stretched along their direction to the
+lengths the path travelled gives them (below), so the trajectory's length is the path travelled. The path
+travelled -- the "how far along the gut" figure -- is :func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a step without an estimate a
 length from the speed around it (:func:`bodyslam.vision.tracking.missing_step_lengths`: a model of the capsule's
 speed, which a step lost to motion says was beyond the matcher's reach; symmetric in time, so the path does not
 depend on the frame order), with the steps' variances summed (a run of missing steps' 1-sigmas added: one speed).
@@ -869,6 +870,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
                                          radius_m=exam.radius_m)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
+    P = _with_path_lengths(P, path_m, acc.length[1:n])
     fused = None
     if exam.rf and n >= 2:
         fused = _fuse(exam, d, t, frame_idx, settings, problems)
@@ -918,6 +920,21 @@ def _consistency_text(c: dict | None) -> str:
     return (f"{c['pairs_estimated']} three-frame motions against their single steps: {c['within_1sigma']:.0%} "
             f"within 1-sigma, {c['within_2sigma']:.0%} within 2 (68% / 95% if it holds); distance ratio "
             f"{c['median_distance_ratio_pair_over_singles']:.2f}")
+
+
+def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarray) -> np.ndarray:
+    """Dead-reckoned positions ``(n, 3)`` whose steps without an estimate (NaN in ``length_m``, ``n - 1``) are
+    stretched along their direction to the length the path travelled gave them (``path_m``, ``n``:
+    :func:`bodyslam.vision.tracking.path_from_lengths`). The dead reckoner is causal and streams, so it counts a lost
+    step as the estimated steps so far at their 90th percentile; the path's model sees both sides. Afterwards the
+    trajectory's length is the path travelled, and marks' positions and their path from the start agree."""
+    if len(pos_m) < 2:
+        return pos_m
+    dp = np.diff(pos_m, axis=0)
+    norm = np.linalg.norm(dp, axis=1)
+    fix = ~np.isfinite(length_m) & (norm > 1e-12)
+    dp[fix] *= (np.diff(path_m)[fix] / norm[fix])[:, None]
+    return np.vstack([pos_m[:1], pos_m[0] + np.cumsum(dp, axis=0)])
 
 
 def _radius_estimate(exam: Exam, fused) -> dict | None:

@@ -336,3 +336,27 @@ def test_the_reports_duration_reads_as_a_person_would():
     assert duration_text(250.0) == "4.2 min"
     assert duration_text(27480.0) == "7 h 38 min"  # a whole exam of 55,000 frames at 2 frames/s
     assert duration_text(float("nan")) == "nan s"
+
+
+def test_dead_reckoned_steps_without_an_estimate_take_the_path_travelled_length():
+    """Without RF, batch dead-reckons causally (a lost step at the steps so far at their 90th percentile) while the
+    path travelled fills it from both sides: the trajectory's missing steps are stretched along their direction to
+    the path's lengths, so its length is the path travelled and marks' positions agree with their path; estimated
+    steps and directions stay as they were."""
+    from bodyslam.exam.batch import _with_path_lengths
+
+    rng = np.random.default_rng(3)
+    dp = rng.normal(0.0, 0.003, (12, 3))
+    pos = np.vstack([np.zeros(3), np.cumsum(dp, axis=0)]) + [0.1, 0.2, 0.3]
+    length = np.linalg.norm(dp, axis=1)
+    length[[4, 5, 9]] = np.nan  # steps without an estimate
+    path = np.r_[0.0, np.cumsum(np.where(np.isfinite(length), length, [0.011] * 12))]
+    out = _with_path_lengths(pos, path, length)
+    step = np.diff(out, axis=0)
+    assert np.linalg.norm(step, axis=1) == pytest.approx(np.diff(path), rel=1e-12)
+    assert out[0] == pytest.approx(pos[0])
+    ok = np.isfinite(length)
+    assert step[ok] == pytest.approx(dp[ok], abs=1e-15)
+    unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
+    assert unit(step[~ok]) == pytest.approx(unit(dp[~ok]))
+    assert len(_with_path_lengths(pos[:1], path[:1], length[:0])) == 1  # a one-frame exam: nothing to stretch
