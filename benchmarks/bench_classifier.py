@@ -175,6 +175,12 @@ def main() -> None:
                     help="a `testbed evaluate realistic` sequences/ folder with frames kept (reporting seeds)")
     ap.add_argument("--real", type=Path, default=ROOT.parent / "shared" / "data" / "real")
     args = ap.parse_args()
+    try:
+        work_sizes = [int(v) for v in args.work_px.split(",")]
+    except ValueError:
+        ap.error(f"--work-px {args.work_px!r}: expected comma-separated sizes in pixels, e.g. 48,64,96")
+    if any(v < 16 for v in work_sizes):
+        ap.error(f"--work-px {args.work_px!r}: sizes must be at least 16 px")
     root = args.keep or Path(tempfile.mkdtemp(prefix="bench_cls_"))
     root.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -194,7 +200,7 @@ def main() -> None:
     masks = {d: sequence_mask(d) for dirs in sets.values() for d in dirs}  # once, not once per working size
     shipped = TunnelClassifier.default()  # the comparison: what the pipeline uses now
     cands = []  # (valid score, work_px, feature name, model)
-    for px in [int(v) for v in args.work_px.split(",")]:
+    for px in work_sizes:
         data = {name: dataset(dirs, masks, px, SCN_TRAIN_FT_EVERY if name == "train scenario" else 1)
                 for name, dirs in sets.items()}
         Xtr, ytr = (np.concatenate(v) for v in zip(data.pop("train"), data.pop("train scenario")))
