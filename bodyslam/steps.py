@@ -66,7 +66,7 @@ LOST_STEP_FLOOR_R = 0.4
 #   3% lost at 0.1-0.2 radii, 26% at 0.3-0.4, 84% at 0.6-0.8, 99% at 0.8-1.0)
 LOSS_SLOPE = 3.5
 # - a step is at most this many lumen radii long (1.25 cm, 2.5 cm/s at 2 frames/s; papers 002/003 model the capsule
-#   at 0.05 +- 0.07 cm/s): the prior's upper end, chosen on tuning seeds among 0.8, 1.0, 1.2 and 1.5 radii
+#   at 0.05 +- 0.07 cm/s): the prior's upper end, chosen on tuning seeds among 0.8, 1.0, 1.2, 1.5 and 4 radii
 STEP_MAX_R = 1.0
 # - the capsule's speed changes little from one step to the next, and with this chance per step jumps to any value
 #   (a phase of rest or of fast motion starting; stated choice: the path moved by < 1% between 0.02 and 0.2)

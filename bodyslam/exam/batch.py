@@ -50,8 +50,8 @@ same ``motion.csv``. Without RF, steps are accumulated with the fusion's process
 lost to motion stretched to the estimated steps so far at their 90th percentile -- with a
 1-sigma as large as that step); once the exam is read, those steps are stretched along their direction to the
 lengths the path travelled gives them (below), so the trajectory's length is the path travelled. The path
-travelled -- the "how far along the gut" figure -- is :func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a step without an estimate a
-length from the speed around it (:func:`bodyslam.vision.tracking.missing_step_lengths`: a model of the capsule's
+travelled -- the "how far along the gut" figure -- is :func:`bodyslam.vision.tracking.path_travelled`'s:
+estimated step lengths, and for a step without an estimate a length from the speed around it (:func:`bodyslam.vision.tracking.missing_step_lengths`: a model of the capsule's
 speed, which a step lost to motion says was beyond the matcher's reach; symmetric in time, so the path does not
 depend on the frame order), with the steps' variances summed (a run of missing steps' 1-sigmas added: one speed).
 """
@@ -870,7 +870,6 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
                                          radius_m=exam.radius_m)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
-    P = _with_path_lengths(P, path_m, acc.length[1:n])
     fused = None
     if exam.rf and n >= 2:
         fused = _fuse(exam, d, t, frame_idx, settings, problems)
@@ -878,6 +877,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
             P, Q, cov, sd_head = (fused.smoothed.positions_w_m, fused.smoothed.rotations_w_c.as_quat(),
                                   fused.smoothed.cov[:, :3, :3],
                                   np.sqrt(np.trace(fused.smoothed.cov[:, 3:, 3:], axis1=1, axis2=2)))
+    if fused is None:  # dead reckoning: its steps without an estimate take the path travelled's lengths
+        P = _with_path_lengths(P, path_m, acc.length[1:n])
     sd = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q),
               world="body frame" if fused is not None else "first camera frame")
@@ -927,7 +928,8 @@ def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarr
     stretched along their direction to the length the path travelled gave them (``path_m``, ``n``:
     :func:`bodyslam.vision.tracking.path_from_lengths`). The dead reckoner is causal and streams, so it counts a lost
     step as the estimated steps so far at their 90th percentile; the path's model sees both sides. Afterwards the
-    trajectory's length is the path travelled, and marks' positions and their path from the start agree."""
+    trajectory's length is the path travelled, and marks' positions and their path from the start agree (except
+    where the dead reckoner did not move at all: such a step has no direction to stretch along and stays)."""
     if len(pos_m) < 2:
         return pos_m
     dp = np.diff(pos_m, axis=0)

@@ -141,10 +141,13 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     windows: list[list[int]] = []
     miss = np.flatnonzero(~est)
     ctx = np.flatnonzero(est)
-    for i in miss:
-        a = int(ctx[max(np.searchsorted(ctx, i) - _CONTEXT_STEPS, 0)]) if len(ctx) else 0
-        b = int(ctx[min(np.searchsorted(ctx, i) + _CONTEXT_STEPS - 1, len(ctx) - 1)]) + 1 if len(ctx) else n
-        a, b = min(a, int(i)), max(b, int(i) + 1)
+    if len(ctx):  # from the _CONTEXT_STEPS-th estimated step before each missing one to the one as far after it
+        pos = np.searchsorted(ctx, miss)
+        lo = np.minimum(ctx[np.maximum(pos - _CONTEXT_STEPS, 0)], miss)
+        hi = np.maximum(ctx[np.minimum(pos + _CONTEXT_STEPS - 1, len(ctx) - 1)] + 1, miss + 1)
+    else:
+        lo, hi = np.zeros_like(miss), np.full_like(miss, n)
+    for a, b in zip(lo.tolist(), hi.tolist()):
         if windows and a <= windows[-1][1]:
             windows[-1][1] = max(windows[-1][1], b)
         else:
