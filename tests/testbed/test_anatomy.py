@@ -160,3 +160,40 @@ def test_open_piece_skeleton_splits_at_junctions_and_chains_straight_on():
         k = int(at0[0])
         before, after = line[max(k - 5, 0)], line[min(k + 5, len(line) - 1)]
         assert np.allclose(np.cross(before, after), 0.0, atol=1e-6), (before, after)
+
+
+def _straight_pieces(xs_mm, r_mm=5.0):
+    """Pieces along the x axis, each from x0 to x1 (mm), 1 mm nodes."""
+    return [(np.c_[np.arange(x0, x1 + 0.5), np.zeros(int(x1 - x0) + 1), np.zeros(int(x1 - x0) + 1)],
+             np.full(int(x1 - x0) + 1, r_mm)) for x0, x1 in xs_mm]
+
+
+def test_chain_order_repaired_by_local_moves():
+    """The greedy matching's out-of-order joins are undone: four pieces of one straight tube handed over in a
+    scrambled order, one of them backwards, come out in order along the tube (2-opt / or-opt lower the summed gap
+    cost; the order given costs three long turning gaps)."""
+    from testbed.anatomy import _improve_order
+
+    pieces = _straight_pieces([(0, 40), (45, 85), (90, 130), (135, 175)])
+    got = _improve_order(pieces, [(0, False), (2, False), (1, True), (3, False)])
+    assert [i for i, _ in got] in ([0, 1, 2, 3], [3, 2, 1, 0])
+    assert len({rev for _, rev in got}) == 1  # all run the same way
+
+
+def test_side_branch_left_out_but_a_real_piece_kept():
+    """A branch beside the tube, strung in across two long gaps that turn through 90 degrees each way, is left out
+    (joining it costs more than DROP_RATIO times its 30 mm); a piece on the tube between its neighbours, 5 mm
+    gaps each side, stays."""
+    from testbed.anatomy import _chain_pieces, _improve_order
+
+    tube = _straight_pieces([(0, 40), (45, 85), (90, 130)])
+    side = (np.c_[np.full(31, 60.0), np.arange(20.0, 51.0), np.zeros(31)], np.full(31, 5.0))  # x = 60, y 20..50
+    pieces = tube + [side]
+    order = [(0, False), (3, True), (1, False), (2, False)]  # tube, side branch (entered at y = 50), tube, tube
+    got = _improve_order(pieces, order)
+    assert sorted(i for i, _ in got) == [0, 1, 2], got
+    # the whole chain: the side branch goes, the three real pieces stay, and the line runs along the tube
+    line, _, used = _chain_pieces(pieces, 80.0)
+    assert used == 3 and np.max(np.abs(line[:, 1])) < 1e-6
+    # the middle piece alone, joined across 5 mm gaps straight on, is kept
+    assert sorted(i for i, _ in _improve_order(tube, [(0, False), (1, False), (2, False)])) == [0, 1, 2]
