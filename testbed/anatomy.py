@@ -344,14 +344,19 @@ def _build_chain(pieces: list, order: list) -> tuple[np.ndarray, np.ndarray]:
     rad: list = []
     for i, rev in order:
         p, r = pieces[i]
-        p, r = (p[::-1], r[::-1]) if rev else (p, r)
-        if pts:
-            mid = _bridge(pts[-1][-1], _end_tangent(pts[-1], True), p[0], -_end_tangent(p, False))
-            pts.append(mid)
-            rad.append(np.interp(np.arange(1, len(mid) + 1) / (len(mid) + 1), [0, 1], [rad[-1][-1], r[0]]))
-        pts.append(p)
-        rad.append(r)
+        _append_bridged(pts, rad, *((p[::-1], r[::-1]) if rev else (p, r)))
     return np.vstack(pts), np.concatenate(rad)
+
+
+def _append_bridged(pts: list, rad: list, p: np.ndarray, r: np.ndarray) -> None:
+    """Append a piece's points and radii to the lists of a chain, after a :func:`_bridge` from the chain's end (its
+    radius interpolated) where the chain has one."""
+    if pts:
+        mid = _bridge(pts[-1][-1], _end_tangent(pts[-1], True), p[0], -_end_tangent(p, False))
+        pts.append(mid)
+        rad.append(np.interp(np.arange(1, len(mid) + 1) / (len(mid) + 1), [0, 1], [rad[-1][-1], r[0]]))
+    pts.append(p)
+    rad.append(r)
 
 
 def _gap_costs(points: np.ndarray, tangents: np.ndarray) -> np.ndarray:
@@ -519,12 +524,7 @@ def _link(pieces: list, max_gap_mm: float) -> list:
             p, r, k, sub = pieces[i]
             if at_end:  # entered at this end: run away from it
                 p, r, sub = p[::-1], r[::-1], [(j, not rev) for j, rev in sub[::-1]]
-            if pts:
-                mid = _bridge(pts[-1][-1], _end_tangent(pts[-1], True), p[0], -_end_tangent(p, False))
-                pts.append(mid)
-                rad.append(np.interp(np.arange(1, len(mid) + 1) / (len(mid) + 1), [0, 1], [rad[-1][-1], r[0]]))
-            pts.append(p)
-            rad.append(r)
+            _append_bridged(pts, rad, p, r)
             n_used += k
             order += sub
             other = 2 * i + (0 if at_end else 1)  # the piece's far end
