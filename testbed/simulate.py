@@ -90,17 +90,19 @@ def wall_at(world: World, traj: CapsuleTrajectory, k: int):
 
 
 def moving_wall_cast(world: World, traj: CapsuleTrajectory, renderer: RaycastRenderer):
-    """The ray caster :func:`testbed.motion.label_frames` gets when the wall moves: it casts one ray per frame, in
-    frame order, and frame k's ray meets the wall as it is at frame k's time -- the truth's FT/FL occlusion test
-    sees a ring that closes the lumen ahead."""
+    """The ray caster :func:`testbed.motion.label_frames` gets when the wall moves: it casts the same number of rays
+    for each frame, frame after frame, and frame k's rays meet the wall as it is at frame k's time -- the truth's
+    FT/FL occlusion test sees a ring that closes the lumen ahead."""
 
     def cast(origins_w: np.ndarray, dirs_w: np.ndarray):
-        if len(origins_w) != len(traj.s_m):
-            raise ValueError(f"one ray per frame expected ({len(traj.s_m)}), got {len(origins_w)}")
+        n = len(traj.s_m)
+        if len(origins_w) % n or not len(origins_w):
+            raise ValueError(f"the same number of rays for each of the {n} frames expected, got {len(origins_w)}")
+        m = len(origins_w) // n
         range_m = np.full(len(origins_w), np.nan)
-        for k in range(len(origins_w)):
+        for k in range(n):
             renderer.set_mesh(wall_at(world, traj, k))
-            range_m[k] = renderer.cast(origins_w[k:k + 1], dirs_w[k:k + 1])[0][0]
+            range_m[k * m:(k + 1) * m] = renderer.cast(origins_w[k * m:(k + 1) * m], dirs_w[k * m:(k + 1) * m])[0]
         return (range_m,)
 
     return cast
@@ -158,7 +160,7 @@ def simulate(
     mesh = world.tube.mesh()
     labeller = RaycastRenderer(world.tube, world.texture, world.camera, world.lighting, mesh=mesh)
     cast = moving_wall_cast(world, traj, labeller) if world.motility.active else labeller.cast
-    labels = label_frames(world.tube, traj, world.camera.fov_deg, cast)
+    labels = label_frames(world.tube, traj, world.camera.fov_deg, cast, world.motion.ft_rule)
     del labeller
     (out / "frames").mkdir(exist_ok=True)
     if world.write_depth:

@@ -129,5 +129,8 @@ def test_the_truths_occlusion_test_sees_the_moved_wall():
     moved = np.nan_to_num(moving_wall_cast(w, traj, r)(traj.positions_w_m, u)[0], nan=1.0)
     assert np.all(moved <= rest + 1e-6)
     assert np.sum(moved < rest - 0.002) >= 3  # rings stop some rays at least 2 mm short
-    with pytest.raises(ValueError, match="one ray per frame"):
+    # several rays per frame, frame after frame (the "view" label rule's bundle): each frame's meet its own wall
+    two = moving_wall_cast(w, traj, r)(np.repeat(traj.positions_w_m, 2, axis=0), np.repeat(u, 2, axis=0))[0]
+    assert np.array_equal(np.nan_to_num(two, nan=1.0), np.repeat(moved, 2))
+    with pytest.raises(ValueError, match="same number of rays for each"):
         moving_wall_cast(w, traj, r)(traj.positions_w_m[:3], u[:3])

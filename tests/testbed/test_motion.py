@@ -43,6 +43,33 @@ def test_labels_follow_the_geometric_rule():
     assert straight.sum() > 10 and np.all(labels[straight] == FT)
 
 
+
+def test_view_rule_sees_the_lumen_past_a_fold():
+    """``ft_rule = "view"`` (the realistic testbed's): a fold across the one line of sight to the centre-line point 4
+    radii ahead makes the one-line rule call every frame FL; the bundle still sees the lumen past it wherever the
+    one-line rule sees it without the fold, and the lumen's direction still decides the facing-the-wall frames."""
+    world = build_world(load_scenario("thesis", ["motion.fl_rate_per_frame=0.05"]), 3)
+    traj = generate_motion(world.tube, 200, world.motion, world.rngs["motion"])
+    caster = RaycastRenderer(world.tube, world.texture, world.camera, world.lighting)
+
+    def fold(origins_w, dirs_w):  # the wall as it is, and a fold 1 mm in front of the line to the point 4 radii ahead
+        free = caster.cast(origins_w, dirs_w)[0].copy()
+        m = len(origins_w) // len(traj.s_m)
+        free[(0 if m == 1 else 7)::m] = 0.001  # the bundle's 8th line is that point's (3, 4, 5 radii; 7 lines each)
+        return (free,)
+
+    fov = world.camera.fov_deg
+    plain = label_frames(world.tube, traj, fov, caster.cast, "ray")
+    assert np.all(label_frames(world.tube, traj, fov, fold, "ray") == FL)
+    view_fold = label_frames(world.tube, traj, fov, fold, "view")
+    assert np.sum(plain == FT) > 100 and np.all(view_fold[plain == FT] == FT)
+    view = label_frames(world.tube, traj, fov, caster.cast, "view")
+    assert np.all(view[plain == FT] == FT)
+    # facing the wall stays FL as often as with one line (the same angle on the lumen's direction decides it)
+    assert np.mean(view[traj.fl_episode] == FL) >= 0.5
+    with pytest.raises(ValueError, match="rule must be one of"):
+        label_frames(world.tube, traj, fov, caster.cast, "cone")
+
 def test_a_start_moved_in_for_early_backward_motion_stays_on_the_path():
     # classifier_realistic seed 510 backs up early: the start is moved in to exactly 0.02 m from the path's start,
     # and lo - min + min rounded to just below it ("the capsule would leave the path", s from 0.020)
