@@ -15,7 +15,8 @@ Seed sets (issue 16 item 2; tuning 500-599 and reporting 700-799 as everywhere i
 
 Each `classifier_realistic` seed draws its own look from the seed (:func:`realistic_look`): lighting, colour cast,
 vignetting, field stop (octagon, circle or none) and its size, JPEG quality, burned-in text or none, lumen
-radius, fold depth, number and depth of lobes, bubbles. Labels are the testbed's geometric FT/FL rule (labels.csv).
+radius, fold depth, number and depth of lobes, bubbles. Labels are the testbed's geometric FT/FL rule (labels.csv;
+the realistic worlds' bundle of lines of sight since session 31, testbed/motion.py).
 Features are computed inside the field of view detected from each sequence's frames, as the pipeline does.
 
 The five real PillCam frames (``--real DIR``, default ../shared/data/real) are classified by every candidate and
