@@ -333,8 +333,8 @@ def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3):
     if order == best[3]:
         return best[:3]
     if len(order) < len(best[3]):
-        log.info("centre line: %d side branch(es) left out of the chain (joining them cost more than %.0fx their "
-                 "length)", len(best[3]) - len(order), DROP_RATIO)
+        log.warning("%d side branch(es) left out of the chain (joining them cost more than %.0fx their length)",
+                    len(best[3]) - len(order), DROP_RATIO)
     return (*_build_chain(pieces, order), len(order))
 
 
