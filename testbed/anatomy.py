@@ -373,7 +373,7 @@ def _gap_costs(points: np.ndarray, tangents: np.ndarray) -> np.ndarray:
     return d * (1.0 + turn) + TURN_MM * turn
 
 
-def _improve_order(pieces: list, order: list, drop_ratio: float | None = None, max_moves: int | None = None) -> list:
+def _improve_order(pieces: list, order: list, drop_ratio: float | None = None) -> list:
     """A chain's pieces ``[(piece, reversed)]`` re-ordered, and side branches left out, by local moves.
 
     The objective is the chain's summed gap cost (:func:`_gap_costs`) plus ``drop_ratio`` times the length of every
@@ -402,7 +402,7 @@ def _improve_order(pieces: list, order: list, drop_ratio: float | None = None, m
     ent = [2 * slot[i] + int(r) for i, r in order]
     ext = [2 * slot[i] + 1 - int(r) for i, r in order]
     out: list[int] = []  # slots of the pieces left out
-    for _ in range(max_moves or 20 * len(order)):
+    for _ in range(20 * len(order)):  # a bound: each move lowers the objective, so none repeats
         n = len(ent)
         E, X = np.array(ent), np.array(ext)
         xp = np.r_[m, X[:-1]]  # exit before each piece (the free end before the first)
@@ -474,30 +474,23 @@ def _link(pieces: list, max_gap_mm: float) -> list:
     pieces in it as ``(piece, reversed)``).
 
     Greedy matching of piece ends, as the greedy heuristic of the travelling-salesman path: every pair of ends of
-    different pieces within ``max_gap_mm`` is a candidate gap, costed by its length, counted longer the more the two
-    ends would have to turn to meet it (``d (1 + (1 - t_a.g) + (1 + t_b.g))``, ``t`` the direction a piece leaves
-    through that end, ``g`` the gap's direction from ``a`` to ``b``); gaps are taken cheapest first when both ends
-    are still free and the gap joins two different chains.
+    different pieces within ``max_gap_mm`` is a candidate gap, costed by :func:`_gap_costs` (its length, counted
+    longer the more the two ends would have to turn to meet it); gaps are taken cheapest first when both ends are
+    still free and the gap joins two different chains.
     """
     ends = []  # (piece, at_end, point, outward tangent)
     for i, (p, _, _, _) in enumerate(pieces):
         ends.append((i, False, p[0], _end_tangent(p, False)))
         ends.append((i, True, p[-1], _end_tangent(p, True)))
-    lens = [_length_mm(p) for p, _, _, _ in pieces]
-    cand = []
-    for a in range(len(ends)):
-        for b in range(a + 1, len(ends)):
-            ia, _, pa, ta = ends[a]
-            ib, _, pb, tb = ends[b]
-            if ia == ib:
-                continue
-            gap = pb - pa
-            d = float(np.linalg.norm(gap))
-            if d > max_gap_mm or (d > SHORT_GAP_MM and min(lens[ia], lens[ib]) < SHORT_MM):
-                continue
-            g = gap / d if d > 1e-6 else (ta - tb) / max(float(np.linalg.norm(ta - tb)), 1e-9)
-            turn = (1.0 - ta @ g) + (1.0 + tb @ g)
-            cand.append((d * (1.0 + turn) + TURN_MM * turn, a, b))
+    lens = np.array([_length_mm(p) for p, _, _, _ in pieces])
+    pts = np.array([e[2] for e in ends])
+    cost = _gap_costs(pts, np.array([e[3] for e in ends]))
+    d = np.linalg.norm(pts[None, :, :] - pts[:, None, :], axis=2)
+    piece = np.repeat(np.arange(len(pieces)), 2)
+    short = np.minimum(lens[piece][:, None], lens[piece][None, :]) < SHORT_MM
+    ok = (piece[:, None] != piece[None, :]) & (d <= max_gap_mm) & ~((d > SHORT_GAP_MM) & short)
+    a_idx, b_idx = np.nonzero(np.triu(ok, 1))
+    cand = list(zip(cost[a_idx, b_idx].tolist(), a_idx.tolist(), b_idx.tolist()))
     parent = list(range(len(pieces)))
 
     def root(x):
