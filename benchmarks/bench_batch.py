@@ -8,11 +8,15 @@ its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole pr
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
     .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
-        [--rss-bias-states] [--jobs 1,2] [--dask 2] [--repeat 3]
+        [--rss-bias-states] [--jobs 1,2] [--jobs-rf 1,2] [--jobs-only] [--dask 2] [--repeat 3]
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
 so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85). ``--rss-bias-states``:
 that run with the opt-in per-sensor RSS bias states.
+
+``--jobs 1,2,4`` / ``--jobs-rf 1,2,4``: frames/s of the whole process against the number of worker processes,
+without and with the exam's RF, and whether every count gives byte-identical motion.csv and trajectory.tum (the
+chunk size follows the workers: results must not). ``--jobs-only``: those tables alone.
 
 ``--repeat N``: each exam N times (with ``--rf`` the runs without and with RF alternated), then the median and
 range of frames/s and of the ratio: one run on a machine whose speed drifts is not a measurement of a target.
@@ -133,6 +137,12 @@ def main() -> None:
     ap.add_argument("--jobs", default=None,
                     help="comma-separated worker counts (e.g. 1,2,4,8,16): frames/s against jobs for each length, "
                          "and whether every count gives byte-identical motion.csv / trajectory.tum")
+    ap.add_argument("--jobs-rf", default=None, metavar="LIST",
+                    help="comma-separated worker counts run with the exam's RF (the fused trajectory): frames/s against "
+                         "jobs with RF, and whether every count gives byte-identical outputs")
+    ap.add_argument("--jobs-only", action="store_true",
+                    help="only the --jobs / --jobs-rf tables (not the default run with one worker per core): a "
+                         "machine lent for minutes")
     ap.add_argument("--repeat", type=int, default=1, metavar="N",
                     help="run each exam N times (with --rf: without and with RF alternated) and print the median and "
                          "range: this machine's speed drifts by 10-20%% between runs")
@@ -147,6 +157,12 @@ def main() -> None:
         raise SystemExit(f"--dask {args.dask}: give a number of Dask worker processes (0: no Dask run)")
     if args.dask and importlib.util.find_spec("distributed") is None:  # checked before any exam is run
         raise SystemExit("--dask needs Dask distributed (pip install 'dask[distributed]')")
+    for name in ("jobs", "jobs_rf"):  # worker counts: checked before any exam is rendered or run
+        v = getattr(args, name)
+        if v is not None and not all(x.strip().isdigit() and int(x) >= 1 for x in v.split(",")):
+            raise SystemExit(f"--{name.replace('_', '-')} {v}: give worker counts (whole numbers >= 1), e.g. 1,2,4")
+    if args.jobs_only and not (args.jobs or args.jobs_rf):
+        raise SystemExit("--jobs-only: give the counts to run (--jobs and/or --jobs-rf)")
     lengths = [int(x) for x in args.frames.split(",")]
     args.keep.mkdir(parents=True, exist_ok=True)
     res = {}
@@ -168,21 +184,29 @@ def main() -> None:
         shutil.rmtree(out, ignore_errors=True)
         cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode,
                "--calib", str(calib), "--fps", "2", "--radius-m", str(meta["tube_radius_m"])]
-        if args.jobs:
+        cmd_rf = [sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", "OUT", "--mode", args.mode,
+                  *(["--rss-bias-states"] if args.rss_bias_states else [])]
+        for key, counts, base_cmd, name in (("jobs_rf", args.jobs_rf, cmd_rf, seq.name),
+                                             ("jobs", args.jobs, cmd, folder.name)):
+            if not counts:
+                continue
             scaling, ref = {}, None
-            for j in [int(x) for x in args.jobs.split(",")]:
-                out_j = args.keep / f"out_{args.mode}_{n}_jobs{j}"
+            for j in [int(x) for x in counts.split(",")]:
+                out_j = args.keep / f"out_{args.mode}_{n}_{key}{j}"
                 shutil.rmtree(out_j, ignore_errors=True)
-                el_j, peak_j, _ = run_measured([*cmd[:6], str(out_j), *cmd[7:], "--jobs", str(j)])
-                files = tuple((out_j / folder.name / f).read_bytes() for f in ("motion.csv", "trajectory.tum"))
+                el_j, peak_j, _ = run_measured([*base_cmd[:6], str(out_j), *base_cmd[7:], "--jobs", str(j)])
+                files = tuple((out_j / name / f).read_bytes() for f in ("motion.csv", "trajectory.tum"))
                 same = ref is None or files == ref
                 ref = ref or files
                 scaling[j] = {"seconds": el_j, "frames_per_s": n / el_j, "peak_tree_rss_mib": peak_j / 2**20,
                               "identical_to_first": same}
-                base = scaling[min(scaling)]["frames_per_s"]
-                print(f"  --jobs {j}: {n / el_j:.1f} frames/s ({n / el_j / base:.2f}x the first), peak "
-                      f"{peak_j / 2**20:.0f} MiB, outputs identical to the first: {same}", flush=True)
-            res.setdefault(n, {})["jobs"] = scaling
+                base = scaling[next(iter(scaling))]["frames_per_s"]
+                print(f"  {'with RF' if key == 'jobs_rf' else 'without RF'} --jobs {j}: {n / el_j:.1f} frames/s "
+                      f"({n / el_j / base:.2f}x the first count), {el_j:.1f} s, peak {peak_j / 2**20:.0f} MiB, "
+                      f"outputs identical to the first count's: {same}", flush=True)
+            res.setdefault(n, {})[key] = scaling
+        if args.jobs_only:
+            continue
         runs = []  # (seconds without RF, seconds with RF or None), alternated --repeat times
         for rep in range(args.repeat):
             tag = f" (run {rep + 1}/{args.repeat})" if args.repeat > 1 else ""
@@ -223,7 +247,7 @@ def main() -> None:
                          f"median {np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f})")
                 res[n]["repeat"].update(rf_frames_per_s=fps_rf.tolist(), rf_over_no_rf=ratio.tolist())
             print(line, flush=True)
-    if len(lengths) > 1:
+    if len(lengths) > 1 and not args.jobs_only:
         a, b = res[min(lengths)], res[max(lengths)]
         print(f"peak memory {max(lengths)} vs {min(lengths)} frames: "
               f"{b['peak_tree_rss_mib'] / a['peak_tree_rss_mib']:.3f}x")

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
+from functools import cached_property
 
 import numpy as np
 
@@ -132,10 +133,10 @@ class StepMotion:
     def bridged(self) -> bool:
         return self.status == StepStatus.BRIDGED
 
-    @property
+    @cached_property
     def has_estimate(self) -> bool:
         """A full pose the filters can use: ``ok``, ``wall`` or ``bridged``, with finite ``R_c1_c2`` and
-        ``t_c1_c2_m``."""
+        ``t_c1_c2_m`` (a step is not changed once made: worked out once, the filters ask ~13 times a step)."""
         return (self.status in WITH_ESTIMATE and self.R_c1_c2 is not None
                 and self.t_c1_c2_m is not None and bool(np.isfinite(self.t_c1_c2_m).all())
                 and bool(np.isfinite(self.R_c1_c2).all()))

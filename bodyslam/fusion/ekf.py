@@ -318,7 +318,7 @@ class ErrorStateEkf:
                 return
             sens, nrm = self.pos[ok], self.nrm[ok]
             diff = sens[None] - p[:, None, :]  # (C, m, 3)
-            d = np.linalg.norm(diff, axis=2)
+            d = np.sqrt(np.add.reduce(diff * diff, axis=2))  # np.linalg.norm's own sum, without its checks
             depth = np.maximum(np.einsum("cij,ij->ci", diff, nrm), 0.0)
             _, alpha, sigma = self.pl.params(depth)
             Hp = (10.0 * alpha / np.log(10.0))[..., None] * diff / (d**2)[..., None]

@@ -69,3 +69,32 @@ def test_fixes_on_demand_are_the_same_fixes_solved_only_where_read():
     assert lazy[-1] is lazy[129] and window[3] is lazy[3]
     with pytest.raises(IndexError):
         lazy[130]
+
+
+def test_rf_csv_read_whole_equals_line_by_line(tmp_path):
+    """A plain rf.csv is converted at once (numpy's parser); one with a bad line is read line by line to name it.
+    Both give the same table: the same file with one unknown-sensor line appended (so it takes the line-by-line
+    path) must give the same readings, bit for bit, and name only that line. Includes a sensor read twice at one
+    time (the later line wins) and a blank line."""
+    from bodyslam.fusion.rf import read_rf_columns
+
+    rng = np.random.default_rng(3)
+    names = ("F00", "F01", "B00")
+    lines = ["t,sensor,rss_dbm,extra"]
+    for k in range(40):
+        for n in names:
+            if rng.random() < 0.8:
+                lines.append(f"{k * 0.5:g},{n},{rng.normal(-90, 8)!r},{rng.normal()!r}")
+    lines[5:5] = ["", f"{lines[3].split(',')[0]},{lines[3].split(',')[1]},-55.25,1"]  # blank; a later duplicate
+    plain = tmp_path / "plain.csv"
+    plain.write_text("\n".join(lines) + "\n")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines) + "\n3.0,XX,-80,0\n")
+    s1, c1, p1 = read_rf_columns(plain, names, ("rss_dbm", "extra"))
+    s2, c2, p2 = read_rf_columns(bad, names, ("rss_dbm", "extra"))
+    assert p1 == [] and len(p2) == 1 and f"bad.csv:{len(lines) + 1}: unknown sensor 'XX'" in p2[0]
+    assert np.array_equal(s1, s2) and len(s1) == 40
+    for c in ("rss_dbm", "extra"):
+        assert np.array_equal(c1[c], c2[c], equal_nan=True)
+    t0, j0 = float(lines[3].split(",")[0]), names.index(lines[3].split(",")[1])
+    assert c1["rss_dbm"][np.searchsorted(s1, t0), j0] == -55.25  # the later of the two lines
