@@ -67,6 +67,7 @@ import math
 import os
 import re
 import shutil
+import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -79,7 +80,7 @@ from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
 from bodyslam.io import MOTION_COLUMNS, atomic_path, csv_rows, motion_row, read_json, step_from_row, write_csv, write_image, write_json
-from bodyslam.parallel import shared_pool
+from bodyslam.parallel import available_cores, shared_pool
 from bodyslam.vision.odometry import MotionSettings, chunk_bounds, write_mask
 
 log = logging.getLogger(__name__)
@@ -700,17 +701,21 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                 progress(done_frames, total)
         for e in exams:
             if stage:
-                stage(f"{e.name}: bridging gaps between estimated steps, checking the per-step 1-sigma")
+                stage(f"{e.name}: bridging gaps between estimated steps")
             _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
-            _consistency_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
-    summaries, all_problems = [], list(study_problems)
-    for e in exams:
-        if stage:
-            stage(f"{e.name}: {'fusing vision with RF' if e.rf else 'dead reckoning'} over {e.n_positions} frames, "
-                  "writing the trajectory, marks and report")
-        s, probs = _finalize(e, out / e.name, settings)
-        summaries.append(s)
-        all_problems.extend([e.name, *p] for p in probs)
+        # the k-step checks of the per-step 1-sigma run on the workers while this process finalizes each exam: they
+        # add one entry to its summary, and the serial end is what limits many workers (docs/RESULTS.md, session 32)
+        checked = _in_background([lambda e=e: _consistency_exam(e, out / e.name, settings, masks[e.name], jobs,
+                                                                scheduler) for e in exams],
+                                 thread=bool(scheduler) or (jobs or available_cores()) > 1)
+        summaries, all_problems = [], list(study_problems)
+        for i, e in enumerate(exams):
+            if stage:
+                stage(f"{e.name}: {'fusing vision with RF' if e.rf else 'dead reckoning'} over {e.n_positions} "
+                      "frames, writing the trajectory, marks and report (the per-step 1-sigma checked meanwhile)")
+            s, probs = _finalize(e, out / e.name, settings, wait_check=lambda i=i: checked(i))
+            summaries.append(s)
+            all_problems.extend([e.name, *p] for p in probs)
     write_csv(out / "problems.csv", PROBLEM_COLUMNS, all_problems)
     n_err = sum(p[3] == "error" for p in all_problems)
     elapsed = time.monotonic() - t0
@@ -720,11 +725,42 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     return BatchReport(out, summaries, len(all_problems), n_err, len(tasks), reused)
 
 
+def _in_background(calls: list[Callable[[], None]], thread: bool = True) -> Callable[[int], None]:
+    """Run ``calls`` one after another on a thread; returns ``wait(i)``, which blocks until call ``i`` has
+    finished and raises what it raised. The calls hand their work to the worker pool (or a Dask cluster) and wait
+    for it, so the thread holds the interpreter little while this process goes on. ``thread`` False (one job:
+    the work would run in this process, on a second core): each call runs when it is waited for."""
+    done = [threading.Event() for _ in calls]
+    errors: list[BaseException | None] = [None] * len(calls)
+    if not thread:
+        def wait_here(i: int) -> None:
+            calls[i]()
+
+        return wait_here
+
+    def run() -> None:
+        for i, call in enumerate(calls):
+            try:
+                call()
+            except BaseException as exc:  # raised again by wait(i), in the caller's thread
+                errors[i] = exc
+            finally:
+                done[i].set()
+
+    threading.Thread(target=run, name="bodyslam-batch-checks", daemon=True).start()
+
+    def wait(i: int) -> None:
+        done[i].wait()
+        if errors[i] is not None:
+            raise errors[i]
+
+    return wait
+
+
 def _chunk_frames_for(out: Path, plan: dict, exams: list[Exam], jobs: int | None) -> int:
     """The automatic chunk size for ``plan`` (whose ``chunk_frames`` is not chosen yet): the one of the run already
     in ``out`` when everything else matches (a resumed run keeps its chunks whatever ``--jobs`` it is resumed
     with), else :func:`auto_chunk_frames` for this study and the workers (``jobs``, default one per core)."""
-    from bodyslam.parallel import available_cores
 
     def unsized(pl: dict) -> dict:
         return dict(pl, settings=dict(pl["settings"], chunk_frames=None))
@@ -814,8 +850,10 @@ def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, 
         tmp.write_text(json.dumps({"step_consistency": res}), encoding="utf-8")
 
 
-def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[list]]:
-    """Rebuild an exam's outputs from its chunk files and bridges (streamed)."""
+def _finalize(exam: Exam, d: Path, settings: BatchSettings,
+              wait_check: Callable[[], None] | None = None) -> tuple[dict, list[list]]:
+    """Rebuild an exam's outputs from its chunk files and bridges (streamed). ``wait_check``: blocks until the
+    exam's k-step check (``consistency.json``, run meanwhile) is written, before the summary reads it."""
     from scipy.spatial.transform import Rotation
 
     from bodyslam.fusion.body_slam import DeadReckoner
@@ -885,6 +923,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings) -> tuple[dict, list[
     write_uncertainty(d / "uncertainty.csv", frame_idx, t, cov, sd_head, path_m, path_var)
     marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems)
     classified = settings.motion.classify
+    if wait_check is not None:  # the k-step check, run meanwhile, is in consistency.json from here on
+        wait_check()
     summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
                "frames_expected": n_expected, "video_ended_at": eof,
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,

@@ -360,3 +360,31 @@ def test_dead_reckoned_steps_without_an_estimate_take_the_path_travelled_length(
     unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
     assert unit(step[~ok]) == pytest.approx(unit(dp[~ok]))
     assert len(_with_path_lengths(pos[:1], path[:1], length[:0])) == 1  # a one-frame exam: nothing to stretch
+
+
+def test_checks_in_background_run_in_order_and_raise_where_waited():
+    """The k-step checks run on a thread while the coordinator finalizes: each is waited for by index, in order of
+    the calls, and an error in one is raised to the waiter of that one (not lost on the thread, not raised for the
+    others)."""
+    import time as _time
+
+    from bodyslam.exam.batch import _in_background
+
+    seen = []
+
+    def slow(tag):
+        _time.sleep(0.05)
+        seen.append(tag)
+
+    def broken():
+        raise ValueError("check 1 failed")
+
+    for thread in (True, False):
+        seen.clear()
+        wait = _in_background([lambda: slow("a"), broken, lambda: slow("c")], thread=thread)
+        wait(0)
+        assert seen[:1] == ["a"]
+        with pytest.raises(ValueError, match="check 1 failed"):
+            wait(1)
+        wait(2)
+        assert seen == ["a", "c"]
