@@ -46,8 +46,8 @@ Gaps, dead reckoning and path length
 Once an exam's chunks are in, its short gaps are bridged as ``bodyslam motion`` bridges them
 (:func:`bodyslam.vision.odometry.bridge_gaps`; the result is a checkpoint too, ``bridges.json``), so both write the
 same ``motion.csv``. The k-step check of the per-step 1-sigma (``consistency.json``) then runs on the workers
-while the coordinator finalizes the exam (the serial end is what limits many workers). Without RF, steps are accumulated with the fusion's process model
-(:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one -- a step
+while the coordinator finalizes the exam (the serial end is what limits many workers). Without RF, steps are
+accumulated with the fusion's process model (:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one -- a step
 lost to motion stretched to the estimated steps so far at their 90th percentile -- with a
 1-sigma as large as that step); once the exam is read, those steps are stretched along their direction to the
 lengths the path travelled gives them (below), so the trajectory's length is the path travelled. The path
