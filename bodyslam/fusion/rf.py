@@ -165,11 +165,12 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
     tv_l, linenos_l, names = [], [], []
     for lineno, row in recs:
         try:
-            tv_l.append([float(row[it]), *(float(row[j]) for j in jc)])
-            names.append(row[js])
+            values, name = [float(row[it]), *(float(row[j]) for j in jc)], row[js]
         except (IndexError, ValueError):
             problems.append(f"{path}:{lineno}: not a number ({dict(zip(header, row))})")
             continue
+        tv_l.append(values)
+        names.append(name)
         linenos_l.append(lineno)
     tv = np.array(tv_l, dtype=float).reshape(len(tv_l), 1 + len(jc))
     linenos = np.array(linenos_l, dtype=np.int64)

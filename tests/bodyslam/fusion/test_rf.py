@@ -98,3 +98,16 @@ def test_rf_csv_read_whole_equals_line_by_line(tmp_path):
         assert np.array_equal(c1[c], c2[c], equal_nan=True)
     t0, j0 = float(lines[3].split(",")[0]), names.index(lines[3].split(",")[1])
     assert c1["rss_dbm"][np.searchsorted(s1, t0), j0] == -55.25  # the later of the two lines
+
+
+def test_rf_csv_short_line_with_the_sensor_column_last(tmp_path):
+    """A line cut short before its sensor (the sensor column last) is named and skipped; the lines after it keep
+    their own sensors (a line's numbers and sensor are taken together or not at all)."""
+    from bodyslam.fusion.rf import read_rf_columns
+
+    f = tmp_path / "rf.csv"
+    f.write_text("t,rss_dbm,sensor\n0,-80,F00\n0,-81\n0,-82,F01\n0.5,-83,F00\n")
+    stamps, cols, problems = read_rf_columns(f, ("F00", "F01"), ("rss_dbm",))
+    assert len(problems) == 1 and "rf.csv:3: not a number" in problems[0], problems
+    assert np.array_equal(stamps, [0.0, 0.5])
+    assert np.array_equal(cols["rss_dbm"], [[-80.0, -82.0], [-83.0, np.nan]], equal_nan=True)
