@@ -184,6 +184,7 @@ def main() -> None:
         shutil.rmtree(out, ignore_errors=True)
         cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode,
                "--calib", str(calib), "--fps", "2", "--radius-m", str(meta["tube_radius_m"])]
+        # the same exam with its RF (the sequence directory); item 6, the output, is set per run
         cmd_rf = [sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", "OUT", "--mode", args.mode,
                   *(["--rss-bias-states"] if args.rss_bias_states else [])]
         for key, counts, base_cmd, name in (("jobs_rf", args.jobs_rf, cmd_rf, seq.name),
@@ -225,9 +226,7 @@ def main() -> None:
             if args.rf:
                 out_rf = args.keep / f"out_{args.mode}_{n}_rf"
                 shutil.rmtree(out_rf, ignore_errors=True)
-                el_rf, peak_rf, rc_rf = run_measured([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out",
-                                                      str(out_rf), "--mode", args.mode,
-                                                      *(["--rss-bias-states"] if args.rss_bias_states else [])])
+                el_rf, peak_rf, rc_rf = run_measured([*cmd_rf[:6], str(out_rf), *cmd_rf[7:]])
                 traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
                 if rep == 0:
                     res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,

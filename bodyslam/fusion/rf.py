@@ -161,13 +161,13 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
         if fast is not None:  # every line plain and good: no problem to name
             return (*_rf_table(*fast, len(sensor_names), columns), [])
         recs = [(lineno, row) for lineno, row in lines if row]  # a blank line is skipped (as csv.DictReader does)
-    problems: list[str] = []
+    problems: list[tuple[int, str]] = []  # (line, message), reported in line order
     tv_l, linenos_l, names = [], [], []
     for lineno, row in recs:
         try:
             values, name = [float(row[it]), *(float(row[j]) for j in jc)], row[js]
         except (IndexError, ValueError):
-            problems.append(f"{path}:{lineno}: not a number ({dict(zip(header, row))})")
+            problems.append((lineno, f"not a number ({dict(zip(header, row))})"))
             continue
         tv_l.append(values)
         names.append(name)
@@ -178,15 +178,14 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
     finite = np.isfinite(tv)
     for i in np.flatnonzero((sensor < 0) | ~finite.all(axis=1)):
         if sensor[i] < 0:
-            problems.append(f"{path}:{linenos[i]}: unknown sensor {names[i]!r}")
+            problems.append((int(linenos[i]), f"unknown sensor {names[i]!r}"))
         else:  # nan/inf parse as numbers: a reading that is not one is listed, not silently lost
             bad = [f"{c}={x}" for c, x in zip(columns, tv[i, 1:]) if not math.isfinite(x)] + (
                 [] if finite[i, 0] else [f"t={tv[i, 0]}"])
-            problems.append(f"{path}:{linenos[i]}: not a finite reading ({', '.join(bad)})")
-    if problems:
-        problems.sort(key=lambda msg: int(msg[len(str(path)) + 1:].split(":", 1)[0]))  # in line order
+            problems.append((int(linenos[i]), f"not a finite reading ({', '.join(bad)})"))
     good = (sensor >= 0) & finite.all(axis=1)
-    return (*_rf_table(tv[good], sensor[good], len(sensor_names), columns), problems)
+    return (*_rf_table(tv[good], sensor[good], len(sensor_names), columns),
+            [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])])
 
 
 def _rf_numbers(path, it: int, js: int, jc: list[int], index: dict[str, int]):

@@ -90,6 +90,10 @@ def test_rf_csv_read_whole_equals_line_by_line(tmp_path):
     plain.write_text("\n".join(lines) + "\n")
     bad = tmp_path / "bad.csv"
     bad.write_text("\n".join(lines) + "\n3.0,XX,-80,0\n")
+    from bodyslam.fusion.rf import _rf_numbers
+
+    index = {n: j for j, n in enumerate(names)}  # the two files do take the two paths
+    assert _rf_numbers(plain, 0, 1, [2, 3], index) is not None and _rf_numbers(bad, 0, 1, [2, 3], index) is None
     s1, c1, p1 = read_rf_columns(plain, names, ("rss_dbm", "extra"))
     s2, c2, p2 = read_rf_columns(bad, names, ("rss_dbm", "extra"))
     assert p1 == [] and len(p2) == 1 and f"bad.csv:{len(lines) + 1}: unknown sensor 'XX'" in p2[0]
