@@ -1,9 +1,10 @@
-"""Build hook for the two compiled loops; everything else is in pyproject.toml.
+"""Build hook for the three compiled loops; everything else is in pyproject.toml.
 
 - bodyslam/vision/_srm_merge.c: SRM's merge loop (bodyslam.vision.segmentation);
-- bodyslam/vision/_tube_fit.c: the tube fit's residuals (bodyslam.vision.motion).
+- bodyslam/vision/_tube_fit.c: the tube fit's residuals (bodyslam.vision.motion);
+- bodyslam/fusion/_ekf_rss.c: the raw-RSS filter's frames for one candidate (bodyslam.fusion.ekf).
 
-Both are optional: where they cannot be built (no C compiler or no Python headers) the install goes on and the
+All are optional: where they cannot be built (no C compiler or no Python headers) the install goes on and the
 same computations run in Python/numpy, slower (each module says so once in its log). -ffp-contract=off keeps
 the double arithmetic as written (no fused multiply-add): the merge loop gives the same regions bit for bit, the
 residuals agree with numpy's to ~1e-15.
@@ -15,5 +16,7 @@ FLAGS = ["-O2", "-ffp-contract=off"]
 setup(ext_modules=[
     Extension("bodyslam.vision._srm_merge", ["bodyslam/vision/_srm_merge.c"], optional=True, extra_compile_args=FLAGS),
     Extension("bodyslam.vision._tube_fit", ["bodyslam/vision/_tube_fit.c"], optional=True, extra_compile_args=FLAGS,
+              libraries=["m"]),
+    Extension("bodyslam.fusion._ekf_rss", ["bodyslam/fusion/_ekf_rss.c"], optional=True, extra_compile_args=FLAGS,
               libraries=["m"]),
 ])

@@ -45,6 +45,7 @@ __all__ = [
     "read_meta",
     "frame_name",
     "read_motion_csv",
+    "motion_values",
     "MOTION_COLUMNS",
     "motion_row",
     "write_motion_csv",
@@ -399,33 +400,40 @@ def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]
     rows = {}
     with csv_rows(path, _MOTION_REQUIRED) as lines:
         for lineno, row in lines:
-            try:
-                k = int(row["frame"])
-                vals = {c: float(row[c]) if row[c] not in ("", None) else math.nan
-                        for c in ("distance_m", "roll_rad", "pitch_rad", "yaw_rad")}
-                vals["tilt_rad"] = float(row["tilt_rad"]) if row.get("tilt_rad") not in ("", None) else math.hypot(
-                    vals["pitch_rad"], vals["yaw_rad"])
-            except (TypeError, ValueError):
-                raise InputError(f"{path}:{lineno}: not a number in {row}") from None
-            try:
-                vals["t"] = float(row["t"]) if row.get("t") not in ("", None) else math.nan
-            except ValueError:
-                raise InputError(f"{path}:{lineno}: t {row['t']!r} is not a number") from None
-            for c in ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"):
-                if row.get(c) not in (None, ""):
-                    try:
-                        vals[c] = float(row[c])
-                    except ValueError:
-                        raise InputError(f"{path}:{lineno}: not a number in column {c}") from None
-            try:  # truth files have no status: every step is known
-                vals["status"] = StepStatus(row.get("status") or "ok")
-            except ValueError:
-                raise InputError(f"{path}:{lineno}: unknown status {row.get('status')!r} (one of "
-                                 f"{', '.join(map(str, StepStatus))})") from None
-            try:
-                vals["n_matches"] = int(float(row["n_matches"])) if row.get("n_matches") not in (None, "") else 0
-            except (ValueError, OverflowError):
-                raise InputError(f"{path}:{lineno}: n_matches {row['n_matches']!r} is not a number") from None
-            vals["label"] = row.get("label") or ""
+            k, vals = motion_values(row, f"{path}:{lineno}")
             rows[k] = vals
     return rows
+
+
+def motion_values(row: dict, where: str = "motion row") -> tuple[int, dict[str, float | str]]:
+    """One ``motion.csv`` line's cells (text, by column) as :func:`read_motion_csv` reads them: ``(frame, values)``;
+    ``where`` names the line in an error."""
+    try:
+        k = int(row["frame"])
+        vals = {c: float(row[c]) if row[c] not in ("", None) else math.nan
+                for c in ("distance_m", "roll_rad", "pitch_rad", "yaw_rad")}
+        vals["tilt_rad"] = float(row["tilt_rad"]) if row.get("tilt_rad") not in ("", None) else math.hypot(
+            vals["pitch_rad"], vals["yaw_rad"])
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: not a number in {row}") from None
+    try:
+        vals["t"] = float(row["t"]) if row.get("t") not in ("", None) else math.nan
+    except ValueError:
+        raise InputError(f"{where}: t {row['t']!r} is not a number") from None
+    for c in ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"):
+        if row.get(c) not in (None, ""):
+            try:
+                vals[c] = float(row[c])
+            except ValueError:
+                raise InputError(f"{where}: not a number in column {c}") from None
+    try:  # truth files have no status: every step is known
+        vals["status"] = StepStatus(row.get("status") or "ok")
+    except ValueError:
+        raise InputError(f"{where}: unknown status {row.get('status')!r} (one of "
+                         f"{', '.join(map(str, StepStatus))})") from None
+    try:
+        vals["n_matches"] = int(float(row["n_matches"])) if row.get("n_matches") not in (None, "") else 0
+    except (ValueError, OverflowError):
+        raise InputError(f"{where}: n_matches {row['n_matches']!r} is not a number") from None
+    vals["label"] = row.get("label") or ""
+    return k, vals

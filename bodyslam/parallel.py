@@ -15,7 +15,7 @@ import multiprocessing as mp
 import os
 from typing import Callable, Iterator, Sequence, TypeVar
 
-__all__ = ["available_cores", "imap_tasks", "shared_pool"]
+__all__ = ["available_cores", "imap_tasks", "shared_pool", "submit"]
 
 T = TypeVar("T")
 
@@ -98,3 +98,13 @@ def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None,
         return
     with _spawn_pool(jobs) as pool:
         yield from (pool.imap if ordered else pool.imap_unordered)(func, tasks)
+
+
+def submit(func: Callable[..., T], task, jobs: int | None = None) -> Callable[[], T]:
+    """``func(task)`` started now on a worker of the enclosing :func:`shared_pool` when it has ``jobs`` (default:
+    one per core) workers and more than one; returns ``wait()``, which gives its result (or raises what it
+    raised). Without such a pool the call runs in this process when waited for."""
+    jobs = available_cores() if jobs is None else int(jobs)
+    if jobs > 1 and _SHARED and _SHARED[-1].jobs == jobs:
+        return _SHARED[-1].get().apply_async(func, (task,)).get
+    return lambda: func(task)

@@ -2,8 +2,8 @@
 # Idempotent set-up on a fresh machine of this kind (Debian 12, Python >= 3.11):
 #   1. the Debian packages headless GL rendering needs (pyrender backend, EGL on Mesa llvmpipe);
 #   2. Debian's chromium (optional: the HTML report's browser test; skipped where it cannot be installed);
-#   3. a C compiler and Python's headers (optional: two inner loops are compiled where they are, else they run in
-#      Python/numpy, fast-mode whole exams ~1.5x as long);
+#   3. a C compiler and Python's headers (optional: three inner loops are compiled where they are, else they run in
+#      Python/numpy: fast-mode whole exams ~1.5x as long, the fusion of a whole exam with RF ~2x);
 #   4. a virtual environment .venv/ at the repository root with the project installed (editable) and its test extra.
 # Re-running it is cheap: packages already present are not reinstalled, and pip runs only when pyproject.toml,
 # setup.py or a C source changed.
@@ -38,7 +38,7 @@ fi
 command -v chromium >/dev/null 2>&1 || apt_optional "the report's browser test (it will be skipped)" chromium
 
 py="${PYTHON:-python3}"
-# a C compiler and the Python headers for the compiled loops (setup.py: bodyslam/vision/*.c); without them the
+# a C compiler and the Python headers for the compiled loops (setup.py: bodyslam/*/*.c); without them the
 # install skips those and the same computations run in Python/numpy (fast-mode whole exams ~1.5x as long)
 command -v cc >/dev/null 2>&1 || apt_optional "the compiled loops (Python/numpy is used instead)" gcc libc6-dev
 inc="$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
@@ -48,7 +48,7 @@ if [ ! -x .venv/bin/python ]; then
   "$py" -m venv .venv
 fi
 stamp=.venv/.bodyslam-installed
-want="$(cat pyproject.toml setup.py bodyslam/vision/*.c | sha256sum | cut -d' ' -f1)"
+want="$(cat pyproject.toml setup.py bodyslam/vision/*.c bodyslam/fusion/*.c | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "bootstrap: installing the project into .venv"
   .venv/bin/python -m pip install -q --upgrade pip

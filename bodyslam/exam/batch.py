@@ -80,8 +80,9 @@ import numpy as np
 from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
 from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
-from bodyslam.io import MOTION_COLUMNS, atomic_path, csv_rows, motion_row, read_json, step_from_row, write_csv, write_image, write_json
-from bodyslam.parallel import available_cores, shared_pool
+from bodyslam.io import (MOTION_COLUMNS, atomic_path, csv_rows, motion_row, motion_values, read_json, step_from_row,
+                         write_csv, write_image, write_json)
+from bodyslam.parallel import available_cores, shared_pool, submit
 from bodyslam.vision.odometry import MotionSettings, chunk_bounds, write_mask
 
 log = logging.getLogger(__name__)
@@ -706,15 +707,28 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
             _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
         # the k-step checks of the per-step 1-sigma run on the workers while this process finalizes each exam: they
         # add one entry to its summary, and the serial end is what limits many workers (docs/RESULTS.md, session 32)
+        # an exam's fusion with RF runs on a worker while this process writes its frame and step tables, and the
+        # next exam's starts while this one is finalized (at most two at once: each holds its exam's filter passes)
+        fusions: dict[int, Callable[[], dict]] = {}
+
+        def start_fusion(i: int) -> None:
+            if i < len(exams) and exams[i].rf:
+                task = {"exam": exams[i], "dir": str(out / exams[i].name), "settings": settings}
+                fusions[i] = ((lambda task=task: _fuse_task(task)) if scheduler  # the coordinator's disk
+                              else submit(_fuse_task, task, jobs))
+
+        start_fusion(0)
         checked = _in_background([lambda e=e: _consistency_exam(e, out / e.name, settings, masks[e.name], jobs,
                                                                 scheduler) for e in exams],
                                  thread=bool(scheduler) or (jobs or available_cores()) > 1)
         summaries, all_problems = [], list(study_problems)
         for i, e in enumerate(exams):
+            start_fusion(i + 1)
             if stage:
                 stage(f"{e.name}: {'fusing vision with RF' if e.rf else 'dead reckoning'} over {e.n_positions} "
                       "frames, writing the trajectory, marks and report (the per-step 1-sigma checked meanwhile)")
-            s, probs = _finalize(e, out / e.name, settings, wait_check=lambda i=i: checked(i))
+            s, probs = _finalize(e, out / e.name, settings, wait_check=lambda i=i: checked(i),
+                                 fusion=fusions.pop(i, None))
             summaries.append(s)
             all_problems.extend([e.name, *p] for p in probs)
     write_csv(out / "problems.csv", PROBLEM_COLUMNS, all_problems)
@@ -851,16 +865,49 @@ def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, 
         tmp.write_text(json.dumps({"step_consistency": res}), encoding="utf-8")
 
 
-def _finalize(exam: Exam, d: Path, settings: BatchSettings,
-              wait_check: Callable[[], None] | None = None) -> tuple[dict, list[list]]:
+def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[list, list | None, object]]:
+    """The exam's frames in order from its chunk files, up to the end of a video: ``(frame row, step row, step)``,
+    the step into the frame as its ``motion.csv`` row and :class:`~bodyslam.steps.StepMotion` (None for the first
+    frame), its gap's bridge applied and the lumen's uncertainty in its 1-sigma. ``info``: its ``problems`` list
+    gets the chunks' problems, ``eof`` the frame a video ended at."""
+    from bodyslam.vision.odometry import with_lumen_uncertainty
+
+    bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
+    rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
+    item = 0
+    for ch in _iter_chunks(d):
+        if info is not None:
+            info["problems"].extend(ch["problems"])
+        fr = iter(ch["frames"])
+        if ch["first"] == 0 and ch["frames"]:
+            yield next(fr), None, None
+        for row, step in zip(fr, ch["steps"]):
+            if str(item) in bridged:
+                step = step[:2] + bridged[str(item)][2:]
+            item += 1
+            s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
+            if (rel > 0 or shape > 0) and s.has_estimate:  # the lumen's uncertainty in the step's 1-sigma
+                s = with_lumen_uncertainty([s], rel, shape)[0]
+                step = list(step)
+                step[_SIGMA_D] = s.sigma_distance_m
+            yield row, step, s
+        if ch["eof"] is not None:
+            if info is not None:
+                info["eof"] = ch["eof"]
+            return
+
+
+def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable[[], None] | None = None,
+              fusion: Callable[[], dict] | None = None) -> tuple[dict, list[list]]:
     """Rebuild an exam's outputs from its chunk files and bridges (streamed). ``wait_check``: blocks until the
-    exam's k-step check (``consistency.json``, run meanwhile) is written, before the summary reads it."""
+    exam's k-step check (``consistency.json``, run meanwhile) is written, before the summary reads it.
+    ``fusion``: gives the exam's :func:`_fuse_task` result, started on a worker (:func:`bodyslam.parallel.submit`)
+    while this writes the frame and step tables; None: the fusion runs here, after them (an exam with RF)."""
     from scipy.spatial.transform import Rotation
 
     from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
-    from bodyslam.vision.odometry import with_lumen_uncertainty
     from bodyslam.steps import lost_step_floor_m, lost_to_motion
     from bodyslam.vision.tracking import path_from_lengths, step_length
 
@@ -869,40 +916,24 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings,
     acc = _Track(n_expected)  # ~200 bytes per frame, preallocated
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
-    bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
     dr = DeadReckoner(lost_step_floor_m(exam.radius_m))
-    eof = None
-    item = 0
-    rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
+    info = {"problems": problems, "eof": None}
+    rel = exam.radius_sd_rel
     with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
             open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
         fw, mw = csv.writer(ff, lineterminator="\n"), csv.writer(mf, lineterminator="\n")
         fw.writerow(FRAME_COLUMNS)
         mw.writerow(MOTION_COLUMNS)
-        for ch in _iter_chunks(d):
-            problems.extend(ch["problems"])
-            fr = iter(ch["frames"])
-            if ch["first"] == 0 and ch["frames"]:
-                row = next(fr)
-                fw.writerow(_csv_cells(row))
+        for row, step, s in _exam_rows(exam, d, info):
+            fw.writerow(_csv_cells(row))
+            if step is None:  # the first frame
                 acc.record(row, dr, classes, (math.nan, 0.0))
-            for row, step in zip(fr, ch["steps"]):
-                if str(item) in bridged:
-                    step = step[:2] + bridged[str(item)][2:]
-                item += 1
-                s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
-                if (rel > 0 or shape > 0) and s.has_estimate:  # the lumen's uncertainty in the step's 1-sigma
-                    s = with_lumen_uncertainty([s], rel, shape)[0]
-                    step = list(step)
-                    step[_SIGMA_D] = s.sigma_distance_m
-                fw.writerow(_csv_cells(row))
-                mw.writerow(_csv_cells(step))
-                statuses[step[8]] = statuses.get(step[8], 0) + 1
-                dr.step(s)
-                acc.record(row, dr, classes, step_length(s), lost_to_motion(s))
-            if ch["eof"] is not None:
-                eof = ch["eof"]
-                break
+                continue
+            mw.writerow(_csv_cells(step))
+            statuses[step[8]] = statuses.get(step[8], 0) + 1
+            dr.step(s)
+            acc.record(row, dr, classes, step_length(s), lost_to_motion(s))
+    eof = info["eof"]
     n = acc.n
     t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
     frame_idx = acc.frame[:n].tolist()
@@ -910,12 +941,12 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings,
                                          radius_m=exam.radius_m)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
     fused = None
-    if exam.rf and n >= 2:
-        fused = _fuse(exam, d, t, frame_idx, settings, problems)
+    if exam.rf:
+        res = fusion() if fusion is not None else _fuse_task({"exam": exam, "dir": str(d), "settings": settings})
+        problems.extend(res["problems"])
+        fused = res["fused"]
         if fused is not None:
-            P, Q, cov, sd_head = (fused.smoothed.positions_w_m, fused.smoothed.rotations_w_c.as_quat(),
-                                  fused.smoothed.cov[:, :3, :3],
-                                  np.sqrt(np.trace(fused.smoothed.cov[:, 3:, 3:], axis1=1, axis2=2)))
+            P, Q, cov, sd_head = fused["P"], fused["Q"], fused["cov"], fused["sd_heading"]
     if fused is None:  # dead reckoning: its steps without an estimate take the path travelled's lengths
         P = _with_path_lengths(P, path_m, acc.length[1:n])
     sd = np.sqrt(np.trace(cov, axis1=1, axis2=2))
@@ -939,11 +970,9 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings,
                                  if settings.rss_bias_states and settings.fusion == "rss" else ")")),
                # what the fused covariances were scaled by (bodyslam.fusion.channel): 1 = independent RSS errors;
                # kappa is the whole exam's, kappa_smoothed_mean the smoother's (its window's share, per frame)
-               "rss_error_correlation": (
-                   {**fused.channel.as_dict(), "kappa_smoothed_mean": round(float(np.mean(fused.kappa_smoothed)), 3)}
-                   if fused is not None and fused.channel else None),
+               "rss_error_correlation": None if fused is None else fused["channel"],
                # the lumen radius the fusion's scale state implies along the exam (radius * (1 + s), smoothed)
-               "lumen_radius_estimate_m": _radius_estimate(exam, fused),
+               "lumen_radius_estimate_m": None if fused is None else fused["radius"],
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
                "lumen_shape_sd_rel": exam.shape_sd_rel,
@@ -1024,15 +1053,41 @@ class _Track:
         self.n = k + 1
 
 
-def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], settings: BatchSettings,
+def _fuse_task(task: dict) -> dict:
+    """An exam's fusion with RF (a worker's task: ``exam``, ``dir``, ``settings``): its steps and stamps from its
+    chunk files exactly as ``motion.csv`` and ``frames.csv`` hold them (:func:`_exam_rows`, each step's numbers
+    through the file's text), then :func:`_fuse`. Returns ``{"problems", "fused"}``, ``fused`` None where RF was
+    not used, else what the exam's outputs take from the smoothed run: positions ``P (n, 3)``, quaternions ``Q``,
+    position covariances ``cov (n, 3, 3)``, the heading's 1-sigma, the readings' correlation and the lumen radius
+    the scale state implies."""
+    exam, d, settings = task["exam"], Path(task["dir"]), task["settings"]
+    frames, stamps, steps = [], [], []
+    for row, step, _ in _exam_rows(exam, d):
+        frames.append(int(row[0]))
+        stamps.append(float(row[2]))
+        if step is not None:
+            steps.append(step_from_row(motion_values({c: str(v) for c, v in zip(MOTION_COLUMNS, _csv_cells(step))})[1]))
+    problems: list[list] = []
+    loc = _fuse(exam, d, np.array(stamps), frames, steps, settings, problems) if len(frames) >= 2 else None
+    if loc is None:
+        return {"problems": problems, "fused": None}
+    sm = loc.smoothed
+    return {"problems": problems, "fused": {
+        "P": sm.positions_w_m, "Q": sm.rotations_w_c.as_quat(), "cov": sm.cov[:, :3, :3],
+        "sd_heading": np.sqrt(np.trace(sm.cov[:, 3:, 3:], axis1=1, axis2=2)),
+        "channel": ({**loc.channel.as_dict(), "kappa_smoothed_mean": round(float(np.mean(loc.kappa_smoothed)), 3)}
+                    if loc.channel else None),
+        "radius": _radius_estimate(exam, loc)}}
+
+
+def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list, settings: BatchSettings,
           problems: list[list]):
     """The exam's localization (:func:`bodyslam.fusion.localize.localize`), or None with the reason listed."""
-    from bodyslam.io import read_motion_steps, write_tum
+    from bodyslam.io import write_tum
     from bodyslam.fusion.localize import RfInput, localize, write_rss_bias
 
     try:
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
-        steps = read_motion_steps(d / "motion.csv", frame_idx[1:])
         loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
                        radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m, bias_states=settings.rss_bias_states)
     except InputError as exc:

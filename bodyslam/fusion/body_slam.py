@@ -378,7 +378,8 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
 
     resets: dict = {}
     pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0, n,
-                                       keep=True, resets=resets, decide=decide)
+                                       keep=True, resets=resets, decide=decide,
+                                       decide_at=gap_ends | ({recheck_at} if recheck_at is not None else set()))
     if recheck_at in rechecked and rechecked[recheck_at].passed[-1]:
         # The recheck turned the start: the error was there from frame 0 (nothing turned the capsule at the
         # window's end), so the committed run starts again from the start turned the same way -- the smoother
@@ -389,7 +390,7 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
         R0, p0, recheck_at = rc.found.R, rc.found.p_w_m, None
         resets = {}
         pos, rot, cov, _, passes = ekf.run(np.asarray(p0, float)[None], R0.as_matrix()[None], P[None].copy(), 0,
-                                           n, keep=True, resets=resets, decide=decide)
+                                           n, keep=True, resets=resets, decide=decide, decide_at=gap_ends)
     res = FusionResult(pos[0], Rotation.from_matrix(rot[0]), cov[0], int(ekf.n_rejected[0]),
                        int(ekf.n_updates[0]), passes, (R0, np.asarray(p0, float)), alignment, P, dr, searches,
                        {k: (v[0] if isinstance(v[0], Rotation) else Rotation.from_matrix(v[0]))

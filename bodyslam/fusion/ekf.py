@@ -39,6 +39,7 @@ RTS smoother (:func:`bodyslam.fusion.body_slam.rts_smooth`) needs.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -51,6 +52,13 @@ from bodyslam.fusion.rf import Fix, PathLossModel
 from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import StepLengths, StepMotion, lost_to_motion
 from bodyslam.vision.tracking import SCALE_CORR_M
+
+try:  # the one-candidate RSS filter compiled (setup.py builds it where a C compiler is at hand); else numpy's
+    from bodyslam.fusion import _ekf_rss as _ekf_c
+except ImportError:
+    _ekf_c = None
+_warned = False
+log = logging.getLogger(__name__)
 
 __all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "FilterPasses", "with_orientation_sigma",
            "CHI2_3_999", "Z_GATE_999"]
@@ -320,19 +328,23 @@ class ErrorStateEkf:
             diff = sens[None] - p[:, None, :]  # (C, m, 3)
             d = np.sqrt(np.add.reduce(diff * diff, axis=2))  # np.linalg.norm's own sum, without its checks
             depth = np.maximum(np.einsum("cij,ij->ci", diff, nrm), 0.0)
-            _, alpha, sigma = self.pl.params(depth)
+            pl0, alpha, sigma = self.pl.params(depth)
             Hp = (10.0 * alpha / np.log(10.0))[..., None] * diff / (d**2)[..., None]
-            y = r[ok][None] - self.pl.mean_rss_dbm(d, depth)
-            H = np.concatenate([Hp, np.zeros_like(Hp)], axis=2)  # (C, m, 6)
-            if self.m_extra:
-                H = np.concatenate([H, np.zeros((C, H.shape[1], self.m_extra))], axis=2)
+            y = r[ok][None] - self.pl.mean_from_params(d, pl0, alpha)
+            # H is zero outside the columns J the readings touch: the position, and with the bias states each
+            # reading's own bias. Everything below works on those columns: HJ = H[:, :, J] (C, m, j)
             if self.m_bias:  # reading j = mean(p) + b_j + white noise of the model's remaining variance
                 idx = np.nonzero(ok)[0]
-                H[:, np.arange(len(idx)), 6 + self.n_scale + idx] = 1.0
+                J = np.r_[0:3, 6 + self.n_scale + idx]
+                HJ = np.concatenate([Hp, np.broadcast_to(np.eye(len(idx)), (C, len(idx), len(idx)))], axis=2)
                 y = y - self.b[:, self.n_scale + idx]
                 sigma = np.sqrt(np.maximum(sigma**2 - self.bias_sd_db**2, 1.0))
-            HP = H @ P
-            dS = np.sum(HP * H, axis=2) + sigma**2  # the innovations' variances (the diagonal of S)
+                PJJ = P[:, J][:, :, J]
+            else:
+                J = slice(0, 3)
+                HJ = Hp
+                PJJ = P[:, :3, :3]
+            dS = np.sum((HJ @ PJJ) * HJ, axis=2) + sigma**2  # the innovations' variances (the diagonal of S)
             z2 = y * y / dS
             nll = nll + 0.5 * np.sum(np.minimum(z2, Z_GATE_999**2) + np.log(dS), axis=1)
             keep = z2 < Z_GATE_999**2  # per-reading 99.9% gate
@@ -344,28 +356,32 @@ class ErrorStateEkf:
                 P = P.copy()
                 P[guard, :3, :3] += _I3 * GUARD_RSS_SIGMA_M**2
                 P[guard, 3:6, 3:6] += _I3 * GUARD_THETA_RAD**2
-                HP = H @ P
+                PJJ = P[:, J][:, :, J] if self.m_bias else P[:, :3, :3]
             keep[guard] = True
             streak = np.where(guard, 0, streak)
             do = keep.sum(axis=1) >= 1
+            PJ = P[:, :, J]  # (C, D, j): P H^T = PJ HJ^T
             if not self.kalman_form:
                 # Information form: the readings are independent given the state (diagonal noise), so the update
                 # is P' = (P^-1 + H^T W H)^-1, dx = P' H^T W y with W = 1 / sigma^2 -- 0 for a reading outside the
-                # gate, exactly the update without it. The same posterior as the Kalman form, with D x D inverses
-                # instead of an m x m one per frame (m = 32 sensors, D = 6-7; the searches run 90 candidates at
-                # once).
-                W = np.where(keep, 1.0 / sigma**2, 0.0)
-                HtW = H.transpose(0, 2, 1) * W[:, None, :]
-                P_new = np.linalg.inv(np.linalg.inv(P) + HtW @ H)
+                # gate, exactly the update without it. H^T W H = A is nonzero only on J, so by Woodbury
+                # P' = P - PJ A (I + PJJ A)^-1 PJ^T: one j x j solve (j = 3 without the bias states) instead of two
+                # D x D inverses; I + PJJ A is never singular (PJJ A, a product of two PSD matrices, has no negative
+                # eigenvalue). The same posterior (tested against the Kalman form and the two inverses).
+                HJW = HJ * np.where(keep, 1.0 / sigma**2, 0.0)[..., None]
+                A = HJW.transpose(0, 2, 1) @ HJ
+                X = np.linalg.solve(np.eye(A.shape[-1]) + PJJ @ A, PJ.transpose(0, 2, 1))  # (C, j, D)
+                P_new = P - PJ @ (A @ X)
                 P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
-                dx = (P_new @ (HtW @ y[..., None]))[..., 0]
+                dx = np.einsum("cdj,cj->cd", P_new[:, :, J], np.einsum("cmj,cm->cj", HJW, y))
             else:
                 # Kalman form with the bias states, where the state outnumbers the readings (D = 6 + m): one solve
                 # with the m x m innovation covariance S = H P H^T + diag(sigma^2) instead of two D x D inverses
                 # (the same posterior; localize on a 200-frame realistic run 2.66 -> 1.8 s). A reading outside the
                 # gate gets no row of H and a zero innovation: exactly the update without it.
-                HPk = np.where(keep[..., None], HP, 0.0)  # (C, m, D): H P = (P H^T)^T, P symmetric
-                S = HPk @ np.where(keep[..., None], H, 0.0).transpose(0, 2, 1)
+                HJk = np.where(keep[..., None], HJ, 0.0)
+                HPk = HJk @ PJ.transpose(0, 2, 1)  # (C, m, D): H P = (P H^T)^T, P symmetric
+                S = HJk @ (HJk @ PJJ).transpose(0, 2, 1)
                 S[:, np.arange(S.shape[1]), np.arange(S.shape[1])] += np.where(keep, sigma**2, 1.0)
                 KT = np.linalg.solve(S, HPk)  # K^T = S^-1 H P, S symmetric
                 dx = np.einsum("cm,cmd->cd", np.where(keep, y, 0.0), KT)
@@ -383,14 +399,18 @@ class ErrorStateEkf:
 
     # -- a run ------------------------------------------------------------------------------------------------
     def run(self, p, R, P, k0: int, k1: int, keep: bool = False, resets: dict | None = None, decide=None,
-            b=None):
+            b=None, decide_at=None):
         """Frames ``k0 .. k1-1`` from the candidates' state at ``k0`` (before its update).
 
         ``resets`` ``{frame: (R (3, 3) or Rotation, sigma_rad)}``: after the prediction into that frame every
         candidate's orientation is replaced and its orientation covariance set to ``sigma_rad^2 I``
         (uncorrelated with the position). ``decide(k, p (3,), R (3, 3), P (D, D), b (m,))`` (one candidate): called
         after each prediction into a frame without a given reset; a ``(R, sigma_rad)`` it returns is applied the
-        same way and recorded in ``resets``. ``keep``: store the priors and posteriors (one candidate).
+        same way and recorded in ``resets``. ``decide_at``: the frames where ``decide`` may act (a set; None: any
+        frame); elsewhere it is not called. ``keep``: store the priors and posteriors (one candidate).
+
+        One candidate in ``rss`` mode without the bias states runs compiled between those frames where the
+        extension is built (``_ekf_rss.c``: the same arithmetic, ~1e-12 relative), else in numpy.
 
         Returns ``(positions (C, f, 3), rotations (C, f, 3, 3), covariances (C, f, 6, 6), cumulative nll (C,
         f), passes or None)`` with ``f = k1 - k0``. One pass: the cost is linear in the frames.
@@ -406,40 +426,115 @@ class ErrorStateEkf:
         # a 55,000-frame exam), and the smoother over that block is within 0.02 cm of the full one (realistic
         # tuning seeds 503-509: 3.34 against 3.32 cm; docs/RESULTS.md)
         D = 6 + self.n_scale
+        out = {"pos": pos, "rot": rot, "covs": covs, "nll_k": nll_k}
         if keep:
-            prior_p, prior_R, prior_P = np.zeros((f, 3)), np.zeros((f, 3, 3)), np.zeros((f, D, D))
-            Fs = np.zeros((max(f - 1, 0), D, D))
-            prior_b, post_b, post_P = np.zeros((f, self.n_scale)), np.zeros((f, self.n_scale)), np.zeros((f, D, D))
-            post_bias = np.zeros((f, self.m_bias)) if self.m_bias else None
-            post_bias_var = np.zeros((f, self.m_bias)) if self.m_bias else None
-        for k in range(k0, k1):
-            i = k - k0
-            if k > k0:
-                F = self.predict(k)
-                if k not in resets and decide is not None:
-                    d = decide(k, self.p[0].copy(), self.R[0].copy(), self.P[0].copy(), self.b[0].copy())
-                    if d is not None:
-                        resets[k] = d
-                if k in resets:
-                    Rr, sig = resets[k]
-                    self.R[:] = Rr.as_matrix() if isinstance(Rr, Rotation) else Rr
-                    self.P = with_orientation_sigma(self.P, sig)
-                if keep:
-                    Fs[i - 1] = F[0, :D, :D]
-                    if k in resets:  # the new orientation does not depend on the old one: the prior stored
-                        Fs[i - 1, 3:6, :] = 0.0  # below is F' P F'^T + Q' with these rows zero (RTS needs that)
-            if keep:
-                prior_p[i], prior_R[i], prior_P[i] = self.p[0], self.R[0], self.P[0, :D, :D]
-                prior_b[i] = self.b[0, :self.n_scale]
-            self.update(k)
-            pos[:, i], rot[:, i], covs[:, i], nll_k[:, i] = self.p, self.R, self.P[:, :6, :6], self.nll
-            if keep:
-                post_P[i], post_b[i] = self.P[0, :D, :D], self.b[0, :self.n_scale]
-                if post_bias is not None:
-                    post_bias[i] = self.b[0, self.n_scale:]
-                    post_bias_var[i] = np.diagonal(self.P[0])[D:]
+            out.update(prior_p=np.zeros((f, 3)), prior_R=np.zeros((f, 3, 3)), prior_P=np.zeros((f, D, D)),
+                       Fs=np.zeros((max(f - 1, 0), D, D)), prior_b=np.zeros((f, self.n_scale)),
+                       post_b=np.zeros((f, self.n_scale)), post_P=np.zeros((f, D, D)),
+                       post_bias=np.zeros((f, self.m_bias)) if self.m_bias else None,
+                       post_bias_var=np.zeros((f, self.m_bias)) if self.m_bias else None)
+        compiled = _ekf_c is not None and C == 1 and self.mode == "rss" and not self.m_bias and (
+            decide is None or decide_at is not None)
+        global _warned
+        if _ekf_c is None and keep and self.mode == "rss" and not self.m_bias and not _warned:
+            _warned = True
+            log.info("RSS filter: the compiled frames (bodyslam/fusion/_ekf_rss.c) are not built here; using numpy's, "
+                     "~0.4 ms a frame instead of ~0.01 (reinstall with a C compiler: pip install -e .)")
+        # the frames Python must take: a reset's, or where decide may act
+        stops = sorted(k for k in set(resets) | (set(decide_at) if decide is not None else set()) if k0 < k < k1) \
+            if compiled else []
+        k = k0
+        while k < k1:
+            if compiled and (k == k0 or k not in resets and not (decide is not None and k in decide_at)):
+                nxt = next((s for s in stops if s > k), k1)
+                self._run_compiled(k, nxt, k0, keep, out)
+                k = nxt
+                continue
+            self._frame(k, k0, keep, resets, decide, out)
+            k += 1
+        pos, rot, covs, nll_k = out["pos"], out["rot"], out["covs"], out["nll_k"]
+        if keep:
+            prior_p, prior_R, prior_P, Fs = out["prior_p"], out["prior_R"], out["prior_P"], out["Fs"]
+            prior_b, post_b, post_P = out["prior_b"], out["post_b"], out["post_P"]
+            post_bias, post_bias_var = out["post_bias"], out["post_bias_var"]
         passes = None
         if keep:
             passes = FilterPasses(prior_p, prior_R, prior_P, Fs, pos[0].copy(), rot[0].copy(), post_P, prior_b, post_b,
                                   post_bias, post_bias_var)
         return pos, rot, covs, nll_k, passes
+
+    def _frame(self, k: int, k0: int, keep: bool, resets: dict, decide, out: dict) -> None:
+        """One frame of :meth:`run` in numpy: the prediction into it (after the run's first), a reset or
+        ``decide``'s, the update; its outputs into ``out``."""
+        i = k - k0
+        D = 6 + self.n_scale
+        if k > k0:
+            F = self.predict(k)
+            if k not in resets and decide is not None:
+                d = decide(k, self.p[0].copy(), self.R[0].copy(), self.P[0].copy(), self.b[0].copy())
+                if d is not None:
+                    resets[k] = d
+            if k in resets:
+                Rr, sig = resets[k]
+                self.R[:] = Rr.as_matrix() if isinstance(Rr, Rotation) else Rr
+                self.P = with_orientation_sigma(self.P, sig)
+            if keep:
+                out["Fs"][i - 1] = F[0, :D, :D]
+                if k in resets:  # the new orientation does not depend on the old one: the prior stored
+                    out["Fs"][i - 1, 3:6, :] = 0.0  # below is F' P F'^T + Q' with these rows zero (RTS needs that)
+        if keep:
+            out["prior_p"][i], out["prior_R"][i], out["prior_P"][i] = self.p[0], self.R[0], self.P[0, :D, :D]
+            out["prior_b"][i] = self.b[0, :self.n_scale]
+        self.update(k)
+        out["pos"][:, i], out["rot"][:, i], out["covs"][:, i] = self.p, self.R, self.P[:, :6, :6]
+        out["nll_k"][:, i] = self.nll
+        if keep:
+            out["post_P"][i], out["post_b"][i] = self.P[0, :D, :D], self.b[0, :self.n_scale]
+            if out["post_bias"] is not None:
+                out["post_bias"][i] = self.b[0, self.n_scale:]
+                out["post_bias_var"][i] = np.diagonal(self.P[0])[D:]
+
+    def _run_compiled(self, a: int, b: int, k0: int, keep: bool, out: dict) -> None:
+        """Frames ``a .. b-1`` of :meth:`run` (one candidate, ``rss`` mode, no bias states) in ``_ekf_rss.c``:
+        no reset or decision among them; frame ``a`` predicted unless it is the run's first."""
+        D, ns = 6 + self.n_scale, self.n_scale
+        if getattr(self, "_c_steps", None) is None:  # per step: translation, rotation, 1-sigmas, scale's rho
+            n1 = len(self.t_applied)
+            tab = np.zeros((n1, 15))
+            tab[:, :3], tab[:, 3:12] = self.t_applied, self.R_steps.reshape(n1, 9)
+            tab[:, 12], tab[:, 13] = self.sig_t, self.sig_r
+            if ns:
+                tab[:, 14] = self.rho_s
+            pl = self.pl
+            self._c_steps = tab
+            self._c_params = np.array([pl.pt_dbm, pl.d0_m, pl.near_surface_depth_m, *pl.near, *pl.deep,
+                                       self.max_rejections, Z_GATE_999, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD,
+                                       self.scale_sd_rel**2], float)
+            self._c_rss = np.ascontiguousarray(self.rss, np.float64)
+            self._c_pos = np.ascontiguousarray(self.pos, np.float64)
+            self._c_nrm = np.ascontiguousarray(self.nrm, np.float64)
+        state = np.concatenate([self.p[0], self.R[0].ravel(), self.P[0].ravel(), self.b[0, :ns],
+                                [self.nll[0], self.streak[0], self.n_rejected[0], self.n_updates[0]]]).astype(float)
+        W = 49 + (12 + 3 * D * D + 2 * ns if keep else 0)
+        rec = np.empty((b - a, W))
+        _ekf_c.run(state, self._c_steps, self._c_rss, self._c_pos, self._c_nrm, self._c_params, rec, a, b,
+                   int(a > k0), ns, int(keep))
+        e = 12 + D * D
+        self.p, self.R, self.P = state[None, :3].copy(), state[3:12].reshape(1, 3, 3).copy(), \
+            state[12:e].reshape(1, D, D).copy()
+        if ns:
+            self.b = state[None, e:e + 1].copy()
+        self.nll = state[e + ns:e + ns + 1].copy()
+        self.streak, self.n_rejected, self.n_updates = (state[e + ns + j:e + ns + j + 1].astype(int) for j in (1, 2, 3))
+        i0, i1 = a - k0, b - k0
+        out["pos"][0, i0:i1], out["rot"][0, i0:i1] = rec[:, :3], rec[:, 3:12].reshape(-1, 3, 3)
+        out["covs"][0, i0:i1], out["nll_k"][0, i0:i1] = rec[:, 12:48].reshape(-1, 6, 6), rec[:, 48]
+        if keep:
+            q = rec[:, 49:]
+            out["prior_p"][i0:i1], out["prior_R"][i0:i1] = q[:, :3], q[:, 3:12].reshape(-1, 3, 3)
+            out["prior_P"][i0:i1] = q[:, 12:12 + D * D].reshape(-1, D, D)
+            j0 = 1 if a == k0 else 0  # the run's first frame has no F
+            out["Fs"][i0 + j0 - 1:i1 - 1] = q[j0:, 12 + D * D:12 + 2 * D * D].reshape(-1, D, D)
+            out["post_P"][i0:i1] = q[:, 12 + 2 * D * D:12 + 3 * D * D].reshape(-1, D, D)
+            if ns:
+                out["prior_b"][i0:i1, 0], out["post_b"][i0:i1, 0] = q[:, 12 + 3 * D * D], q[:, 13 + 3 * D * D]

@@ -65,7 +65,11 @@ class PathLossModel:
 
     def mean_rss_dbm(self, d_m, depth_m):
         pl0, alpha, _ = self.params(depth_m)
-        return self.pt_dbm - pl0 - 10.0 * alpha * np.log10(np.maximum(d_m, 1e-4) / self.d0_m)
+        return self.mean_from_params(d_m, pl0, alpha)
+
+    def mean_from_params(self, d_m, pl0_db, alpha):
+        """:meth:`mean_rss_dbm` with the depth's ``(PL(d0), alpha)`` already looked up (:meth:`params`)."""
+        return self.pt_dbm - pl0_db - 10.0 * alpha * np.log10(np.maximum(d_m, 1e-4) / self.d0_m)
 
     def predict(self, p_w_m: np.ndarray, sensors_w_m: np.ndarray, normals_w: np.ndarray):
         """At capsule position ``p`` (3,) -- or positions (..., 3), each against every sensor: mean RSS (..., n)

@@ -2,6 +2,8 @@
 
 import os
 
+import pytest
+
 from bodyslam.parallel import imap_tasks
 
 
@@ -88,3 +90,20 @@ def test_a_shared_pool_serves_every_call_in_its_block_and_stops_after_it():
         assert not alive
     # outside a block every call starts its own workers
     assert set(imap_tasks(worker_pid, range(4), jobs=2)).isdisjoint(first)
+
+
+def _fails(x):
+    raise ValueError(f"task {x} failed")
+
+
+def test_submit_starts_one_task_on_the_shared_pool_and_waits_where_asked():
+    from bodyslam.parallel import shared_pool, submit
+
+    with shared_pool(2):
+        wait = submit(worker_pid, 0, jobs=2)  # started now, on a worker: this process goes on meanwhile
+        failed = submit(_fails, 7, jobs=2)
+        assert wait() != os.getpid()
+        with pytest.raises(ValueError, match="task 7 failed"):  # what it raised, raised where it is waited for
+            failed()
+        assert submit(worker_pid, 0, jobs=1)() == os.getpid()  # one job: in this process
+    assert submit(worker_pid, 0, jobs=2)() == os.getpid()  # no pool: in this process, when waited for

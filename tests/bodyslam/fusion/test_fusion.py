@@ -717,3 +717,51 @@ def test_a_path_that_never_bends_costs_no_spread_per_point(monkeypatch):
     line = np.c_[np.linspace(0, 1.0, 5000), np.zeros((5000, 2))] + rng.normal(0, 1e-4, (5000, 3))
     assert body_slam._bend_window(line, 40, 0.015) == 5000
     assert calls == []
+
+
+def test_the_compiled_filter_equals_numpys(monkeypatch):
+    """``_ekf_rss.c`` runs one candidate's frames between the resets and decisions (ErrorStateEkf.run): the same
+    run as numpy's to rounding -- with the scale state, a gap whose end searches the orientation again (a reset),
+    the start's recheck, NaN readings, one sensor 25 dB off (its readings gated) and every reading 40 dB off for
+    12 frames (the divergence guard fires)."""
+    import bodyslam.fusion.ekf as ekf_mod
+
+    if ekf_mod._ekf_c is None:
+        pytest.skip("bodyslam/fusion/_ekf_rss.c is not built here (no C compiler at install)")
+    *data, gt = synthetic_run(4, n=200, gap=(70, 80), gap_roll_deg=12.0, fix_frames=200)
+    steps, fixes, rss, pos, nrm, pl = data
+    rss = rss.copy()
+    rss[30:60, 5] += 25.0
+    rss[120:132] += 40.0
+    rss[::7, ::3] = np.nan
+    calls = []
+
+    class Counted:  # the extension, its calls counted
+        @staticmethod
+        def run(*args):
+            calls.append(args[7:9])
+            return ekf_mod._ekf_rss_real.run(*args)
+
+    monkeypatch.setattr(ekf_mod, "_ekf_rss_real", ekf_mod._ekf_c, raising=False)
+    out = {}
+    for name, module in (("c", Counted), ("numpy", None)):
+        monkeypatch.setattr(ekf_mod, "_ekf_c", module)
+        out[name] = [fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", scale_sd_rel=0.2, scale_corr_m=1.0),
+                     fuse(steps, fixes, rss, pos, nrm, pl, mode="rss", causal_start=True)]
+    # the committed runs went through the extension around the gap's end (frame 80: numpy's, its search decides)
+    assert (0, 80) in calls and (81, 200) in calls, calls
+    for c, n in zip(out["c"], out["numpy"]):
+        assert [s.frames for s in c.searches] == [s.frames for s in n.searches] and len(c.searches) >= 2
+        assert (c.n_rejected, c.n_updates) == (n.n_rejected, n.n_updates) and c.n_rejected > 30
+        # sums in another order: measured positions 5e-15 m apart, covariances 2e-15 (entries up to 2e-2; an entry
+        # that cancels to 2e-14 differs relatively by 1e-4, so the bound is absolute, 1e-11 of the largest)
+        assert np.allclose(c.positions_w_m, n.positions_w_m, rtol=0, atol=1e-12)
+        assert np.allclose(c.rotations_w_c.as_matrix(), n.rotations_w_c.as_matrix(), rtol=0, atol=1e-12)
+        assert np.allclose(c.cov, n.cov, rtol=0, atol=1e-11 * np.abs(n.cov).max())
+        for f in ("prior_p", "prior_R", "prior_P", "F", "post_P", "prior_b", "post_b"):
+            a, b = getattr(c.passes, f), getattr(n.passes, f)
+            assert a.shape == b.shape and np.allclose(a, b, rtol=0, atol=1e-11 * np.abs(b).max(initial=1e-300)), f
+    # the guard fired: every reading 40 dB off for 12 frames, the position's 1-sigma opened by its 5 cm
+    sd = np.sqrt(np.trace(out["c"][0].cov[:, :3, :3], axis1=1, axis2=2))
+    assert sd[120:132].max() > 0.04 > sd[110], (sd[110], sd[120:132].max())
+    assert out["c"][0].scale is not None and np.allclose(out["c"][0].scale, out["numpy"][0].scale, atol=1e-12)

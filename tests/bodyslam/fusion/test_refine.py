@@ -129,8 +129,10 @@ def test_the_refined_covariance_is_the_solutions_own():
     ref = refine_map(rts, steps, rss, pos, nrm, pl)
     J, _ = MapProblem(steps, rss, pos, nrm, pl).linearise(ref.positions_w_m, ref.rotations_w_c.as_matrix())
     Hinv = np.linalg.inv((J.T @ J).toarray())
+    # J^T J's condition number is ~1.2e9 here, so its dense inverse is itself good to ~1e-7 relative (cond * eps);
+    # measured: within 5e-9 (from the numpy filter's start) and 2e-8 (from the compiled one's, ~1e-15 away)
     for k in range(len(gt)):
-        assert np.allclose(ref.cov[k], Hinv[6 * k:6 * k + 6, 6 * k:6 * k + 6], rtol=1e-8, atol=1e-12)
+        assert np.allclose(ref.cov[k], Hinv[6 * k:6 * k + 6, 6 * k:6 * k + 6], rtol=1e-7, atol=1e-12)
     assert not np.allclose(ref.cov, rts.cov)
     assert np.array_equal(refine_map(rts, steps, rss, pos, nrm, pl, own_cov=False).cov, rts.cov)
     # variance added to the readings (offsets taken as known, their uncertainty not): the same solution, a wider
