@@ -199,12 +199,16 @@ def main() -> None:
                 files = tuple((out_j / name / f).read_bytes() for f in ("motion.csv", "trajectory.tum"))
                 same = ref is None or files == ref
                 ref = ref or files
+                ph = json.loads((out_j / "summary.json").read_text()).get("phases_end_s", {})
                 scaling[j] = {"seconds": el_j, "frames_per_s": n / el_j, "peak_tree_rss_mib": peak_j / 2**20,
-                              "identical_to_first": same}
+                              "identical_to_first": same, "phases_end_s": ph}
                 base = scaling[next(iter(scaling))]["frames_per_s"]
                 print(f"  {'with RF' if key == 'jobs_rf' else 'without RF'} --jobs {j}: {n / el_j:.1f} frames/s "
                       f"({n / el_j / base:.2f}x the first count), {el_j:.1f} s, peak {peak_j / 2**20:.0f} MiB, "
                       f"outputs identical to the first count's: {same}", flush=True)
+                print("    phases ended at (s after the batch started; the process started "
+                      f"{el_j - ph.get('exams', el_j):.1f} s before): "
+                      + ", ".join(f"{k} {v:.1f}" for k, v in ph.items()), flush=True)
             res.setdefault(n, {})[key] = scaling
         if args.jobs_only:
             continue

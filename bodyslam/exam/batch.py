@@ -691,8 +691,10 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     by_key = {(t["exam"], t["chunk"]): t for t in tasks}
     exams = usable
     # one pool of local workers for the chunks, the gap bridges and the k-step check (not for a Dask cluster)
+    phases: dict[str, float] = {}  # seconds from the start at the end of each phase (summary.json)
     with contextlib.nullcontext() if scheduler else shared_pool(jobs):
         for res in _run_tasks(process_chunk, tasks, jobs, scheduler):
+            phases.setdefault("first_chunk", round(time.monotonic() - t0, 3))  # workers started + one chunk
             task = by_key[(res["exam"], res["chunk"])]
             # the JSON text of a result is the checkpoint; it is read back the same way on resume
             path = out / task["exam"] / "chunks" / f"chunk_{task['chunk']:06d}.json"
@@ -701,10 +703,12 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
             done_frames += task["last"] - task["first"] + (task["first"] == 0)
             if progress:
                 progress(done_frames, total)
+        phases["chunks"] = round(time.monotonic() - t0, 3)
         for e in exams:
             if stage:
                 stage(f"{e.name}: bridging gaps between estimated steps")
             _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
+        phases["bridges"] = round(time.monotonic() - t0, 3)
         # the k-step checks of the per-step 1-sigma run on the workers while this process finalizes each exam: they
         # add one entry to its summary, and the serial end is what limits many workers (docs/RESULTS.md, session 32)
         # an exam's fusion with RF runs on a worker while this process writes its frame and step tables, and the
@@ -728,7 +732,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                 stage(f"{e.name}: {'fusing vision with RF' if e.rf else 'dead reckoning'} over {e.n_positions} "
                       "frames, writing the trajectory, marks and report (the per-step 1-sigma checked meanwhile)")
             s, probs = _finalize(e, out / e.name, settings, wait_check=lambda i=i: checked(i),
-                                 fusion=fusions.pop(i, None))
+                                 fusion=fusions.pop(i, None), jobs=None if scheduler else jobs)
             summaries.append(s)
             all_problems.extend([e.name, *p] for p in probs)
     write_csv(out / "problems.csv", PROBLEM_COLUMNS, all_problems)
@@ -736,7 +740,10 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     elapsed = time.monotonic() - t0
     write_json(out / "summary.json", {"exams": summaries, "n_problems": len(all_problems), "n_errors": n_err,
                                       "chunks_computed": len(tasks), "chunks_reused": reused,
-                                      "seconds": round(elapsed, 3)})
+                                      "seconds": round(elapsed, 3),
+                                      # when each phase ended (s from the start): the first chunk's result, the
+                                      # last chunk's, the gaps bridged, every exam's outputs written
+                                      "phases_end_s": {**phases, "exams": round(elapsed, 3)}})
     return BatchReport(out, summaries, len(all_problems), n_err, len(tasks), reused)
 
 
@@ -898,11 +905,12 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
 
 
 def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable[[], None] | None = None,
-              fusion: Callable[[], dict] | None = None) -> tuple[dict, list[list]]:
+              fusion: Callable[[], dict] | None = None, jobs: int | None = 1) -> tuple[dict, list[list]]:
     """Rebuild an exam's outputs from its chunk files and bridges (streamed). ``wait_check``: blocks until the
     exam's k-step check (``consistency.json``, run meanwhile) is written, before the summary reads it.
     ``fusion``: gives the exam's :func:`_fuse_task` result, started on a worker (:func:`bodyslam.parallel.submit`)
-    while this writes the frame and step tables; None: the fusion runs here, after them (an exam with RF)."""
+    while this writes the frame and step tables; None: the fusion runs here, after them (an exam with RF).
+    ``jobs``: the run's workers (the trajectory plot is drawn on one of them while this writes the page)."""
     from scipy.spatial.transform import Rotation
 
     from bodyslam.fusion.body_slam import DeadReckoner
@@ -940,6 +948,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
                                          radius_m=exam.radius_m)
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
+    _path_png(exam, d, t, frame_idx, path_m, path_var)  # the fusion does not change it: drawn while it runs
     fused = None
     if exam.rf:
         res = fusion() if fusion is not None else _fuse_task({"exam": exam, "dir": str(d), "settings": settings})
@@ -981,7 +990,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                "step_consistency": (_checkpoint(d / "consistency.json", "step_consistency") or {}).get(
                    "step_consistency")}
     write_json(d / "summary.json", summary)
-    _report(exam, d, summary, t, P, cov, frame_idx, path_m, path_var, marks, fused is not None)
+    _report(exam, d, summary, t, P, cov, frame_idx, marks, fused is not None, jobs)
     return summary, problems
 
 
@@ -1159,12 +1168,31 @@ def _vision_text(m: MotionSettings) -> str:
     return f"{m.match_mode} matcher ({tries}); {est}; {wall}; {rot}"
 
 
-def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, path_var, marks: list[list],
-            fused: bool) -> None:
-    """The exam's plots (``trajectory.png``: 3-D and three projections with the 1-sigma and the marked frames;
-    ``path.png``: how far along the gut, with its 1-sigma) and ``report.html`` (the summary, the marked frames, a
-    3-D view to turn, the plots)."""
-    from bodyslam.plots import Mark, Path3D, path_figure, trajectory_figure
+def _path_png(exam: Exam, d: Path, t, frame_idx: list[int], path_m, path_var) -> None:
+    """``path.png``: how far along the gut against time, with its 1-sigma and the marked frames."""
+    from bodyslam.plots import path_figure
+
+    if len(t) < 2:
+        return
+    where = {f: k for k, f in enumerate(frame_idx)}
+    write_image(d / "path.png", path_figure(f"{exam.name}: how far along the gut", t, path_m, path_var,
+                                            [(t[where[f]], f"frame {f}") for f, _ in exam.marks if f in where]))
+
+
+def _trajectory_png(task: dict) -> None:
+    """``trajectory.png`` (a worker's task: ``path``, and ``args`` / ``kw`` of
+    :func:`bodyslam.plots.trajectory_figure`)."""
+    from bodyslam.plots import trajectory_figure
+
+    write_image(task["path"], trajectory_figure(*task["args"], **task["kw"]))
+
+
+def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: list[list], fused: bool,
+            jobs: int | None = 1) -> None:
+    """The exam's ``trajectory.png`` (3-D and three projections with the 1-sigma and the marked frames; drawn on
+    a worker of the run's pool while this writes the page, :func:`bodyslam.parallel.submit`) and ``report.html``
+    (the summary, the marked frames, a 3-D view to turn, the plots; ``path.png`` is :func:`_path_png`'s)."""
+    from bodyslam.plots import Mark, Path3D
     from bodyslam.report import table, view_3d, write_page
     from bodyslam.steps import LOST_STEP_FLOOR_R, MISSING_STEP_REL_SD
 
@@ -1175,10 +1203,9 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
     paths = [Path3D(name, P, (214, 39, 40), 1.8, cov)]
     mk = [Mark(f"frame {r[0]}" + (f" {r[1]}" if r[1] else ""), P[where[r[0]]], cov[where[r[0]]]) for r in marks]
     frame_txt = "body frame" if fused else "first camera frame: no RF, so no body frame"
-    write_image(d / "trajectory.png", trajectory_figure(f"{exam.name}: where the capsule was ({frame_txt})", paths,
-                                                        mk, body_frame=fused))
-    write_image(d / "path.png", path_figure(f"{exam.name}: how far along the gut", t, path_m, path_var,
-                                            [(r[2], f"frame {r[0]}") for r in marks]))
+    drawn = submit(_trajectory_png, {"path": d / "trajectory.png",
+                                     "args": (f"{exam.name}: where the capsule was ({frame_txt})", paths, mk),
+                                     "kw": {"body_frame": fused}}, jobs)
     sm = summary
     cls = sm["classes"]
     rows = [["source", f"{sm['source']} ({sm['kind']})"],
@@ -1212,3 +1239,4 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, path_m, pa
                  "1-sigma includes the lumen radius's and each filled step's (at least "
                  f"{MISSING_STEP_REL_SD:.0%} of it).", body,
                ["trajectory.png", "path.png"])
+    drawn()  # the plot is in place before the run says it is done

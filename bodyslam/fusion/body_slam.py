@@ -452,19 +452,22 @@ def rts_smooth(res: FusionResult) -> FusionResult:
     xs[-1], Rs[-1], Ps[-1] = ps_.post_p[-1], ps_.post_R[-1], ps_.post_P[-1]
     if m:
         bs[-1] = ps_.post_b[-1]
+    # the gains C_k = P_k F_k^T (P_{k+1}^-)^-1 do not depend on the smoothed values: all at once (the loop below
+    # then costs a few small products a frame; 10,000 frames 0.7 -> 0.3 s)
+    G = ps_.post_P[:-1] @ np.swapaxes(ps_.F, 1, 2) @ np.linalg.inv(ps_.prior_P[1:])
+    dx = np.zeros(6 + m)
     for k in range(n - 2, -1, -1):
-        F = ps_.F[k]  # prior of k+1 came from post of k through F
-        Pp = ps_.prior_P[k + 1]
-        C = ps_.post_P[k] @ F.T @ np.linalg.inv(Pp)
-        dx = np.r_[xs[k + 1] - ps_.prior_p[k + 1], matrix_to_rotvec(ps_.prior_R[k + 1].T @ Rs[k + 1])]
+        C = G[k]
+        dx[:3] = xs[k + 1] - ps_.prior_p[k + 1]
+        dx[3:6] = matrix_to_rotvec(ps_.prior_R[k + 1].T @ Rs[k + 1])
         if m:
-            dx = np.r_[dx, bs[k + 1] - ps_.prior_b[k + 1]]
+            dx[6:] = bs[k + 1] - ps_.prior_b[k + 1]
         corr = C @ dx
         xs[k] = ps_.post_p[k] + corr[:3]
         Rs[k] = ps_.post_R[k] @ rotvec_to_matrix(corr[3:6])
         if m:
             bs[k] = ps_.post_b[k] + corr[6:]
-        Ps[k] = ps_.post_P[k] + C @ (Ps[k + 1] - Pp) @ C.T
+        Ps[k] = ps_.post_P[k] + C @ (Ps[k + 1] - ps_.prior_P[k + 1]) @ C.T
     out = FusionResult(xs, Rotation.from_matrix(Rs), Ps[:, :6, :6], res.n_rejected, res.n_updates, res.passes,
                        res.init, res.alignment, res.P0, res.dead_reckoning, res.searches, res.resets,
                        res.committed_positions_w_m)

@@ -78,6 +78,9 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     # the k-step check of the per-step 1-sigma is reported (the demo has runs of 3 estimated steps)
     c = rep.exams[0]["step_consistency"]
     assert c["k"] == 3 and c["pairs_estimated"] >= 3 and 0.8 < c["median_distance_ratio_pair_over_singles"] < 1.25
+    # where the time went: when each phase ended, in order
+    ph = json.loads((tmp_path / "out" / "summary.json").read_text())["phases_end_s"]
+    assert list(ph) == ["first_chunk", "chunks", "bridges", "exams"] and list(ph.values()) == sorted(ph.values())
 
 
 def test_chunking_and_workers_do_not_change_results(tmp_path):
