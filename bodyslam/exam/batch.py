@@ -510,6 +510,10 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
         cand_rf, cand_s = src / rf_meta.file, src / rf_meta.sensors
         if cand_rf.is_file() and cand_s.is_file():
             rf, sensors = str(cand_rf), str(cand_s)
+        else:  # meta.json says the exam has RF: a missing file is said, not passed over in silence
+            missing = [str(f) for f in (cand_rf, cand_s) if not f.is_file()]
+            exam.problems.append([missing[0], "", "warning", f"RF not used (dead reckoning): {' and '.join(missing)} "
+                                                             "named by meta.json not found"])
     if (rf is None) != (sensors is None):
         raise InputError(f"{src}: RF fusion needs both an rf.csv and a sensors.csv")
     exam.rf, exam.sensors = rf, sensors

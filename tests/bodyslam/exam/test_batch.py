@@ -391,3 +391,15 @@ def test_checks_in_background_run_in_order_and_raise_where_waited():
             wait(1)
         wait(2)
         assert seen == ["a", "c"]
+
+
+def test_rf_named_by_meta_json_but_missing_is_said(tmp_path):
+    """A sequence whose meta.json names its rf.csv and sensors.csv, one of them missing: dead reckoning, and the
+    missing file is a warning in problems.csv (it was passed over in silence)."""
+    seq = tmp_path / "seq"
+    shutil.copytree(DEMO, seq)
+    (seq / "sensors.csv").unlink()
+    exam = open_exams([str(seq)])[0]
+    assert exam.rf is None
+    assert [p[2] for p in exam.problems] == ["warning"]
+    assert "sensors.csv named by meta.json not found" in exam.problems[0][3]
