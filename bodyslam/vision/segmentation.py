@@ -74,13 +74,30 @@ def _resize_for_work(rgb: np.ndarray, mask: np.ndarray, work_px: int | None):
     s = work_px / max(h, w)
     size = (max(1, round(w * s)), max(1, round(h * s)))
     small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-    # A working pixel takes part only when every frame pixel it averages lies inside the field of view: one that
-    # straddles the field stop's edge averages in the black outside, and those pixels formed a dark one-pixel line
-    # along the stop that the classifier took for the darkest region (session 29: on all four real PillCam frames
-    # and on the realistic testbed's octagon-stopped frames, 1% of the field, width 0, on the rim). Until then a
-    # nearest-neighbour resize kept them.
-    m = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= INSIDE_FRAC
-    return small, m
+    return small, _work_mask(mask, size)
+
+
+_WORK_MASKS: dict = {}  # (size, mask bytes) -> the working mask: an exam's frames share one field of view
+
+
+def _work_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """The field-of-view ``mask`` at the working ``size`` (w, h).
+
+    A working pixel takes part only when every frame pixel it averages lies inside the field of view: one that
+    straddles the field stop's edge averages in the black outside, and those pixels formed a dark one-pixel line
+    along the stop that the classifier took for the darkest region (session 29: on all four real PillCam frames
+    and on the realistic testbed's octagon-stopped frames, 1% of the field, width 0, on the rim). Until then a
+    nearest-neighbour resize kept them. Remembered for the last few masks (a frame's resize of its mask was a
+    tenth of its segmentation)."""
+    key = (size, mask.shape, mask.dtype.str, mask.tobytes())
+    m = _WORK_MASKS.get(key)
+    if m is None:
+        m = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= INSIDE_FRAC
+        m.flags.writeable = False
+        if len(_WORK_MASKS) >= 8:
+            _WORK_MASKS.pop(next(iter(_WORK_MASKS)))
+        _WORK_MASKS[key] = m
+    return m
 
 
 def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_px: int | None = 96,
@@ -109,8 +126,11 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
     # 4-neighbour pairs inside the mask, sorted by the largest channel difference (stable: reproducible)
     pa = np.concatenate([idx[:, :-1][m[:, :-1] & m[:, 1:]], idx[:-1, :][m[:-1, :] & m[1:, :]]])
     pb = np.concatenate([idx[:, 1:][m[:, :-1] & m[:, 1:]], idx[1:, :][m[:-1, :] & m[1:, :]]])
-    # the differences are whole levels 0..255: as uint8 the stable sort is a radix sort, same order, ~5x faster
-    diff = np.abs(flat[pa] - flat[pb]).max(axis=1).astype(np.uint8)
+    # the differences are whole levels 0..255 (taken in int16, exactly): as uint8 the stable sort is a radix sort,
+    # same order, ~5x faster
+    px = img.reshape(-1, 3).astype(np.int16)
+    d3 = np.abs(px[pa] - px[pb])
+    diff = np.maximum(np.maximum(d3[:, 0], d3[:, 1]), d3[:, 2]).astype(np.uint8)  # max over 3: ~3x .max(axis=1)
     order = np.argsort(diff, kind="stable")
     pa, pb = pa[order], pb[order]
 
@@ -136,16 +156,22 @@ def srm(rgb: np.ndarray, mask: np.ndarray | None = None, Q: float = 16.0, work_p
             break
         roots = nxt
     roots[~m.ravel()] = -1
-    uniq, labels = np.unique(roots, return_inverse=True)
-    labels = labels.astype(np.int32) - (1 if uniq[0] == -1 else 0)
-    labels[roots == -1] = -1
-    labels = labels.reshape(h, w)
+    labels = _region_labels(roots).reshape(h, w)
     valid = labels >= 0
     n_reg = int(labels.max()) + 1
     sizes = np.bincount(labels[valid], minlength=n_reg)
     means = np.stack([np.bincount(labels[valid], weights=img[..., c][valid], minlength=n_reg) for c in range(3)],
                      axis=1) / np.maximum(sizes, 1)[:, None]
     return Segmentation(labels, means, sizes)
+
+
+def _region_labels(roots: np.ndarray) -> np.ndarray:
+    """Each pixel's region number ``int32 (n,)`` from its root pixel ``roots (n,)`` (-1: outside the field, and
+    -1 there): the root's rank among the roots, as ``np.unique(roots, return_inverse=True)`` numbers them,
+    without its sort (a root is its own root)."""
+    inside = roots >= 0
+    rank = np.cumsum((roots == np.arange(len(roots))) & inside) - 1
+    return np.where(inside, rank[np.maximum(roots, 0)], -1).astype(np.int32)
 
 
 def _merge_python(pa: list[int], pb: list[int], b2_tab: list[float], flat: np.ndarray) -> list[int]:

@@ -81,3 +81,25 @@ def test_the_python_loop_says_it_is_used_once(monkeypatch, caplog):
         srm(img, mask, work_px=None)
         srm(img, mask, work_px=None)
     assert sum("compiled merge loop" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_regions_are_numbered_as_np_unique_numbers_their_roots():
+    """Regions are numbered by their root pixel's rank among the roots (np.unique's numbering, without its sort),
+    -1 outside the field; the working mask is remembered per mask and size, and a mask of another dtype with the
+    same pattern is not taken for it (a 0/255 mask averages differently on the field stop's edge)."""
+    rng = np.random.default_rng(3)
+    for n, n_roots in ((1, 1), (50, 7), (400, 400), (1000, 13)):
+        roots_of = rng.choice(n, n_roots, replace=False)
+        roots = roots_of[rng.integers(0, n_roots, n)]
+        roots[roots_of] = roots_of  # a root is its own root
+        out = rng.random(n) < 0.2
+        roots[out & ~np.isin(np.arange(n), roots[~out])] = -1  # outside the field (no inside pixel's root)
+        uniq, inv = np.unique(roots, return_inverse=True)
+        ref = inv.astype(np.int32) - (1 if uniq[0] == -1 else 0)
+        ref[roots == -1] = -1
+        assert np.array_equal(segmentation._region_labels(roots), ref)
+    segmentation._WORK_MASKS.clear()
+    disc = _images()[-1][1]
+    as_bool = segmentation._work_mask(disc, (40, 30))
+    as_u8 = segmentation._work_mask(disc.astype(np.uint8) * 255, (40, 30))
+    assert segmentation._work_mask(disc.copy(), (40, 30)) is as_bool and as_u8.sum() > as_bool.sum()
