@@ -39,7 +39,9 @@ Memory
 ------
 Workers hold one chunk's frames at a time; the coordinator streams chunk files into the outputs and keeps a few
 numbers per frame (pose, covariance and path length for the marks and plots: ~200 bytes per frame). With RF,
-fusion and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per frame).
+fusion and smoothing keep the whole exam's steps and filter passes in memory (~2 kB per frame), on a worker of the
+run's pool (:func:`_fuse_task`; in this process with one job or a Dask cluster) while the coordinator writes the
+frame and step tables; at most two exams' at once (the next exam's fusion starts while one is finalized).
 
 Gaps, dead reckoning and path length
 ------------------------------------
