@@ -28,12 +28,26 @@ def available_cores() -> int:
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _ignore_ctrl_c() -> None:
-    """Pool workers leave Ctrl-C to the parent (the terminal sends it to the whole process group): the parent
-    stops the pool and says 'interrupted'; a worker's own KeyboardInterrupt traceback would only be noise."""
+def _init_worker(log_level: int | None = None, log_format: str | None = None) -> None:
+    """A pool worker's start. It leaves Ctrl-C to the parent (the terminal sends it to the whole process group):
+    the parent stops the pool and says 'interrupted'; a worker's own KeyboardInterrupt traceback would only be
+    noise. It logs as the parent does (a spawned process starts without the CLI's logging set-up: the work moved to
+    workers, the whole-exam fusion among it, would otherwise say nothing under ``-v``)."""
+    import logging
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if log_format is not None:
+        logging.basicConfig(level=log_level, format=log_format)
+
+
+def _parent_logging() -> tuple[int | None, str | None]:
+    """The root logger's level and its first handler's format, for :func:`_init_worker` (None: not set up)."""
+    import logging
+
+    root = logging.getLogger()
+    fmt = next((h.formatter._fmt for h in root.handlers if h.formatter is not None), None)
+    return root.level, fmt
 
 
 def _spawn_pool(jobs: int):
@@ -42,7 +56,7 @@ def _spawn_pool(jobs: int):
     for v in _THREAD_VARS:
         os.environ.setdefault(v, "1")
     try:
-        return mp.get_context("spawn").Pool(jobs, initializer=_ignore_ctrl_c)
+        return mp.get_context("spawn").Pool(jobs, initializer=_init_worker, initargs=_parent_logging())
     finally:
         for v, x in saved.items():
             if x is None:

@@ -107,3 +107,32 @@ def test_submit_starts_one_task_on_the_shared_pool_and_waits_where_asked():
             failed()
         assert submit(worker_pid, 0, jobs=1)() == os.getpid()  # one job: in this process
     assert submit(worker_pid, 0, jobs=2)() == os.getpid()  # no pool: in this process, when waited for
+
+
+def _logs_info(x):
+    import logging
+
+    logging.getLogger("bodyslam.test").info("worker %d says hello", x)
+    return x
+
+
+def test_workers_log_as_the_parent_does(capfd):
+    """A spawned worker starts without the CLI's logging set-up: it takes the parent's level and format, so what
+    runs on workers (the whole-exam fusion among it) is heard under ``-v``."""
+    import logging
+
+    from bodyslam.parallel import shared_pool, submit
+
+    root = logging.getLogger()
+    saved = root.level, root.handlers[:]
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("TEST %(levelname)s %(name)s: %(message)s"))
+    root.handlers[:] = [handler]
+    root.setLevel(logging.INFO)
+    try:
+        with shared_pool(2):
+            assert submit(_logs_info, 5, jobs=2)() == 5
+    finally:
+        root.setLevel(saved[0])
+        root.handlers[:] = saved[1]
+    assert "TEST INFO bodyslam.test: worker 5 says hello" in capfd.readouterr().err
