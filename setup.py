@@ -1,8 +1,9 @@
-"""Build hook for the three compiled loops; everything else is in pyproject.toml.
+"""Build hook for the four compiled loops; everything else is in pyproject.toml.
 
 - bodyslam/vision/_srm_merge.c: SRM's merge loop (bodyslam.vision.segmentation);
 - bodyslam/vision/_tube_fit.c: the tube fit's residuals (bodyslam.vision.motion);
-- bodyslam/fusion/_ekf_rss.c: the raw-RSS filter's frames for one candidate (bodyslam.fusion.ekf).
+- bodyslam/fusion/_ekf_rss.c: the raw-RSS filter's frames for one candidate (bodyslam.fusion.ekf);
+- bodyslam/fusion/_block_tridiag.c: the whole-exam solve's marginal covariances (bodyslam.fusion.refine).
 
 All are optional: where they cannot be built (no C compiler or no Python headers) the install goes on and the
 same computations run in Python/numpy, slower (each module says so once in its log). -ffp-contract=off keeps
@@ -19,4 +20,6 @@ setup(ext_modules=[
               libraries=["m"]),
     Extension("bodyslam.fusion._ekf_rss", ["bodyslam/fusion/_ekf_rss.c"], optional=True, extra_compile_args=FLAGS,
               libraries=["m"]),
+    Extension("bodyslam.fusion._block_tridiag", ["bodyslam/fusion/_block_tridiag.c"], optional=True,
+              extra_compile_args=FLAGS, libraries=["m"]),
 ])

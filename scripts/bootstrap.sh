@@ -2,7 +2,7 @@
 # Idempotent set-up on a fresh machine of this kind (Debian 12, Python >= 3.11):
 #   1. the Debian packages headless GL rendering needs (pyrender backend, EGL on Mesa llvmpipe);
 #   2. Debian's chromium (optional: the HTML report's browser test; skipped where it cannot be installed);
-#   3. a C compiler and Python's headers (optional: three inner loops are compiled where they are, else they run in
+#   3. a C compiler and Python's headers (optional: four inner loops are compiled where they are, else they run in
 #      Python/numpy: fast-mode whole exams ~1.5x as long, the fusion of a whole exam with RF ~2x);
 #   4. a virtual environment .venv/ at the repository root with the project installed (editable) and its test extra.
 # Re-running it is cheap: packages already present are not reinstalled, and pip runs only when pyproject.toml,
