@@ -450,7 +450,7 @@ class ErrorStateEkf:
                 self._run_compiled(k, nxt, k0, keep, out)
                 k = nxt
                 continue
-            self._frame(k, k0, keep, resets, decide, out)
+            self._frame(k, k0, keep, resets, decide if decide_at is None or k in decide_at else None, out)
             k += 1
         pos, rot, covs, nll_k = out["pos"], out["rot"], out["covs"], out["nll_k"]
         if keep:
