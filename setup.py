@@ -14,12 +14,13 @@ residuals agree with numpy's to ~1e-15.
 from setuptools import Extension, setup
 
 FLAGS = ["-O2", "-ffp-contract=off"]
+ROD = ["bodyslam/_rodrigues.h"]  # shared by the tube fit and the filter
 setup(ext_modules=[
     Extension("bodyslam.vision._srm_merge", ["bodyslam/vision/_srm_merge.c"], optional=True, extra_compile_args=FLAGS),
     Extension("bodyslam.vision._tube_fit", ["bodyslam/vision/_tube_fit.c"], optional=True, extra_compile_args=FLAGS,
-              libraries=["m"]),
+              libraries=["m"], depends=ROD),
     Extension("bodyslam.fusion._ekf_rss", ["bodyslam/fusion/_ekf_rss.c"], optional=True, extra_compile_args=FLAGS,
-              libraries=["m"]),
+              libraries=["m"], depends=ROD),
     Extension("bodyslam.fusion._block_tridiag", ["bodyslam/fusion/_block_tridiag.c"], optional=True,
               extra_compile_args=FLAGS, libraries=["m"]),
 ])

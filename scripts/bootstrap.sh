@@ -48,7 +48,7 @@ if [ ! -x .venv/bin/python ]; then
   "$py" -m venv .venv
 fi
 stamp=.venv/.bodyslam-installed
-want="$(cat pyproject.toml setup.py bodyslam/vision/*.c bodyslam/fusion/*.c | sha256sum | cut -d' ' -f1)"
+want="$(cat pyproject.toml setup.py bodyslam/*.h bodyslam/vision/*.c bodyslam/fusion/*.c | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "bootstrap: installing the project into .venv"
   .venv/bin/python -m pip install -q --upgrade pip

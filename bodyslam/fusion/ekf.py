@@ -410,7 +410,7 @@ class ErrorStateEkf:
         frame); elsewhere it is not called. ``keep``: store the priors and posteriors (one candidate).
 
         One candidate in ``rss`` mode without the bias states runs compiled between those frames where the
-        extension is built (``_ekf_rss.c``: the same arithmetic, ~1e-12 relative), else in numpy.
+        extension is built (``_ekf_rss.c``: the same arithmetic, to rounding), else in numpy.
 
         Returns ``(positions (C, f, 3), rotations (C, f, 3, 3), covariances (C, f, 6, 6), cumulative nll (C,
         f), passes or None)`` with ``f = k1 - k0``. One pass: the cost is linear in the frames.
