@@ -85,12 +85,13 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.max_frames < 1 or a.size < 64:
         ap.error("--max-frames must be >= 1, --size >= 64")
+    missing = [str(src) for src in a.sources if not src.exists()]
+    if missing:
+        print(f"bench_texture: not found: {', '.join(missing)}", file=sys.stderr)
+        return 2
     cv2.setNumThreads(1)
     print(f"{'source':<60} {'frames':>6} {'SIFT@0.04':>10} {'SIFT@0.01':>10} {'median |Laplacian|':>19}")
     for src in a.sources:
-        if not src.exists():
-            print(f"bench_texture: {src}: not found", file=sys.stderr)
-            return 2
         try:
             s = texture_stats(frame_files(src, a.max_frames), a.size)
         except BodySlamError as exc:
