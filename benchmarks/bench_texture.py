@@ -5,7 +5,8 @@ Feature matching lives on the mucosa's fine texture, and the testbed's texture i
 with ``frames/``, or single images), statistics of the frames as the matcher sees them: every frame resized to
 ``--size`` px (default 420, the testbed's; features scale with the image), inside the field of view (detected
 from the frames as ``bodyslam`` does, or the non-black pixels eroded by 7 px for fewer than 3 frames), brightness
-stretched by the matcher's own 1st-99th percentile rule (:class:`bodyslam.vision.matching.Matcher`):
+stretched by the matcher's own 1st-99th percentile rule (a :class:`bodyslam.vision.matching.Matcher`, whose mask
+is the field eroded at its rim):
 
 - SIFT keypoints per frame at OpenCV's default contrast threshold 0.04 and at the pipeline's 0.01;
 - the median absolute Laplacian (3x3) inside the field: the fine grain's contrast, in grey levels.
@@ -13,8 +14,8 @@ stretched by the matcher's own 1st-99th percentile rule (:class:`bodyslam.vision
 Measured (session 34; ``bench_texture.py ../shared/data/real/capsule_colon_imeval/frames
 ../shared/data/real/capsule_colon_cce S560 L560``, where S560 is ``testbed simulate realistic --seed 560
 --frames 100`` and L560 the same with ``--set texture.grain_strength=0.05 --set texture.vessel_strength=0.25``;
-docs/RESULTS.md, "The realistic mucosa against real frames"): the four real PillCam COLON 2 frames give ~200
-keypoints at 0.04 where the realistic testbed gives ~700, and a Laplacian of ~10 against ~21.
+docs/RESULTS.md, "The realistic mucosa against real frames"): the four real PillCam COLON 2 frames give ~210
+keypoints at 0.04 where the realistic testbed gives ~470-590, and a Laplacian of ~10 against ~18-20.
 
     .venv/bin/python benchmarks/bench_texture.py SOURCE [SOURCE ...] [--max-frames N] [--size PX]
 """
@@ -32,7 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bodyslam.errors import BodySlamError  # noqa: E402
 from bodyslam.io import read_image  # noqa: E402
-from bodyslam.vision.matching import _masked_percentiles_u8, detect_fov_mask  # noqa: E402
+from bodyslam.camera import FisheyeCamera  # noqa: E402
+from bodyslam.exam.batch import DEFAULT_FOV_DEG  # noqa: E402
+from bodyslam.vision.matching import Matcher, detect_fov_mask  # noqa: E402
 
 IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -61,15 +64,14 @@ def field_of_view(frames: list[np.ndarray]) -> np.ndarray:
 
 def texture_stats(files: list[Path], size: int) -> dict:
     frames = [read_image(f) for f in files]
-    mask = cv2.resize(field_of_view(frames), (size, size), interpolation=cv2.INTER_NEAREST)
+    fov = cv2.resize(field_of_view(frames), (size, size), interpolation=cv2.INTER_NEAREST) > 0
+    # the matcher itself (its field of view eroded at the rim, its brightness stretch); the lens does not matter
+    matcher = Matcher(FisheyeCamera.equidistant(size, size, DEFAULT_FOV_DEG), "fast", mask=fov)
+    mask = matcher.mask
     sift = {ct: cv2.SIFT_create(contrastThreshold=ct) for ct in (0.04, 0.01)}
     rows = []
     for rgb in frames:
-        g = cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (size, size), interpolation=cv2.INTER_AREA)
-        lo_hi = _masked_percentiles_u8(g, mask, (1.0, 99.0))
-        if lo_hi is not None and lo_hi[1] - lo_hi[0] >= 8:  # the matcher's stretch (a flat frame is left)
-            lo, hi = lo_hi
-            g = cv2.LUT(g, np.clip((np.arange(256) - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8))
+        g = matcher.features(cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA)).gray
         lap = np.abs(cv2.Laplacian(g.astype(np.float32), cv2.CV_32F, ksize=3))[mask > 0]
         rows.append([len(sift[0.04].detect(g, mask)), len(sift[0.01].detect(g, mask)), float(np.median(lap))])
     a = np.asarray(rows, float)
