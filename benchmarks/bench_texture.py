@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bodyslam.errors import BodySlamError  # noqa: E402
+from bodyslam.errors import BodySlamError, InputError  # noqa: E402
 from bodyslam.io import read_image  # noqa: E402
 from bodyslam.camera import FisheyeCamera  # noqa: E402
 from bodyslam.exam.batch import DEFAULT_FOV_DEG  # noqa: E402
@@ -64,6 +64,11 @@ def field_of_view(frames: list[np.ndarray]) -> np.ndarray:
 
 def texture_stats(files: list[Path], size: int) -> dict:
     frames = [read_image(f) for f in files]
+    odd = [f.name for f, x in zip(files, frames) if x.shape[:2] != frames[0].shape[:2]]
+    if odd:  # the field of view is detected over the frames, pixel by pixel: one size per source
+        h, w = frames[0].shape[:2]
+        raise InputError(f"{len(odd)} frame(s) not {w}x{h} like {files[0].name} (first: {odd[0]}); give one "
+                         "camera's frames per source")
     fov = cv2.resize(field_of_view(frames), (size, size), interpolation=cv2.INTER_NEAREST) > 0
     # the matcher itself (its field of view eroded at the rim, its brightness stretch); the lens does not matter
     matcher = Matcher(FisheyeCamera.equidistant(size, size, DEFAULT_FOV_DEG), "fast", mask=fov)

@@ -164,6 +164,16 @@ def read_meta(seq_dir: str | os.PathLike) -> SequenceMeta:
     """The validated ``meta.json`` of a sequence directory (or the file itself)."""
     p = Path(seq_dir)
     path = p if p.suffix == ".json" and not p.is_dir() else p / "meta.json"
+    if p.is_file() and path is not p:
+        raise InputError(f"{p}: not a sequence directory (a folder with meta.json and frames/); a video or an image "
+                         "goes to `bodyslam batch`")
+    if p.is_dir() and not path.exists():
+        from bodyslam.frames import IMAGE_EXTS  # here: bodyslam.frames loads OpenCV, which reading meta.json does not need
+
+        if any(q.suffix.lower() in IMAGE_EXTS for q in p.iterdir()):
+            raise InputError(f"{path}: file not found: {p} is a plain frame folder, not a sequence directory "
+                             "(meta.json, frames/); `bodyslam batch` takes plain folders and videos, with an assumed "
+                             "camera and lumen radius")
     return meta_from_dict(read_json(path), path)
 
 
