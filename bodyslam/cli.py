@@ -144,7 +144,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="SRM working size (px) of the features, recorded in the model and used wherever it classifies")
     tc.add_argument("--jobs", type=int, default=None)
     cl = cmd("classify")
-    cl.add_argument("input", help="a sequence directory (meta.json) or a folder of frames")
+    cl.add_argument("input", help="a sequence directory (meta.json), a folder of frames, or one image")
     cl.add_argument("--out", required=True, help="classes.csv")
     cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
     cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
@@ -246,12 +246,12 @@ def _print_problems(problems: list, limit: int = 20) -> int:
 
 
 def _frames_of(inp):
-    """Frame paths and camera of a sequence directory (its validated meta.json), or of a folder of images
-    (camera None)."""
+    """Frame paths and camera of a sequence directory (its validated meta.json), of a folder of images, or of one
+    image (camera None)."""
     from pathlib import Path
 
     from bodyslam.errors import InputError
-    from bodyslam.frames import list_frames
+    from bodyslam.frames import IMAGE_EXTS, list_frames
     from bodyslam.io import frame_name
     from bodyslam.meta import read_meta
 
@@ -260,8 +260,11 @@ def _frames_of(inp):
         meta = read_meta(p)
         d = p / meta.frames_dir
         return [d / frame_name(k) for k in range(meta.n_frames)], meta.camera_model()
+    if p.is_file() and p.suffix.lower() in IMAGE_EXTS:
+        return [p], None
     if not p.is_dir():
-        raise InputError(f"{p}: not a sequence directory or a folder of frames")
+        raise InputError(f"{p}: {'file not found' if not p.exists() else 'not an image'}: give a sequence "
+                         "directory, a folder of frames or an image")
     frames, _ = list_frames(p)
     if not frames:
         raise InputError(f"{p}: no image files")

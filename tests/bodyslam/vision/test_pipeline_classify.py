@@ -78,3 +78,21 @@ def test_a_folder_of_awkward_frames_gets_an_answer_per_frame(fl_sequence, tmp_pa
     assert rows["d_grey.png"]["status"] == "ok"
     assert rows["e_small.png"]["status"] == "bad_size"
     assert rows["f_corrupt.png"]["status"] == "unreadable"
+
+
+def test_one_image_is_classified_like_in_its_sequence(fl_sequence, tmp_path):
+    """A single image (a user's frame of interest) is classified on its own: one row, the label its sequence gives
+    it when the frame's decision is clear of the boundary; a path that is not an image is named."""
+    seq_out = tmp_path / "seq.csv"
+    assert run("bodyslam.cli", "classify", str(fl_sequence), "--out", str(seq_out), "--jobs", "1").returncode == 0
+    rows = list(csv.DictReader(seq_out.open()))
+    clear = [r for r in rows if abs(float(r["decision"])) > 0.5]
+    for want in ("FT", "FL"):
+        r = next(r for r in clear if r["label"] == want)
+        out = tmp_path / f"one_{want}.csv"
+        p = run("bodyslam.cli", "classify", str(fl_sequence / "frames" / r["frame"]), "--out", str(out), "--jobs", "1")
+        assert p.returncode == 0, p.stderr
+        got = list(csv.DictReader(out.open()))
+        assert [(g["frame"], g["label"]) for g in got] == [(r["frame"], want)]
+    p = run("bodyslam.cli", "classify", str(fl_sequence / "labels.csv"), "--out", str(tmp_path / "x.csv"))
+    assert p.returncode == 1 and "not an image" in p.stderr
