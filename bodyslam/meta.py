@@ -165,8 +165,8 @@ def read_meta(seq_dir: str | os.PathLike) -> SequenceMeta:
     p = Path(seq_dir)
     path = p if p.suffix == ".json" and not p.is_dir() else p / "meta.json"
     if p.is_file() and path is not p:
-        raise InputError(f"{p}: not a sequence directory (a folder with meta.json and frames/); a video or an image "
-                         "goes to `bodyslam batch`")
+        raise InputError(f"{p}: not a sequence directory (a folder with meta.json and frames/); a video goes to "
+                         "`bodyslam batch`, one image to `bodyslam classify` or `segment`")
     if p.is_dir() and not path.exists():
         from bodyslam.frames import IMAGE_EXTS  # here: bodyslam.frames loads OpenCV, which reading meta.json does not need
 

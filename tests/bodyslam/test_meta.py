@@ -102,7 +102,7 @@ def test_a_plain_frame_folder_or_an_image_is_pointed_to_batch(tmp_path):
     (tmp_path / "000001.png").write_bytes(b"not decoded here")
     with pytest.raises(InputError, match="plain frame folder.*bodyslam batch"):
         read_meta(tmp_path)
-    with pytest.raises(InputError, match="not a sequence directory.*bodyslam batch"):
+    with pytest.raises(InputError, match="not a sequence directory.*bodyslam batch.*bodyslam classify"):
         read_meta(tmp_path / "000001.png")
     empty = tmp_path / "empty"
     empty.mkdir()
