@@ -168,7 +168,7 @@ def read_meta(seq_dir: str | os.PathLike) -> SequenceMeta:
         raise InputError(f"{p}: not a sequence directory (a folder with meta.json and frames/); a video goes to "
                          "`bodyslam batch`, one image to `bodyslam classify` or `segment`")
     if p.is_dir() and not path.exists():
-        from bodyslam.frames import IMAGE_EXTS  # here: bodyslam.frames loads OpenCV, which reading meta.json does not need
+        from bodyslam.frames import IMAGE_EXTS  # here: bodyslam.frames loads OpenCV, which meta.json does not need
 
         if any(q.suffix.lower() in IMAGE_EXTS for q in p.iterdir()):
             raise InputError(f"{path}: file not found: {p} is a plain frame folder, not a sequence directory "

@@ -96,9 +96,9 @@ def test_the_lumen_shape_reaches_the_pipeline(tmp_path):
     assert exam.shape_sd_rel == 0.07 and not any("lumen shape" in a for a in exam.assumed)
 
 
-def test_a_plain_frame_folder_or_an_image_is_pointed_to_batch(tmp_path):
-    """A user's frame folder or video given to a command that reads sequence directories: the error says what
-    the path is and which command takes it, instead of only that meta.json is missing."""
+def test_a_plain_frame_folder_or_a_file_is_pointed_to_the_command_that_takes_it(tmp_path):
+    """A user's frame folder, video or image given to a command that reads sequence directories: the error says
+    what the path is and which command takes it, instead of only that meta.json is missing."""
     (tmp_path / "000001.png").write_bytes(b"not decoded here")
     with pytest.raises(InputError, match="plain frame folder.*bodyslam batch"):
         read_meta(tmp_path)
