@@ -9,13 +9,13 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=$PWD:/tmp/site
 nproc; lscpu | grep -E "Model name|^CPU\(s\)|Thread|Core|Socket|MHz" | tee $OUT/lscpu.txt
 python3 setup.py build_ext --inplace > $OUT/build.log 2>&1
-for m in fusion/_ekf_rss vision/_tube_fit vision/_srm_merge; do
+for m in fusion/_ekf_rss fusion/_block_tridiag vision/_tube_fit vision/_srm_merge; do
   if ! ls bodyslam/$m.*.so >/dev/null 2>&1; then
     gcc -O2 -ffp-contract=off -shared -fPIC -I"$(python3 -c 'import sysconfig; print(sysconfig.get_paths()["include"])')" \
       bodyslam/$m.c -o bodyslam/$m$(python3 -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))') -lm >> $OUT/build.log 2>&1
   fi
 done
-python3 -c "import bodyslam.fusion.ekf as e, bodyslam.vision.motion as m; print('compiled ekf', e._ekf_c is not None, 'tube', m._tube_c is not None)"
+python3 -c "import bodyslam.fusion.ekf as e, bodyslam.fusion.refine as r, bodyslam.vision.motion as m; print('compiled ekf', e._ekf_c is not None, 'marginals', r._bt is not None, 'tube', m._tube_c is not None)"
 python3 benchmarks/device/unpack_exam.py .devrun/exam.mp4 /tmp/bb/exam_1_10000 || exit 1
 echo "setup done at +$(( $(date +%s) - T0 )) s"
 python3 benchmarks/bench_batch.py --frames 10000 --seed 1 --keep /tmp/bb --jobs-rf 16,1 --jobs 16 --jobs-only --json $OUT/a.json 2>&1 | grep -v "^batch:" | tee $OUT/log_a.txt
