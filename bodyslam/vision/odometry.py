@@ -48,7 +48,8 @@ log = logging.getLogger(__name__)
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_lumen_uncertainty",
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps",
-           "WALL_SIGMA_FACTOR", "WALL_STEPS", "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
+           "camera_off_axis_radii", "WALL_SIGMA_FACTOR", "WALL_STEPS", "BESIDE_WALL_RADII", "ACROSS_TILT_RAD",
+           "BESIDE_WALL_SIGMA_RADII", "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
 
 
 WALL_STEPS = ("estimate", "drop")
@@ -58,6 +59,24 @@ WALL_STEPS = ("estimate", "drop")
 # wall steps the ok steps' coverage (0.688 / 0.981 within 1 / 2 sigma): 0.517 / 0.896 at 1, 0.632 / 0.945 at 1.5,
 # 0.687 / 0.950 at 1.8, 0.706 / 0.955 at 2 (docs/RESULTS.md)
 WALL_SIGMA_FACTOR = 1.8
+# A tube fit whose cylinder no capsule could be in, or that runs across a view of the lumen ahead, has fitted the
+# cylinder beside or across a fold. Either: the camera more than BESIDE_WALL_RADII radii from the axis (a capsule,
+# 5.5 mm in radius, in a cylindrical lumen of 0.8-1.6 cm sits at most 0.31-0.66 radii from it, and the ratio does
+# not depend on the radius the fit assumes); or, between two frames classified facing the tunnel, the axis more
+# than ACROSS_TILT_RAD off the view. In a lumen that is not a cylinder such fits explain the matches with a fraction
+# of the step, often ~0, at a 1-sigma of hundredths of a millimetre (docs/RESULTS.md, "Fits beside the wall",
+# session 36): the lumen-shape share of the 1-sigma (``with_lumen_uncertainty``) scales with the estimated length
+# and vanishes with it. Such a step keeps its motion and gets BESIDE_WALL_SIGMA_RADII lumen radii added in
+# quadrature to its fit's own 1-sigma. Chosen on realistic tuning seeds 560-561 at three textures (fast mode, 390
+# estimated steps, 344 between frames facing the tunnel; each run's scale taken out): the 33 moving steps fitted
+# shorter than 0.35 of the true one all lie beyond 0.8 radii (29 of them between FT frames, 22 of those tilted
+# more than 45 deg); the 111 steps either rule flags were inside their 1 / 2 sigma 0.25 / 0.39, with 0.06 radii
+# added 0.47 / 0.84 (the others: 0.44 / 0.69), and the FT-FT steps in all 0.401 / 0.622 -> 0.465 / 0.759 (one
+# rule alone: 0.433 / 0.721 by the distance, 0.448 / 0.733 by the tilt; 0.04 radii too few, 0.34 / 0.58 on
+# the tilted ones, 0.10 too many, 0.69 / 0.99)
+BESIDE_WALL_RADII = 0.8
+ACROSS_TILT_RAD = math.radians(45.0)
+BESIDE_WALL_SIGMA_RADII = 0.06
 # A step no matching could fit between two frames that each have at least this share of the matcher's keypoint
 # budget (``max_features``: 3000 in sift/asift mode, 800 in fast mode) is lost to motion (status ``lost``): the
 # view changed too much to match. Fewer keypoints: a blurred, turbid or featureless frame, which may be a capsule
@@ -127,6 +146,15 @@ def classify_work_px(settings: MotionSettings, model=None) -> int:
     return 64 if settings.match_mode == "fast" else 96
 
 
+def camera_off_axis_radii(params: np.ndarray, radius_m: float) -> float:
+    """The camera's distance from the axis of the cylinder a tube fit found (the 10-vector of
+    :func:`bodyslam.vision.motion.fit_tube`: axis direction ``(ax, ay, 1)``, offset ``(ox, oy, 0)`` in frame 1), in
+    radii ``radius_m``: 0 on the axis, 1 on the wall."""
+    a = np.array([params[6], params[7], 1.0])
+    a /= np.linalg.norm(a)
+    return float(np.linalg.norm(np.cross([params[8], params[9], 0.0], a)) / radius_m)
+
+
 @dataclass
 class ChunkResult:
     """What :meth:`VisualOdometry.run` returns for positions ``first .. last``.
@@ -178,7 +206,8 @@ class VisualOdometry:
             return fit_tube(m, self.camera, self.radius_m, min_matches=self.settings.min_matches)
         return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches), None
 
-    def estimate_pair(self, f1, f2, estimator: str | None = None, rotation: bool = True) -> StepMotion:
+    def estimate_pair(self, f1, f2, estimator: str | None = None, rotation: bool = True,
+                      ahead: bool = False) -> StepMotion:
         """Match two frames' features and estimate the step from the first matches of the matcher's cascade
         (:meth:`~bodyslam.vision.matching.Matcher.cascade`) the estimate succeeds on: in fast mode tracking, then
         coarse descriptors, then descriptors, then the full-frame rescue, so the cheap tries never cost coverage. A
@@ -187,13 +216,19 @@ class VisualOdometry:
         one that stays without an estimate is ``lost`` to motion when both frames are rich in features and the pair
         verified no more matches than unrelated frames give (:data:`LOST_MIN_KEYPOINTS_FRAC`,
         :data:`LOST_MAX_MATCHES`; not with ``rotation=False``: the gap bridge wants a pose or nothing).
-        ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). The step is in the
-        body frame (:meth:`to_body`)."""
+        ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). A tube fit that puts
+        the camera beside the wall of its own cylinder (:func:`camera_off_axis_radii` over
+        :data:`BESIDE_WALL_RADII`) or, with ``ahead`` (both frames were classified facing the tunnel), its axis more
+        than :data:`ACROSS_TILT_RAD` off the view gets :data:`BESIDE_WALL_SIGMA_RADII` lumen radii in its 1-sigma
+        distance. The step is in the body frame (:meth:`to_body`)."""
         estimator = estimator or self.settings.estimator
         for m in self.matcher.cascade(f1, f2):
             s, x = self._fit(m, estimator)
             if s.ok:
                 break
+        if s.ok and x is not None and (camera_off_axis_radii(x, self.radius_m) > BESIDE_WALL_RADII or (
+                ahead and math.atan(math.hypot(x[6], x[7])) > ACROSS_TILT_RAD)):
+            s = replace(s, sigma_distance_m=math.hypot(s.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * self.radius_m))
         if (rotation and self.settings.rotation_steps and estimator == "tube"
                 and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)):
             from bodyslam.vision.guided import estimate_rotation
@@ -276,8 +311,8 @@ class VisualOdometry:
                     s = StepMotion.failed(StepStatus.NO_LUMEN)  # a dark or saturated frame: nothing to fit
                 elif self.classifier is not None and (prev[1] != "FT" or cls != "FT"):
                     s = self.estimate_wall(prev[0], feats)
-                else:
-                    s = self.estimate_pair(prev[0], feats)
+                else:  # both frames face the tunnel where they were classified
+                    s = self.estimate_pair(prev[0], feats, ahead=self.classifier is not None)
                 out.steps.append((fr.pos, fr.index, fr.t_s, s))
             prev = (feats, cls, status)
         return out

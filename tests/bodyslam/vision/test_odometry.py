@@ -158,6 +158,58 @@ def test_a_step_facing_the_wall_is_estimated_by_the_tube_fit_with_a_wider_1sigma
         assert not w.has_estimate and np.isnan(w.distance_m)
 
 
+def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(monkeypatch):
+    """A tube fit whose cylinder passes more than BESIDE_WALL_RADII radii from the camera (where no capsule fits
+    in a cylindrical lumen) keeps its motion and gets BESIDE_WALL_SIGMA_RADII lumen radii in its 1-sigma distance
+    (in quadrature); one nearer the axis keeps the fit's own 1-sigma. The demo pair's fit is used with its axis
+    moved to 0.7 and 0.9 radii from the camera, tilted 30 degrees (the distance is measured square to the axis:
+    the offset in the image plane is larger by 1/cos 30). Between frames facing the tunnel (``ahead``) an axis
+    tilted more than ACROSS_TILT_RAD widens it too (50 degrees, 0.2 radii from the camera), and only there."""
+    import math
+
+    from bodyslam.meta import read_meta
+    from bodyslam.vision.odometry import (ACROSS_TILT_RAD, BESIDE_WALL_RADII, BESIDE_WALL_SIGMA_RADII, MotionSettings,
+                                          VisualOdometry, camera_off_axis_radii)
+
+    meta = read_meta(DEMO)
+    R = meta.tube_radius_m
+    vo = VisualOdometry(meta.camera_model(), MotionSettings(), R)
+    f1, f2 = (vo.matcher.features(read_image(DEMO / "frames" / f"{k:06d}.png")) for k in (10, 11))
+    plain = vo.estimate_pair(f1, f2)
+    assert plain.ok
+    fit = vo._fit
+    for off in (0.7, 0.9):
+        def moved(m, estimator=None, off=off):
+            s, x = fit(m, estimator)
+            x = x.copy()
+            x[6], x[7] = math.tan(math.radians(30.0)), 0.0  # the axis tilted toward +x
+            x[8], x[9] = off * R / math.cos(math.radians(30.0)), 0.0  # offset along the tilt: foreshortened
+            return s, x
+
+        x_check = np.zeros(10)
+        x_check[6], x_check[8] = math.tan(math.radians(30.0)), off * R / math.cos(math.radians(30.0))
+        assert camera_off_axis_radii(x_check, R) == pytest.approx(off, rel=1e-9)
+        monkeypatch.setattr(vo, "_fit", moved)
+        s = vo.estimate_pair(f1, f2)
+        assert s.distance_m == plain.distance_m and np.array_equal(s.t_c1_c2_m, plain.t_c1_c2_m)
+        want = (math.hypot(plain.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * R) if off > BESIDE_WALL_RADII
+                else plain.sigma_distance_m)
+        assert s.sigma_distance_m == pytest.approx(want, rel=1e-12)
+        monkeypatch.setattr(vo, "_fit", fit)
+    assert want > 2 * plain.sigma_distance_m  # the widening is not lost in the fit's own 1-sigma
+
+    def tilted(m, estimator=None):
+        s, x = fit(m, estimator)
+        x = x.copy()
+        x[6], x[7], x[8], x[9] = math.tan(math.radians(50.0)), 0.0, 0.2 * R / math.cos(math.radians(50.0)), 0.0
+        return s, x
+
+    monkeypatch.setattr(vo, "_fit", tilted)
+    assert math.degrees(ACROSS_TILT_RAD) < 50.0
+    assert vo.estimate_pair(f1, f2).sigma_distance_m == plain.sigma_distance_m
+    assert vo.estimate_pair(f1, f2, ahead=True).sigma_distance_m == pytest.approx(want, rel=1e-12)
+
+
 def test_an_unknown_wall_step_rule_is_refused():
     from bodyslam.errors import ConfigError
     from bodyslam.vision.odometry import MotionSettings
