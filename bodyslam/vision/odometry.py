@@ -49,7 +49,8 @@ __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "seque
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps",
            "camera_off_axis_radii", "WALL_SIGMA_FACTOR", "WALL_STEPS", "BESIDE_WALL_RADII", "ACROSS_TILT_RAD",
-           "BESIDE_WALL_SIGMA_RADII", "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
+           "BESIDE_WALL_SIGMA_RADII", "BESIDE_WALL_ROTATION_FACTOR",
+           "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
 
 
 WALL_STEPS = ("estimate", "drop")
@@ -73,10 +74,13 @@ WALL_SIGMA_FACTOR = 1.8
 # more than 45 deg); the 111 steps either rule flags were inside their 1 / 2 sigma 0.25 / 0.39, with 0.06 radii
 # added 0.47 / 0.84 (the others: 0.44 / 0.69), and the FT-FT steps in all 0.401 / 0.622 -> 0.465 / 0.759 (one
 # rule alone: 0.433 / 0.721 by the distance, 0.448 / 0.733 by the tilt; 0.04 radii too few, 0.34 / 0.58 on
-# the tilted ones, 0.10 too many, 0.69 / 0.99)
+# the tilted ones, 0.10 too many, 0.69 / 0.99). Their rotation errs more too (mean 3.5 deg against the others'
+# 1.0; inside the 68% radius 0.35 against 0.63): its 1-sigma is multiplied by BESIDE_WALL_ROTATION_FACTOR (1.5:
+# 0.50, 2: 0.62, 2.5: 0.69, 3: 0.81), to the others' coverage as WALL_SIGMA_FACTOR does for wall steps
 BESIDE_WALL_RADII = 0.8
 ACROSS_TILT_RAD = math.radians(45.0)
 BESIDE_WALL_SIGMA_RADII = 0.06
+BESIDE_WALL_ROTATION_FACTOR = 2.0
 # A step no matching could fit between two frames that each have at least this share of the matcher's keypoint
 # budget (``max_features``: 3000 in sift/asift mode, 800 in fast mode) is lost to motion (status ``lost``): the
 # view changed too much to match. Fewer keypoints: a blurred, turbid or featureless frame, which may be a capsule
@@ -220,7 +224,8 @@ class VisualOdometry:
         the camera beside the wall of its own cylinder (:func:`camera_off_axis_radii` over
         :data:`BESIDE_WALL_RADII`) or, with ``ahead`` (both frames were classified facing the tunnel), its axis more
         than :data:`ACROSS_TILT_RAD` off the view gets :data:`BESIDE_WALL_SIGMA_RADII` lumen radii in its 1-sigma
-        distance. The step is in the body frame (:meth:`to_body`)."""
+        distance and its rotation's 1-sigma times :data:`BESIDE_WALL_ROTATION_FACTOR`. The step is in the body frame
+        (:meth:`to_body`)."""
         estimator = estimator or self.settings.estimator
         for m in self.matcher.cascade(f1, f2):
             s, x = self._fit(m, estimator)
@@ -228,7 +233,8 @@ class VisualOdometry:
                 break
         if s.ok and x is not None and (camera_off_axis_radii(x, self.radius_m) > BESIDE_WALL_RADII or (
                 ahead and math.atan(math.hypot(x[6], x[7])) > ACROSS_TILT_RAD)):
-            s = replace(s, sigma_distance_m=math.hypot(s.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * self.radius_m))
+            s = replace(s, sigma_distance_m=math.hypot(s.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * self.radius_m),
+                        sigma_rotation_rad=s.sigma_rotation_rad * BESIDE_WALL_ROTATION_FACTOR)
         if (rotation and self.settings.rotation_steps and estimator == "tube"
                 and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)):
             from bodyslam.vision.guided import estimate_rotation

@@ -161,15 +161,17 @@ def test_a_step_facing_the_wall_is_estimated_by_the_tube_fit_with_a_wider_1sigma
 def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(monkeypatch):
     """A tube fit whose cylinder passes more than BESIDE_WALL_RADII radii from the camera (where no capsule fits
     in a cylindrical lumen) keeps its motion and gets BESIDE_WALL_SIGMA_RADII lumen radii in its 1-sigma distance
-    (in quadrature); one nearer the axis keeps the fit's own 1-sigma. The demo pair's fit is used with its axis
-    moved to 0.7 and 0.9 radii from the camera, tilted 30 degrees (the distance is measured square to the axis:
-    the offset in the image plane is larger by 1/cos 30). Between frames facing the tunnel (``ahead``) an axis
-    tilted more than ACROSS_TILT_RAD widens it too (50 degrees, 0.2 radii from the camera), and only there."""
+    (in quadrature) and its rotation's 1-sigma times BESIDE_WALL_ROTATION_FACTOR; one nearer the axis keeps the
+    fit's own 1-sigmas. The demo pair's fit is used with its axis moved to 0.7 and 0.9 radii from the camera,
+    tilted 30 degrees (the distance is measured square to the axis: the offset in the image plane is larger by
+    1/cos 30). Between frames facing the tunnel (``ahead``) an axis tilted more than ACROSS_TILT_RAD widens it
+    too (50 degrees, 0.2 radii from the camera), and only there."""
     import math
 
     from bodyslam.meta import read_meta
-    from bodyslam.vision.odometry import (ACROSS_TILT_RAD, BESIDE_WALL_RADII, BESIDE_WALL_SIGMA_RADII, MotionSettings,
-                                          VisualOdometry, camera_off_axis_radii)
+    from bodyslam.vision.odometry import (ACROSS_TILT_RAD, BESIDE_WALL_RADII, BESIDE_WALL_ROTATION_FACTOR,
+                                          BESIDE_WALL_SIGMA_RADII, MotionSettings, VisualOdometry,
+                                          camera_off_axis_radii)
 
     meta = read_meta(DEMO)
     R = meta.tube_radius_m
@@ -195,6 +197,8 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
         want = (math.hypot(plain.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * R) if off > BESIDE_WALL_RADII
                 else plain.sigma_distance_m)
         assert s.sigma_distance_m == pytest.approx(want, rel=1e-12)
+        assert s.sigma_rotation_rad == pytest.approx(plain.sigma_rotation_rad * (
+            BESIDE_WALL_ROTATION_FACTOR if off > BESIDE_WALL_RADII else 1.0), rel=1e-12)
         monkeypatch.setattr(vo, "_fit", fit)
     assert want > 2 * plain.sigma_distance_m  # the widening is not lost in the fit's own 1-sigma
 
