@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Figure", "trajectory_figure", "path_figure", "cube_cm", "BODY_AXES", "Path3D", "Mark"]
+__all__ = ["Figure", "trajectory_figure", "path_figure", "cm_text", "cube_cm", "BODY_AXES", "Path3D", "Mark"]
 
 # SPEC.md: x toward the patient's left, y anterior, z cranial
 BODY_AXES = ("x, toward the patient's left (cm)", "y, anterior (cm)", "z, cranial (cm)")
@@ -232,6 +232,14 @@ def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n
     return _to_rgb(fig)
 
 
+def cm_text(value_cm: float) -> str:
+    """A length in cm for a label, to the precision it needs: whole centimetres from 10 cm (a whole exam), one
+    decimal from 1 cm, two below (a short clip's ~0.3 cm would otherwise read "0 cm")."""
+    v = float(value_cm)
+    digits = 0 if abs(v) >= 10 else 1 if abs(v) >= 1 else 2
+    return f"{v:.{digits}f} cm"
+
+
 def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tuple[float, str]] = (),
                 size=(900, 420)) -> np.ndarray:
     """The path travelled from the first frame against time (minutes when the exam is longer than 10 minutes),
@@ -250,5 +258,5 @@ def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tupl
         f.vline(x, None, (200, 150, 0))
         k = int(np.clip(np.searchsorted(t, ts), 0, len(pm) - 1)) if len(pm) else 0
         f.points(x, pm[k] if len(pm) else 0.0, "marked frame" if j == 0 else None, (255, 200, 0), "*", 200,
-                 [f"{label}: {pm[k]:.0f} cm" if len(pm) else label])
+                 [f"{label}: {cm_text(pm[k])}" if len(pm) else label])
     return f.image()

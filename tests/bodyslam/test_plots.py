@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from bodyslam.plots import Figure, Mark, Path3D, path_figure, trajectory_figure
+from bodyslam.plots import Figure, Mark, Path3D, cm_text, path_figure, trajectory_figure
 
 
 def _count(img: np.ndarray, rgb, tol: int = 40) -> int:
@@ -42,3 +42,11 @@ def test_path_figure_of_a_long_exam_is_in_minutes_with_the_mark():
     t = np.arange(0, 3600, 0.5)
     img = path_figure("exam", t, t * 1e-4, (t * 1e-5) ** 2, [(1800.0, "polyp")])
     assert img.shape == (420, 900, 3) and _count(img, (255, 200, 0), 30) > 20
+
+
+def test_a_marks_path_label_keeps_the_digits_a_short_clip_needs():
+    """A short clip's marked frame 0.34 cm along read "0 cm" with whole centimetres; a whole exam's stay whole."""
+    assert cm_text(0.3396) == "0.34 cm"
+    assert cm_text(3.396) == "3.4 cm"
+    assert cm_text(339.6) == "340 cm"
+    assert cm_text(-0.05) == "-0.05 cm"
