@@ -55,7 +55,7 @@ from bodyslam.steps import StepMotion, motion_from_transform  # noqa: F401  (re-
 from bodyslam.vision.unroll import Unroller
 
 __all__ = ["ESTIMATORS", "StepMotion", "essential_start", "estimate_thesis", "estimate_tube", "fit_tube",
-           "tube_predict", "motion_from_transform"]
+           "tube_predict", "axis_tilt_rad", "camera_off_axis_radii", "motion_from_transform"]
 
 from bodyslam.choices import ESTIMATORS  # noqa: E402
 
@@ -366,6 +366,20 @@ def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int 
         return replace(StepMotion(n_matches=n_used, status="uncertain"), sigma_distance_m=sig_d,
                        sigma_rotation_rad=sig_r), x
     return out, x
+
+
+def axis_tilt_rad(params: np.ndarray) -> float:
+    """The angle (rad) between the optical axis and the axis of the cylinder a :func:`fit_tube` 10-vector holds
+    (direction ``(ax, ay, 1)`` in frame 1)."""
+    return math.atan(math.hypot(float(params[6]), float(params[7])))
+
+
+def camera_off_axis_radii(params: np.ndarray, radius_m: float) -> float:
+    """The camera's distance from the axis of the cylinder a :func:`fit_tube` 10-vector holds (direction ``(ax, ay,
+    1)``, offset ``(ox, oy, 0)`` in frame 1), in radii ``radius_m``: 0 on the axis, 1 on the wall. The length of
+    ``o x a`` for the unit direction ``a``."""
+    ax, ay, ox, oy = (float(v) for v in params[6:10])
+    return math.sqrt(ox * ox + oy * oy + (ox * ay - oy * ax) ** 2) / math.sqrt(ax * ax + ay * ay + 1.0) / radius_m
 
 
 def tube_predict(params: np.ndarray, pts1_px: np.ndarray, camera: CameraModel, radius_m: float,

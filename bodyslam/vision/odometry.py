@@ -48,9 +48,8 @@ log = logging.getLogger(__name__)
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_lumen_uncertainty",
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps",
-           "camera_off_axis_radii", "WALL_SIGMA_FACTOR", "WALL_STEPS", "BESIDE_WALL_RADII", "ACROSS_TILT_RAD",
-           "BESIDE_WALL_SIGMA_RADII", "BESIDE_WALL_ROTATION_FACTOR",
-           "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
+           "WALL_SIGMA_FACTOR", "WALL_STEPS", "BESIDE_WALL_RADII", "ACROSS_TILT_RAD", "BESIDE_WALL_SIGMA_RADII",
+           "BESIDE_WALL_ROTATION_FACTOR", "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
 
 
 WALL_STEPS = ("estimate", "drop")
@@ -150,15 +149,6 @@ def classify_work_px(settings: MotionSettings, model=None) -> int:
     return 64 if settings.match_mode == "fast" else 96
 
 
-def camera_off_axis_radii(params: np.ndarray, radius_m: float) -> float:
-    """The camera's distance from the axis of the cylinder a tube fit found (the 10-vector of
-    :func:`bodyslam.vision.motion.fit_tube`: axis direction ``(ax, ay, 1)``, offset ``(ox, oy, 0)`` in frame 1), in
-    radii ``radius_m``: 0 on the axis, 1 on the wall."""
-    a = np.array([params[6], params[7], 1.0])
-    a /= np.linalg.norm(a)
-    return float(np.linalg.norm(np.cross([params[8], params[9], 0.0], a)) / radius_m)
-
-
 @dataclass
 class ChunkResult:
     """What :meth:`VisualOdometry.run` returns for positions ``first .. last``.
@@ -221,18 +211,20 @@ class VisualOdometry:
         verified no more matches than unrelated frames give (:data:`LOST_MIN_KEYPOINTS_FRAC`,
         :data:`LOST_MAX_MATCHES`; not with ``rotation=False``: the gap bridge wants a pose or nothing).
         ``estimator``: overrides the settings' (the gap bridge wants the tube fit's full pose). A tube fit that puts
-        the camera beside the wall of its own cylinder (:func:`camera_off_axis_radii` over
+        the camera beside the wall of its own cylinder (:func:`~bodyslam.vision.motion.camera_off_axis_radii` over
         :data:`BESIDE_WALL_RADII`) or, with ``ahead`` (both frames were classified facing the tunnel), its axis more
         than :data:`ACROSS_TILT_RAD` off the view gets :data:`BESIDE_WALL_SIGMA_RADII` lumen radii in its 1-sigma
         distance and its rotation's 1-sigma times :data:`BESIDE_WALL_ROTATION_FACTOR`. The step is in the body frame
         (:meth:`to_body`)."""
+        from bodyslam.vision.motion import axis_tilt_rad, camera_off_axis_radii
+
         estimator = estimator or self.settings.estimator
         for m in self.matcher.cascade(f1, f2):
             s, x = self._fit(m, estimator)
             if s.ok:
                 break
-        if s.ok and x is not None and (camera_off_axis_radii(x, self.radius_m) > BESIDE_WALL_RADII or (
-                ahead and math.atan(math.hypot(x[6], x[7])) > ACROSS_TILT_RAD)):
+        if s.ok and x is not None and (camera_off_axis_radii(x, self.radius_m) > BESIDE_WALL_RADII
+                                       or (ahead and axis_tilt_rad(x) > ACROSS_TILT_RAD)):
             s = replace(s, sigma_distance_m=math.hypot(s.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * self.radius_m),
                         sigma_rotation_rad=s.sigma_rotation_rad * BESIDE_WALL_ROTATION_FACTOR)
         if (rotation and self.settings.rotation_steps and estimator == "tube"

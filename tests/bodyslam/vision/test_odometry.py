@@ -169,9 +169,9 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
     import math
 
     from bodyslam.meta import read_meta
+    from bodyslam.vision.motion import axis_tilt_rad, camera_off_axis_radii
     from bodyslam.vision.odometry import (ACROSS_TILT_RAD, BESIDE_WALL_RADII, BESIDE_WALL_ROTATION_FACTOR,
-                                          BESIDE_WALL_SIGMA_RADII, MotionSettings, VisualOdometry,
-                                          camera_off_axis_radii)
+                                          BESIDE_WALL_SIGMA_RADII, MotionSettings, VisualOdometry)
 
     meta = read_meta(DEMO)
     R = meta.tube_radius_m
@@ -180,18 +180,21 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
     plain = vo.estimate_pair(f1, f2)
     assert plain.ok
     fit = vo._fit
-    for off in (0.7, 0.9):
-        def moved(m, estimator=None, off=off):
+
+    def with_axis(tilt_deg, off):
+        """The fit, its axis tilted toward +x and passing ``off`` radii from the camera (the offset in the image
+        plane, along the tilt, is larger by 1 / cos(tilt))."""
+        def fitted(m, estimator=None):
             s, x = fit(m, estimator)
             x = x.copy()
-            x[6], x[7] = math.tan(math.radians(30.0)), 0.0  # the axis tilted toward +x
-            x[8], x[9] = off * R / math.cos(math.radians(30.0)), 0.0  # offset along the tilt: foreshortened
+            x[6:10] = math.tan(math.radians(tilt_deg)), 0.0, off * R / math.cos(math.radians(tilt_deg)), 0.0
+            assert camera_off_axis_radii(x, R) == pytest.approx(off, rel=1e-9)
+            assert axis_tilt_rad(x) == pytest.approx(math.radians(tilt_deg), rel=1e-9)
             return s, x
+        return fitted
 
-        x_check = np.zeros(10)
-        x_check[6], x_check[8] = math.tan(math.radians(30.0)), off * R / math.cos(math.radians(30.0))
-        assert camera_off_axis_radii(x_check, R) == pytest.approx(off, rel=1e-9)
-        monkeypatch.setattr(vo, "_fit", moved)
+    for off in (0.7, 0.9):
+        monkeypatch.setattr(vo, "_fit", with_axis(30.0, off))
         s = vo.estimate_pair(f1, f2)
         assert s.distance_m == plain.distance_m and np.array_equal(s.t_c1_c2_m, plain.t_c1_c2_m)
         want = (math.hypot(plain.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * R) if off > BESIDE_WALL_RADII
@@ -199,16 +202,9 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
         assert s.sigma_distance_m == pytest.approx(want, rel=1e-12)
         assert s.sigma_rotation_rad == pytest.approx(plain.sigma_rotation_rad * (
             BESIDE_WALL_ROTATION_FACTOR if off > BESIDE_WALL_RADII else 1.0), rel=1e-12)
-        monkeypatch.setattr(vo, "_fit", fit)
     assert want > 2 * plain.sigma_distance_m  # the widening is not lost in the fit's own 1-sigma
 
-    def tilted(m, estimator=None):
-        s, x = fit(m, estimator)
-        x = x.copy()
-        x[6], x[7], x[8], x[9] = math.tan(math.radians(50.0)), 0.0, 0.2 * R / math.cos(math.radians(50.0)), 0.0
-        return s, x
-
-    monkeypatch.setattr(vo, "_fit", tilted)
+    monkeypatch.setattr(vo, "_fit", with_axis(50.0, 0.2))
     assert math.degrees(ACROSS_TILT_RAD) < 50.0
     assert vo.estimate_pair(f1, f2).sigma_distance_m == plain.sigma_distance_m
     assert vo.estimate_pair(f1, f2, ahead=True).sigma_distance_m == pytest.approx(want, rel=1e-12)
