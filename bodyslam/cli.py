@@ -610,7 +610,8 @@ def _batch(args) -> int:
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
-              f"({steps.get('wall', 0)} facing the wall, {steps.get('bridged', 0)} bridged; "
+              f"({steps.get('wall', 0)} facing the wall, {s['steps_beside_wall']} fitted beside the wall, "
+              f"{steps.get('bridged', 0)} bridged; "
               f"{steps.get('rotation', 0)} more with only their rotation; {steps.get('lost', 0)} lost to fast "
               f"motion), path "
               f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "
@@ -731,7 +732,9 @@ def _motion_or_track(args) -> int:
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
     path, var = path_travelled(steps, seq.radius_sd_rel, seq.radius_m)
-    print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}); "
+    beside = sum(s.beside_wall for s in steps)
+    print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}"
+          + (f"; {beside} of them fitted beside the wall, wider 1-sigma" if beside else "") + "); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
     return _print_problems(problems)
 

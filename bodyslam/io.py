@@ -274,7 +274,9 @@ _MOTION_REQUIRED = ("frame", "distance_m", "roll_rad", "pitch_rad", "yaw_rad")
 MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad", "tilt_rad", "n_matches", "status",
                   # beyond SPEC's minimum: the full step (translation in the first frame's camera axes, rotation
                   # vector of R_c1_c2) and its 1-sigma uncertainties, so fusion can run from the file alone
-                  "tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad"]
+                  "tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad",
+                  # 1 where the tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall)
+                  "beside_wall"]
 _FULL_STEP = ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad")
 
 
@@ -284,7 +286,7 @@ def motion_row(frame: int, t_s: float, s: StepMotion) -> list:
     rv = matrix_to_rotvec(s.R_c1_c2) if s.R_c1_c2 is not None else np.full(3, np.nan)
     return [int(frame), float(t_s), float(s.distance_m), float(s.roll_rad), float(s.pitch_rad), float(s.yaw_rad),
             float(s.tilt_rad), int(s.n_matches), str(s.status), *map(float, t), *map(float, rv),
-            float(s.sigma_distance_m), float(s.sigma_rotation_rad)]
+            float(s.sigma_distance_m), float(s.sigma_rotation_rad), int(s.beside_wall)]
 
 
 def write_motion_csv(path: str | os.PathLike, frames: Sequence[int], stamps_s: Sequence[float],
@@ -304,7 +306,8 @@ def step_from_row(row: dict) -> StepMotion:
     if R is not None and np.isfinite(vals[:3]).all():
         t = np.array(vals[:3], float)
     return StepMotion(row["distance_m"], row["roll_rad"], row["pitch_rad"], row["yaw_rad"], row["tilt_rad"],
-                      int(row.get("n_matches", 0)), row["status"], R, t, vals[6], vals[7])
+                      int(row.get("n_matches", 0)), row["status"], R, t, vals[6], vals[7],
+                      bool(row.get("beside_wall", False)))
 
 
 def read_motion_steps(path: str | os.PathLike, frames: Sequence[int]) -> list[StepMotion]:
@@ -435,5 +438,9 @@ def motion_values(row: dict, where: str = "motion row") -> tuple[int, dict[str, 
         vals["n_matches"] = int(float(row["n_matches"])) if row.get("n_matches") not in (None, "") else 0
     except (ValueError, OverflowError):
         raise InputError(f"{where}: n_matches {row['n_matches']!r} is not a number") from None
+    cell = row.get("beside_wall")
+    if cell not in (None, "", "0", "1"):
+        raise InputError(f"{where}: beside_wall {cell!r} is not 0 or 1")
+    vals["beside_wall"] = cell == "1"
     vals["label"] = row.get("label") or ""
     return k, vals

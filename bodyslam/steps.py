@@ -120,6 +120,9 @@ class StepMotion:
     t_c1_c2_m: np.ndarray | None = field(default=None, repr=False)
     sigma_distance_m: float = NAN  # 1-sigma of distance_m (tube estimator: from the fit)
     sigma_rotation_rad: float = NAN  # 1-sigma of the rotation (largest axis)
+    # the tube fit put the camera beside the wall of its own cylinder or ran its axis across the view: the motion is
+    # kept, its 1-sigma widened (bodyslam.vision.odometry.BESIDE_WALL_RADII); motion.csv's ``beside_wall`` column
+    beside_wall: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", StepStatus(self.status))  # also refuses an unknown status

@@ -930,6 +930,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     acc = _Track(n_expected)  # ~200 bytes per frame, preallocated
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
+    n_beside = 0  # steps whose tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall)
     dr = DeadReckoner(lost_step_floor_m(exam.radius_m))
     info = {"problems": problems, "eof": None}
     rel = exam.radius_sd_rel
@@ -945,6 +946,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                 continue
             mw.writerow(_csv_cells(step))
             statuses[step[8]] = statuses.get(step[8], 0) + 1
+            n_beside += s.beside_wall
             dr.step(s)
             acc.record(row, dr, classes, step_length(s), lost_to_motion(s))
     eof = info["eof"]
@@ -977,7 +979,9 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
                "classes": ({"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]} if classified
                            else "not classified"),
-               "steps": dict(sorted(statuses.items())), "path_travelled_m": float(path_m[-1]) if n else 0.0,
+               "steps": dict(sorted(statuses.items())),
+               # estimated steps whose 1-sigma was widened: fitted beside their own tube's wall or across the view
+               "steps_beside_wall": n_beside, "path_travelled_m": float(path_m[-1]) if n else 0.0,
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
                               + (" and refined" if settings.fusion == "rss" else "")
@@ -1219,7 +1223,10 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
              + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
             ["duration", f"{duration_text(sm['duration_s'])} at {sm['frame_rate_hz']:g} frames/s"],
             ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"],
-            ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())],
+            ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())
+             + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or across "
+                "the view (a folded or collapsed lumen: motion kept, wider 1-sigma)" if sm["steps_beside_wall"]
+                else "")],
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],

@@ -214,7 +214,8 @@ class VisualOdometry:
         the camera beside the wall of its own cylinder (:func:`~bodyslam.vision.motion.camera_off_axis_radii` over
         :data:`BESIDE_WALL_RADII`) or, with ``ahead`` (both frames were classified facing the tunnel), its axis more
         than :data:`ACROSS_TILT_RAD` off the view gets :data:`BESIDE_WALL_SIGMA_RADII` lumen radii in its 1-sigma
-        distance and its rotation's 1-sigma times :data:`BESIDE_WALL_ROTATION_FACTOR`. The step is in the body frame
+        distance and its rotation's 1-sigma times :data:`BESIDE_WALL_ROTATION_FACTOR`, and says so (``beside_wall``).
+        The step is in the body frame
         (:meth:`to_body`)."""
         from bodyslam.vision.motion import axis_tilt_rad, camera_off_axis_radii
 
@@ -226,7 +227,7 @@ class VisualOdometry:
         if s.ok and x is not None and (camera_off_axis_radii(x, self.radius_m) > BESIDE_WALL_RADII
                                        or (ahead and axis_tilt_rad(x) > ACROSS_TILT_RAD)):
             s = replace(s, sigma_distance_m=math.hypot(s.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * self.radius_m),
-                        sigma_rotation_rad=s.sigma_rotation_rad * BESIDE_WALL_ROTATION_FACTOR)
+                        sigma_rotation_rad=s.sigma_rotation_rad * BESIDE_WALL_ROTATION_FACTOR, beside_wall=True)
         if (rotation and self.settings.rotation_steps and estimator == "tube"
                 and s.status in (StepStatus.TOO_FEW_MATCHES, StepStatus.UNCERTAIN)):
             from bodyslam.vision.guided import estimate_rotation
@@ -251,7 +252,8 @@ class VisualOdometry:
         if s.t_c1_c2_m is None:  # a rotation step: the body turns by the same rotation, in its own axes
             return rotation_step(R, s.n_matches, s.sigma_rotation_rad)
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
-        return motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad, s.status)
+        return replace(motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad, s.status),
+                       beside_wall=s.beside_wall)
 
     def estimate_wall(self, f1, f2) -> StepMotion:
         """A step touching a frame that faces the wall. The dissertation drops it (its unrolling needs the lumen

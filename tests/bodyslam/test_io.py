@@ -67,3 +67,28 @@ def test_csv_rows_and_tables_number_the_lines_of_the_file(tmp_path):
         assert header == ["a", "b"]
         assert [(k, r) for k, r in rows if r] == [(2, ["1", "2"]), (4, ["3", "4"]), (6, ["five\nlines", "6"]),
                                                  (7, ["7", "8"])]
+
+
+def test_motion_csv_keeps_a_fit_beside_the_wall_and_reads_files_without_the_column(tmp_path):
+    """``beside_wall`` (StepMotion.beside_wall, odometry.BESIDE_WALL_RADII) goes through motion.csv as 0 / 1; a file
+    written before the column existed, or by another tool, reads as not beside the wall; any other cell is refused
+    with its file and line."""
+    from bodyslam.io import read_motion_steps, write_motion_csv
+    from bodyslam.steps import motion_from_transform
+
+    from dataclasses import replace
+
+    s = motion_from_transform(Rotation.from_rotvec([0.0, 0.0, 0.1]), [0.0, 0.0, 0.002], 40, 1e-3, 0.01)
+    write_motion_csv(tmp_path / "m.csv", [1, 2], [0.5, 1.0], [replace(s, beside_wall=True), s])
+    lines = (tmp_path / "m.csv").read_text().splitlines()
+    assert lines[0].endswith(",beside_wall") and lines[1].endswith(",1") and lines[2].endswith(",0")
+    a, b = read_motion_steps(tmp_path / "m.csv", [1, 2])
+    assert a.beside_wall and not b.beside_wall and a.distance_m == pytest.approx(0.002)
+
+    old = [ln.rsplit(",", 1)[0] for ln in lines]  # the columns before session 37
+    (tmp_path / "old.csv").write_text("\n".join(old) + "\n")
+    assert [x.beside_wall for x in read_motion_steps(tmp_path / "old.csv", [1, 2])] == [False, False]
+
+    (tmp_path / "bad.csv").write_text("\n".join([lines[0], lines[1][:-1] + "yes"]) + "\n")
+    with pytest.raises(InputError, match=r"bad\.csv:2: beside_wall 'yes' is not 0 or 1"):
+        read_motion_steps(tmp_path / "bad.csv", [1])

@@ -403,3 +403,28 @@ def test_rf_named_by_meta_json_but_missing_is_said(tmp_path):
     assert exam.rf is None
     assert [p[2] for p in exam.problems] == ["warning"]
     assert "sensors.csv named by meta.json not found" in exam.problems[0][3]
+
+
+def test_the_summary_counts_the_steps_fitted_beside_the_wall(tmp_path, monkeypatch):
+    """Steps whose tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall) are counted in
+    summary.json (``steps_beside_wall``) as motion.csv marks them, and the report says so. The demo's ideal tube
+    has none, so every third pair is marked here as the fit would."""
+    from dataclasses import replace
+
+    from bodyslam.vision.odometry import VisualOdometry
+
+    plain = VisualOdometry.estimate_pair
+    calls = iter(range(10**6))
+
+    def marked(self, f1, f2, *a, **kw):
+        s = plain(self, f1, f2, *a, **kw)
+        return replace(s, beside_wall=True) if s.ok and next(calls) % 3 == 0 else s
+
+    monkeypatch.setattr(VisualOdometry, "estimate_pair", marked)
+    run_batch(open_exams([str(_plain_folder(tmp_path / "exam", 10))]), tmp_path / "out", FAST, jobs=1)
+    d = tmp_path / "out" / "exam"
+    summary = json.loads((d / "summary.json").read_text())
+    flagged = [r for r in _rows(d / "motion.csv") if r["beside_wall"] == "1"]
+    assert summary["steps_beside_wall"] == len(flagged) > 0
+    assert all(r["status"] in ("ok", "wall") for r in flagged)
+    assert f"{len(flagged)} of the estimated steps fitted beside the wall" in (d / "report.html").read_text()

@@ -178,7 +178,7 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
     vo = VisualOdometry(meta.camera_model(), MotionSettings(), R)
     f1, f2 = (vo.matcher.features(read_image(DEMO / "frames" / f"{k:06d}.png")) for k in (10, 11))
     plain = vo.estimate_pair(f1, f2)
-    assert plain.ok
+    assert plain.ok and not plain.beside_wall
     fit = vo._fit
 
     def with_axis(tilt_deg, off):
@@ -202,12 +202,14 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
         assert s.sigma_distance_m == pytest.approx(want, rel=1e-12)
         assert s.sigma_rotation_rad == pytest.approx(plain.sigma_rotation_rad * (
             BESIDE_WALL_ROTATION_FACTOR if off > BESIDE_WALL_RADII else 1.0), rel=1e-12)
+        assert s.beside_wall == (off > BESIDE_WALL_RADII)  # and says so (motion.csv's beside_wall column)
     assert want > 2 * plain.sigma_distance_m  # the widening is not lost in the fit's own 1-sigma
 
     monkeypatch.setattr(vo, "_fit", with_axis(50.0, 0.2))
     assert math.degrees(ACROSS_TILT_RAD) < 50.0
     assert vo.estimate_pair(f1, f2).sigma_distance_m == plain.sigma_distance_m
-    assert vo.estimate_pair(f1, f2, ahead=True).sigma_distance_m == pytest.approx(want, rel=1e-12)
+    across = vo.estimate_pair(f1, f2, ahead=True)
+    assert across.sigma_distance_m == pytest.approx(want, rel=1e-12) and across.beside_wall
 
 
 def test_an_unknown_wall_step_rule_is_refused():
