@@ -7,7 +7,8 @@ the error of the tilt as a vector (pitch, yaw: the swing rotation's x, y compone
 direction, and the coverage (steps measured from their own pair: status ``ok`` or ``wall``; ``coverage_with_bridged``
 also counts the shares of bridged gaps). Errors are over the measured steps; the ``ft_only`` block restricts them
 to steps whose two frames are both labelled FT (facing the tunnel) by the truth, ``wall_only`` to the steps the
-pipeline estimated although its classifier said a frame faces the wall (status ``wall``). Beside the distance
+pipeline estimated although its classifier said a frame faces the wall (status ``wall``), ``beside_wall_only`` to
+the steps whose tube fit put the camera beside its own cylinder's wall (``beside_wall``: their 1-sigma widened). Beside the distance
 error, ``mae_distance_scale_aligned_cm``: the error left once the run's distances are multiplied by the one factor
 that fits them best to the truth (``distance_scale``: the factor of least mean absolute error, the median of
 ``t / e`` weighted by ``|e|``, so never above the raw error), as monocular odometry benchmarks align scale before
@@ -169,6 +170,7 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
     for c in ("sigma_distance_m", "sigma_rotation_rad"):
         es[c] = np.array([est[k].get(c, math.nan) if k in est else math.nan for k in frames])
     status = np.array([est[k]["status"] if k in est else "missing" for k in frames])
+    beside = np.array([bool(est[k].get("beside_wall", False)) if k in est else False for k in frames])
     label = np.array([truth[k]["label"] for k in frames])
     has = np.isin(status, MEASURED) & np.isfinite(es["distance_m"]) & np.isfinite(es["roll_rad"])
     has &= np.isfinite(es["tilt_rad"])
@@ -186,6 +188,7 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
         "all": _block(tr, es, np.nonzero(has)[0]),
         "ft_only": _block(tr, es, np.nonzero(has & ft)[0]),
         "wall_only": _block(tr, es, np.nonzero(has & (status == StepStatus.WALL))[0]),
+        "beside_wall_only": _block(tr, es, np.nonzero(has & beside)[0]),
         "rotation_only": _rotation_block(tr, es, np.nonzero((status == StepStatus.ROTATION)
                                                             & np.isfinite(es["roll_rad"]))[0]),
     }
@@ -208,8 +211,9 @@ def format_table(rep: dict) -> str:
         f"{'tilt':10s} {a['mean_true_tilt_deg']:8.2f} deg {a['mae_tilt_deg']:11.3f} deg "
         f"{a['p90_tilt_error_deg']:6.3f} deg   (as a vector: {a['mae_tilt_vector_deg']:.3f} deg)",
     ]
-    for key, what in (("ft_only", "FT-FT steps only (truth's labels)"), ("wall_only", "steps facing the wall "
-                                                                                     "(status wall)")):
+    for key, what in (("ft_only", "FT-FT steps only (truth's labels)"),
+                      ("wall_only", "steps facing the wall (status wall)"),
+                      ("beside_wall_only", "steps fitted beside the wall (beside_wall)")):
         f = rep.get(key, {})
         if f.get("n_steps_scored"):
             lines.append(f"{what} ({f['n_steps_scored']}): distance {f['mae_distance_cm']:.4f} cm, roll "

@@ -136,3 +136,22 @@ def test_one_chi_square_constant_for_every_inside_1_sigma():
     assert score.CHI2_3_683 == pytest.approx(chi2.ppf(0.6827, 3), abs=1e-4)
     assert score.CHI_3_683 == pytest.approx(math.sqrt(score.CHI2_3_683))
     assert evaluate.CHI2_3_683 is score.CHI2_3_683  # positions and rotations are held to the same region
+
+
+def test_steps_fitted_beside_the_wall_are_scored_in_their_own_block(tmp_path):
+    """Steps marked ``beside_wall`` (their tube fit put the camera beside its cylinder's wall) are scored in the
+    whole table and on their own: two such ok steps 4 mm short among four ok steps 1 mm long; a file without the
+    column has no such block."""
+    rows = [f"{k},{k * 0.5},0.011,0,0,0,0,50,ok,0.002,0" for k in range(1, 5)]
+    rows += [f"{k},{k * 0.5},0.006,0,0,0,0,40,ok,0.005,1" for k in (5, 6)]
+    _write(tmp_path, rows)
+    est = (tmp_path / "motion.csv").read_text().splitlines()
+    (tmp_path / "motion.csv").write_text("\n".join([est[0] + ",beside_wall"] + est[1:]) + "\n")
+    rep = score_motion(tmp_path, tmp_path / "motion.csv")
+    assert rep["all"]["n_steps_scored"] == 6
+    b = rep["beside_wall_only"]
+    assert b["n_steps_scored"] == 2 and b["mae_distance_cm"] == pytest.approx(0.4)
+    assert b["distance_within_1sigma"] == pytest.approx(1.0)
+    assert "steps fitted beside the wall (beside_wall) (2): distance 0.4000 cm" in format_table(rep)
+    _write(tmp_path, [r.rsplit(",", 1)[0] for r in rows])
+    assert score_motion(tmp_path, tmp_path / "motion.csv")["beside_wall_only"] == {"n_steps_scored": 0}
