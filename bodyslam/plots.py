@@ -243,7 +243,7 @@ def cm_text(value_cm: float) -> str:
 def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tuple[float, str]] = (),
                 size=(900, 420)) -> np.ndarray:
     """The path travelled from the first frame against time (minutes when the exam is longer than 10 minutes),
-    with its 1-sigma band and a dashed line at each marked frame ``(time s, label)``."""
+    with its 1-sigma band (cut at zero) and a dashed line at each marked frame ``(time s, label)``."""
     t = np.asarray(stamps_s, float)
     minutes = len(t) > 1 and t[-1] - t[0] > 600
     tt = t / 60.0 if minutes else t
@@ -251,7 +251,9 @@ def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tupl
     f = Figure(title, "time (min)" if minutes else "time (s)", "path travelled from the first frame (cm)", size)
     if path_var_m2 is not None:
         sd = np.sqrt(np.maximum(np.asarray(path_var_m2, float), 0.0)) * 100
-        f.band(tt, pm - sd, pm + sd, "1-sigma", (31, 119, 180))
+        # a path travelled is never negative: near the start its 1-sigma can exceed it (the radius's and the lost
+        # steps' share), and a band below zero would show a distance no capsule can have
+        f.band(tt, np.maximum(pm - sd, 0.0), pm + sd, "1-sigma", (31, 119, 180))
     f.line(tt, pm, "path travelled", (31, 119, 180))
     for j, (ts, label) in enumerate(marks):
         x = ts / 60.0 if minutes else ts

@@ -50,3 +50,15 @@ def test_a_marks_path_label_keeps_the_digits_a_short_clip_needs():
     assert cm_text(3.396) == "3.4 cm"
     assert cm_text(339.6) == "340 cm"
     assert cm_text(-0.05) == "-0.05 cm"
+
+
+def test_the_path_band_stays_at_or_above_zero(monkeypatch):
+    """A short clip's path travelled can have a 1-sigma larger than itself near the start; the band is cut at zero
+    (a capsule travels no negative distance) and keeps its upper edge."""
+    bands = []
+    monkeypatch.setattr(Figure, "band", lambda self, x, lo, hi, *a, **k: bands.append((np.array(lo), np.array(hi)))
+                        or self)
+    t = np.arange(6) * 0.5
+    path_figure("clip", t, [0.0, 0.001, 0.002, 0.01, 0.02, 0.03], np.full(6, 0.005 ** 2))
+    (lo, hi), = bands
+    assert lo.min() == 0.0 and np.allclose(lo[3:], [0.5, 1.5, 2.5]) and np.allclose(hi, [0.5, 0.6, 0.7, 1.5, 2.5, 3.5])
