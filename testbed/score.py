@@ -1,21 +1,20 @@
 """Scoring per-step motion against the testbed's ground truth (dissertation Table 4.1, SPEC.md "How accuracy is
 scored").
 
-Table 4.1 figures: mean true value and mean absolute error per step of the distance travelled (cm), the roll
-(deg) and the tilt (deg, the angle between consecutive optical axes: ``|tilt_est - tilt_true|``). Beside them:
-the error of the tilt as a vector (pitch, yaw: the swing rotation's x, y components), which also checks its
-direction, and the coverage (steps measured from their own pair: status ``ok`` or ``wall``; ``coverage_with_bridged``
-also counts the shares of bridged gaps). Errors are over the measured steps; the ``ft_only`` block restricts them
-to steps whose two frames are both labelled FT (facing the tunnel) by the truth, ``wall_only`` to the steps the
-pipeline estimated although its classifier said a frame faces the wall (status ``wall``), ``beside_wall_only`` to
-the steps whose tube fit put the camera beside its own cylinder's wall (``beside_wall``: their 1-sigma widened). Beside the distance
-error, ``mae_distance_scale_aligned_cm``: the error left once the run's distances are multiplied by the one factor
-that fits them best to the truth (``distance_scale``: the factor of least mean absolute error, the median of
-``t / e`` weighted by ``|e|``, so never above the raw error), as monocular odometry benchmarks align scale before
-scoring. It is an oracle no pipeline has: it separates the scale a monocular step cannot see (here the lumen radius
-the tube fit is told) from everything else. ``rotation_only``
-scores the roll and tilt of the steps that measured only their rotation (status ``rotation``), which are not in
-the coverage. Steps without an estimate are counted, never scored as zero.
+Table 4.1 figures: mean true value and mean absolute error per step of the distance travelled (cm), the roll (deg) and
+the tilt (deg, the angle between consecutive optical axes: ``|tilt_est - tilt_true|``). Beside them: the error of the
+tilt as a vector (pitch, yaw: the swing rotation's x, y components), which also checks its direction, and the coverage
+(steps measured from their own pair: status ``ok`` or ``wall``; ``coverage_with_bridged`` also counts the shares of
+bridged gaps). Errors are over the measured steps; the ``ft_only`` block restricts them to steps whose two frames are
+both labelled FT (facing the tunnel) by the truth, ``wall_only`` to the steps the pipeline estimated although its
+classifier said a frame faces the wall (status ``wall``), ``beside_wall_only`` to the steps whose tube fit put the
+camera beside its own cylinder's wall (``beside_wall``: their 1-sigma widened). Beside the distance error,
+``mae_distance_scale_aligned_cm``: the error left once the run's distances are multiplied by the one factor that fits
+them best to the truth (``distance_scale``: the factor of least mean absolute error, the median of ``t / e`` weighted
+by ``|e|``, so never above the raw error), as monocular odometry benchmarks align scale before scoring. It is an
+oracle no pipeline has: it separates the scale a monocular step cannot see (here the lumen radius the tube fit is
+told) from everything else. ``rotation_only`` scores the roll and tilt of the steps that measured only their rotation
+(status ``rotation``), which are not in the coverage. Steps without an estimate are counted, never scored as zero.
 """
 
 from __future__ import annotations

@@ -1224,9 +1224,9 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
             ["duration", f"{duration_text(sm['duration_s'])} at {sm['frame_rate_hz']:g} frames/s"],
             ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"],
             ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())
-             + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or across "
-                "the view (a folded or collapsed lumen: motion kept, wider 1-sigma)" if sm["steps_beside_wall"]
-                else "")],
+             + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or "
+                "across the view (a folded or collapsed lumen: motion kept, wider 1-sigma)"
+                if sm["steps_beside_wall"] else "")],
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],

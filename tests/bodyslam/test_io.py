@@ -73,10 +73,10 @@ def test_motion_csv_keeps_a_fit_beside_the_wall_and_reads_files_without_the_colu
     """``beside_wall`` (StepMotion.beside_wall, odometry.BESIDE_WALL_RADII) goes through motion.csv as 0 / 1; a file
     written before the column existed, or by another tool, reads as not beside the wall; any other cell is refused
     with its file and line."""
+    from dataclasses import replace
+
     from bodyslam.io import read_motion_steps, write_motion_csv
     from bodyslam.steps import motion_from_transform
-
-    from dataclasses import replace
 
     s = motion_from_transform(Rotation.from_rotvec([0.0, 0.0, 0.1]), [0.0, 0.0, 0.002], 40, 1e-3, 0.01)
     write_motion_csv(tmp_path / "m.csv", [1, 2], [0.5, 1.0], [replace(s, beside_wall=True), s])
