@@ -237,6 +237,31 @@ def _rotation_summary(blocks: list[dict]) -> dict:
     return out
 
 
+def _beside_wall_summary(blocks: list[dict], n_measured: int) -> dict:
+    """The seeds' ``beside_wall_only`` blocks (:func:`testbed.score.score_motion`: steps whose tube fit put the
+    camera beside its own cylinder's wall) as one, step-weighted, with their share of the ``n_measured`` steps
+    measured from their own pair."""
+    blocks = [b for b in blocks if b.get("n_steps_scored")]
+    n = sum(b["n_steps_scored"] for b in blocks)
+    out = {"n_steps_scored": n, "share_of_measured": n / n_measured if n_measured else 0.0}
+    for k in ("mae_distance_cm", "mae_roll_deg", "mae_tilt_deg", "distance_within_1sigma", "rotation_within_68pct"):
+        have = [b for b in blocks if k in b]
+        if have:
+            out[k] = sum(b[k] * b["n_steps_scored"] for b in have) / sum(b["n_steps_scored"] for b in have)
+    return out
+
+
+def _beside_wall_html(bw: dict) -> str:
+    """The report page's line on the steps fitted beside the wall ("" when there are none)."""
+    if not bw.get("n_steps_scored"):
+        return ""
+    return (f"<p>Steps fitted beside the wall of their own tube (beside_wall: motion kept, 1-sigma widened): "
+            f"{bw['n_steps_scored']} ({bw['share_of_measured']:.0%} of the measured), distance error "
+            f"{bw['mae_distance_cm']:.4f} cm, roll {bw['mae_roll_deg']:.2f} deg, tilt {bw['mae_tilt_deg']:.2f} deg"
+            + (f"; inside their 1-sigma: {bw['distance_within_1sigma']:.0%}" if "distance_within_1sigma" in bw
+               else "") + ".</p>")
+
+
 def _rotation_html(rot: dict) -> str:
     """The report page's line on the steps with only their rotation measured ("" when there are none)."""
     if not rot.get("n_steps_scored"):
@@ -317,6 +342,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     per_seed, errs, pcrbs, motion, timing, eff = [], {a: [] for a in ALGORITHMS}, [], [], [], []
     step_counts: dict[str, int] = {}
     rot_blocks: list[dict] = []
+    beside_blocks: list[dict] = []
     paths: list[dict] = []
     cons: dict[str, list] = {}
     orient: dict[str, list] = {}
@@ -339,6 +365,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         sm_eff.append(res["smoothing_bound_mean_error_m"])
         motion.append(res["motion"]["all"])
         rot_blocks.append(res["motion"].get("rotation_only", {}))
+        beside_blocks.append(res["motion"].get("beside_wall_only", {}))
         paths.append(res["path_travelled"])
         for st, c in res["motion"]["status_counts"].items():
             step_counts[st] = step_counts.get(st, 0) + c
@@ -385,6 +412,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         # measured from the pair (ok, wall), with the bridged gaps' shares, and with the rotation steps
         "step_status_counts": dict(sorted(step_counts.items())),
         "rotation_steps": _rotation_summary(rot_blocks),
+        "beside_wall_steps": _beside_wall_summary(beside_blocks, sum(m.get("n_steps_scored", 0) for m in motion)),
         **{f"steps_{name}_frac": sum(step_counts.get(k, 0) for k in which) / max(sum(step_counts.values()), 1)
            for name, which in (("measured", MEASURED), ("with_estimate", WITH_ESTIMATE),
                                ("with_rotation", WITH_ROTATION))},
@@ -514,6 +542,7 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
                + ", ".join(f"{k} {v}" for k, v in report["step_status_counts"].items()) + ".</p>"
                if "step_status_counts" in report else "")
             + _rotation_html(report.get("rotation_steps", {}))
+            + _beside_wall_html(report.get("beside_wall_steps", {}))
             + _path_html(report.get("path_travelled"))
             + view_html + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "

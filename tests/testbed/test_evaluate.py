@@ -226,3 +226,20 @@ def test_orientation_consistency_takes_the_error_in_the_filters_camera_frame():
     assert np.allclose(got["camera_x"]["orientation_nees"], 100.0) and not got["camera_x"]["orientation_inside_68"].any()
     assert np.allclose(got["world_x"]["orientation_nees"], 0.04) and got["world_x"]["orientation_inside_68"].all()
     assert np.allclose(got["loose"]["orientation_nees"], [1.0, 1.0, 1.0, 0.0])
+
+
+def test_steps_beside_the_wall_are_summed_over_seeds_by_their_count():
+    """The seeds' beside-the-wall blocks become one, step-weighted, with their share of the measured steps; the
+    report page states it, and says nothing where no step was fitted beside the wall."""
+    from testbed.evaluate import _beside_wall_html, _beside_wall_summary
+
+    a = {"n_steps_scored": 30, "mae_distance_cm": 0.08, "mae_roll_deg": 0.5, "mae_tilt_deg": 1.5,
+         "distance_within_1sigma": 0.7}
+    b = {"n_steps_scored": 10, "mae_distance_cm": 0.12, "mae_roll_deg": 0.3, "mae_tilt_deg": 2.5,
+         "distance_within_1sigma": 0.9}
+    bw = _beside_wall_summary([a, b, {"n_steps_scored": 0}], 160)
+    assert bw["n_steps_scored"] == 40 and bw["share_of_measured"] == pytest.approx(0.25)
+    assert bw["mae_distance_cm"] == pytest.approx((30 * 0.08 + 10 * 0.12) / 40)
+    assert bw["distance_within_1sigma"] == pytest.approx(0.75) and "rotation_within_68pct" not in bw
+    assert "40 (25% of the measured), distance error 0.0900 cm" in _beside_wall_html(bw)
+    assert _beside_wall_html(_beside_wall_summary([], 100)) == ""
