@@ -219,6 +219,13 @@ def _measured_step_noise(steps, gt, grot) -> tuple[np.ndarray, np.ndarray]:
     return sig_t, sig_r
 
 
+def _step_weighted(blocks: list[dict], key: str) -> float | None:
+    """The mean of ``key`` over the seeds' score blocks that have it, weighted by their steps (None: none has it)."""
+    have = [b for b in blocks if key in b and b.get("n_steps_scored")]
+    n = sum(b["n_steps_scored"] for b in have)
+    return sum(b[key] * b["n_steps_scored"] for b in have) / n if n else None
+
+
 def _rotation_summary(blocks: list[dict]) -> dict:
     """The seeds' ``rotation_only`` blocks (:func:`testbed.score.score_motion`) as one: step-weighted means."""
     blocks = [b for b in blocks if b.get("n_steps_scored")]
@@ -227,13 +234,12 @@ def _rotation_summary(blocks: list[dict]) -> dict:
         return {"n_steps_scored": 0}
     out = {"n_steps_scored": n}
     for k in ("mean_true_roll_deg", "mae_roll_deg", "mean_true_tilt_deg", "mae_tilt_deg"):
-        out[k] = sum(b[k] * b["n_steps_scored"] for b in blocks) / n
+        out[k] = _step_weighted(blocks, k)
     out["rms_roll_error_deg"] = float(np.sqrt(sum(b["rms_roll_error_deg"] ** 2 * b["n_steps_scored"]
                                                   for b in blocks) / n))
-    stated = [b for b in blocks if "rotation_within_68pct" in b]  # the steps that state a rotation 1-sigma
-    if stated:
-        out["rotation_within_68pct"] = (sum(b["rotation_within_68pct"] * b["n_steps_scored"] for b in stated)
-                                        / sum(b["n_steps_scored"] for b in stated))
+    stated = _step_weighted(blocks, "rotation_within_68pct")  # over the steps that state a rotation 1-sigma
+    if stated is not None:
+        out["rotation_within_68pct"] = stated
     return out
 
 
@@ -241,13 +247,12 @@ def _beside_wall_summary(blocks: list[dict], n_measured: int) -> dict:
     """The seeds' ``beside_wall_only`` blocks (:func:`testbed.score.score_motion`: steps whose tube fit put the
     camera beside its own cylinder's wall) as one, step-weighted, with their share of the ``n_measured`` steps
     measured from their own pair."""
-    blocks = [b for b in blocks if b.get("n_steps_scored")]
-    n = sum(b["n_steps_scored"] for b in blocks)
+    n = sum(b.get("n_steps_scored", 0) for b in blocks)
     out = {"n_steps_scored": n, "share_of_measured": n / n_measured if n_measured else 0.0}
     for k in ("mae_distance_cm", "mae_roll_deg", "mae_tilt_deg", "distance_within_1sigma", "rotation_within_68pct"):
-        have = [b for b in blocks if k in b]
-        if have:
-            out[k] = sum(b[k] * b["n_steps_scored"] for b in have) / sum(b["n_steps_scored"] for b in have)
+        v = _step_weighted(blocks, k)
+        if v is not None:
+            out[k] = v
     return out
 
 
