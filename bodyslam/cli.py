@@ -103,6 +103,9 @@ def _parser() -> argparse.ArgumentParser:
         q.add_argument("--no-rescue", action="store_true",
                        help="fast mode: do not try SIFT on the full frame where tracking and the smaller detections "
                             "fail (faster on fast motion, fewer steps estimated)")
+        q.add_argument("--no-lumen-scale", action="store_true",
+                       help="tube estimator: keep the radius prior's scale instead of rescaling the steps by the "
+                            "lumen's scale seen in a sample of them (a tube with one contraction ring; README)")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
                        help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
@@ -227,7 +230,8 @@ def _motion_settings(args):
                           mask=getattr(args, "mask", None) if args.cmd != "batch" else None,
                           classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps,
                           wall_steps="drop" if args.drop_wall_steps else "estimate",
-                          rotation_steps=not args.no_rotation_steps, rescue=not args.no_rescue)
+                          rotation_steps=not args.no_rotation_steps, rescue=not args.no_rescue,
+                          lumen_scale=not args.no_lumen_scale)
 
 
 def _print_problems(problems: list, limit: int = 20) -> int:
@@ -540,6 +544,7 @@ def _localize(args) -> int:
     prepare_output_dir(args.out, args.force, create=False)  # refused now, not after the work
     problems: list = []
     fov: list = []
+    scale: list = []
     if args.motion:  # the steps are given: meta.json is all that is read of the sequence (no frames needed)
         if args.radius_m is not None and not (math.isfinite(args.radius_m) and args.radius_m > 0):
             raise ConfigError(f"lumen radius must be a positive number of metres, got {args.radius_m!r}")
@@ -552,7 +557,8 @@ def _localize(args) -> int:
         seq = Sequence.open(seq_dir, args.radius_m)
         n, rate, radius_sd_rel, radius_m = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel, seq.radius_m
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
-                                progress=Progress("motion"), problems=problems, fov_used=fov)
+                                progress=Progress("motion"), problems=problems, fov_used=fov,
+                                lumen_scale_used=scale)
     frames = np.arange(n)
     stamps = frames / rate
     loc = localize(steps, stamps, rf, rate, frames, mode=args.fusion, radius_sd_rel=radius_sd_rel,
@@ -574,6 +580,8 @@ def _localize(args) -> int:
           f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate "
           f"({sum(s.has_rotation and not s.has_estimate for s in steps)} of them with their rotation); "
           f"{len(loc.rf_problems)} RF line(s) skipped")
+    if scale:
+        print(f"  {_lumen_scale_text(scale[0])}")
     if loc.rss_bias_db is not None:
         mean = loc.rss_bias_db.mean(axis=0)
         j = int(np.argmax(np.abs(mean)))
@@ -610,12 +618,14 @@ def _batch(args) -> int:
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
-              f"({steps.get('wall', 0)} facing the wall, {s['steps_beside_wall']} fitted beside the wall, "
-              f"{steps.get('bridged', 0)} bridged; "
+              f"({steps.get('wall', 0)} facing the wall, "
+              + (f"{s['steps_beside_wall']} fitted beside the wall, " if s["steps_beside_wall"] else "")
+              + f"{steps.get('bridged', 0)} bridged; "
               f"{steps.get('rotation', 0)} more with only their rotation; {steps.get('lost', 0)} lost to fast "
               f"motion), path "
               f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "
               f"{s['problems']} problem(s)")
+        print(f"  {_lumen_scale_text(s['lumen_scale'])}")
         for a in s["assumed"]:
             print(f"  assumed {a}")
         if s.get("video_ended_at") is not None:
@@ -720,8 +730,10 @@ def _motion_or_track(args) -> int:
     check_writable(args.out)
     problems: list = []
     fov: list = []
+    scale: list = []
     steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
-                            progress=Progress(args.cmd), camera=args.camera, problems=problems, fov_used=fov)
+                            progress=Progress(args.cmd), camera=args.camera, problems=problems, fov_used=fov,
+                            lumen_scale_used=scale)
     counts = Counter(str(s.status) for s in steps)
     stamps = np.arange(len(steps) + 1) / seq.frame_rate_hz
     if args.cmd == "motion":
@@ -736,7 +748,15 @@ def _motion_or_track(args) -> int:
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}"
           + (f"; {beside} of them fitted beside the wall, wider 1-sigma" if beside else "") + "); "
           f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
+    print(f"  {_lumen_scale_text(scale[0])}")
     return _print_problems(problems)
+
+
+def _lumen_scale_text(sc: dict | None) -> str:
+    """One line on the lumen scale a run applied (bodyslam.vision.lumen_scale)."""
+    from bodyslam.vision.lumen_scale import lumen_scale_text
+
+    return f"lumen scale: {lumen_scale_text(sc)}"
 
 
 def _check(args) -> int:

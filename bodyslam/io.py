@@ -276,7 +276,10 @@ MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad"
                   # vector of R_c1_c2) and its 1-sigma uncertainties, so fusion can run from the file alone
                   "tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad",
                   # 1 where the tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall)
-                  "beside_wall"]
+                  "beside_wall",
+                  # the step's length under a ringed tube over the cylinder's, where the lumen's scale was measured
+                  # (StepMotion.ring_ratio, bodyslam.vision.lumen_scale); empty elsewhere
+                  "ring_ratio"]
 _FULL_STEP = ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad")
 
 
@@ -286,7 +289,7 @@ def motion_row(frame: int, t_s: float, s: StepMotion) -> list:
     rv = matrix_to_rotvec(s.R_c1_c2) if s.R_c1_c2 is not None else np.full(3, np.nan)
     return [int(frame), float(t_s), float(s.distance_m), float(s.roll_rad), float(s.pitch_rad), float(s.yaw_rad),
             float(s.tilt_rad), int(s.n_matches), str(s.status), *map(float, t), *map(float, rv),
-            float(s.sigma_distance_m), float(s.sigma_rotation_rad), int(s.beside_wall)]
+            float(s.sigma_distance_m), float(s.sigma_rotation_rad), int(s.beside_wall), float(s.ring_ratio)]
 
 
 def write_motion_csv(path: str | os.PathLike, frames: Sequence[int], stamps_s: Sequence[float],
@@ -307,7 +310,7 @@ def step_from_row(row: dict) -> StepMotion:
         t = np.array(vals[:3], float)
     return StepMotion(row["distance_m"], row["roll_rad"], row["pitch_rad"], row["yaw_rad"], row["tilt_rad"],
                       int(row.get("n_matches", 0)), row["status"], R, t, vals[6], vals[7],
-                      bool(row.get("beside_wall", False)))
+                      bool(row.get("beside_wall", False)), float(row.get("ring_ratio", math.nan)))
 
 
 def read_motion_steps(path: str | os.PathLike, frames: Sequence[int]) -> list[StepMotion]:
@@ -442,5 +445,12 @@ def motion_values(row: dict, where: str = "motion row") -> tuple[int, dict[str, 
     if cell not in (None, "", "0", "1"):
         raise InputError(f"{where}: beside_wall {cell!r} is not 0 or 1")
     vals["beside_wall"] = cell == "1"
+    cell = row.get("ring_ratio")
+    try:  # empty (or nan) where the step was not in the lumen scale's sample
+        vals["ring_ratio"] = float(cell) if cell not in (None, "") else math.nan
+    except ValueError:
+        raise InputError(f"{where}: ring_ratio {cell!r} is not a number") from None
+    if not (math.isnan(vals["ring_ratio"]) or 0 < vals["ring_ratio"] < math.inf):
+        raise InputError(f"{where}: ring_ratio {cell!r} is not a positive number")
     vals["label"] = row.get("label") or ""
     return k, vals

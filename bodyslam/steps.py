@@ -123,6 +123,9 @@ class StepMotion:
     # the tube fit put the camera beside the wall of its own cylinder or ran its axis across the view: the motion is
     # kept, its 1-sigma widened (bodyslam.vision.odometry.BESIDE_WALL_RADII); motion.csv's ``beside_wall`` column
     beside_wall: bool = False
+    # the step's length under a tube with one contraction ring over its length under the cylinder, on the steps the
+    # exam's lumen scale is measured on (bodyslam.vision.lumen_scale; NaN elsewhere); motion.csv's ``ring_ratio``
+    ring_ratio: float = NAN
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", StepStatus(self.status))  # also refuses an unknown status

@@ -107,6 +107,7 @@ DEFAULT_SHAPE_SD_REL = 0.13
 DEFAULT_FPS = 2.0
 MAX_FRAME_RANGE = 10_000_000  # a frame range (``--mark 100-200``) longer than any exam is a typing error
 _SIGMA_D = MOTION_COLUMNS.index("sigma_distance_m")
+_DISTANCE, _TX = MOTION_COLUMNS.index("distance_m"), MOTION_COLUMNS.index("tx_m")
 
 
 # -- exams ------------------------------------------------------------------------------------------------------
@@ -687,7 +688,8 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                 done_frames += b - a + (a == 0)
                 continue
             tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "source": src.subset(a, b),
-                          "camera": e.camera, "radius_m": e.radius_m, "settings": settings.motion, "mask": mask})
+                          "camera": e.camera, "radius_m": e.radius_m, "settings": settings.motion, "mask": mask,
+                          "ring_every": _ring_every(e, settings)})
     if not usable:
         raise InputError(f"no exam of the study could be processed: {study_problems[-1][-1]}")
     if reused:
@@ -714,6 +716,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
             if stage:
                 stage(f"{e.name}: bridging gaps between estimated steps")
             _bridge_exam(e, out / e.name, settings, masks[e.name], jobs, scheduler)
+            _lumen_scale_exam(e, out / e.name, settings)
         phases["bridges"] = round(time.monotonic() - t0, 3)
         # the k-step checks of the per-step 1-sigma run on the workers while this process finalizes each exam: they
         # add one entry to its summary, and the serial end is what limits many workers (docs/RESULTS.md, session 32)
@@ -859,6 +862,32 @@ def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, sched
                        encoding="utf-8")
 
 
+def _ring_every(exam: Exam, settings: BatchSettings) -> int:
+    """Which of the exam's steps measure its lumen scale (:func:`bodyslam.vision.lumen_scale.ring_every`; 0: none,
+    where it is not measured, :func:`bodyslam.vision.odometry.lumen_scale_measured`)."""
+    from bodyslam.vision.lumen_scale import ring_every
+    from bodyslam.vision.odometry import lumen_scale_measured
+
+    return ring_every(exam.n_positions) if lumen_scale_measured(settings.motion, exam.radius_sd_rel) else 0
+
+
+def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
+    """The exam's lumen scale from its chunks' ring ratios (``lumen_scale.json``: the summary of
+    :func:`bodyslam.vision.lumen_scale.lumen_scale_summary`, or None where it is not measured); every step with a
+    pose is rescaled by it as the outputs read them (:func:`_exam_rows`). Cheap: written again on every run."""
+    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary
+    from bodyslam.vision.odometry import lumen_scale_measured
+
+    every = _ring_every(exam, settings)
+    res = None
+    if lumen_scale_measured(settings.motion, exam.radius_sd_rel):
+        i = MOTION_COLUMNS.index("ring_ratio")
+        factor, samples = exam_scale(float(row[i]) for row in _step_rows(d) if len(row) > i)
+        res = lumen_scale_summary(factor, samples, every, exam.radius_m)
+    with atomic_path(d / "lumen_scale.json") as tmp:
+        tmp.write_text(json.dumps({"lumen_scale": res}), encoding="utf-8")
+
+
 def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
     """The k-step check of the per-step 1-sigma (:func:`bodyslam.vision.odometry.step_consistency`: up to 30
     three-frame pairs spread over the exam, each estimated straight and against its single steps); a checkpoint
@@ -883,9 +912,12 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
     the step into the frame as its ``motion.csv`` row and :class:`~bodyslam.steps.StepMotion` (None for the first
     frame), its gap's bridge applied and the lumen's uncertainty in its 1-sigma. ``info``: its ``problems`` list
     gets the chunks' problems, ``eof`` the frame a video ended at."""
+    from bodyslam.vision.lumen_scale import rescaled
     from bodyslam.vision.odometry import with_lumen_uncertainty
 
     bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
+    sc = (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get("lumen_scale")
+    factor = sc["factor"] if sc else 1.0
     rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
     item = 0
     for ch in _iter_chunks(d):
@@ -899,6 +931,11 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
                 step = step[:2] + bridged[str(item)][2:]
             item += 1
             s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
+            if factor != 1.0 and s.has_estimate:  # the exam's lumen scale (lumen_scale.json)
+                s = rescaled(s, factor)
+                step = list(step)
+                step[_DISTANCE], step[_SIGMA_D] = s.distance_m, s.sigma_distance_m
+                step[_TX:_TX + 3] = map(float, s.t_c1_c2_m)
             if (rel > 0 or shape > 0) and s.has_estimate:  # the lumen's uncertainty in the step's 1-sigma
                 s = with_lumen_uncertainty([s], rel, shape)[0]
                 step = list(step)
@@ -992,6 +1029,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                "rss_error_correlation": None if fused is None else fused["channel"],
                # the lumen radius the fusion's scale state implies along the exam (radius * (1 + s), smoothed)
                "lumen_radius_estimate_m": None if fused is None else fused["radius"],
+               # the scale the steps were rescaled by, seen in the images (bodyslam.vision.lumen_scale)
+               "lumen_scale": (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get("lumen_scale"),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
                "lumen_shape_sd_rel": exam.shape_sd_rel,
@@ -1028,13 +1067,16 @@ def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarr
     return np.vstack([pos_m[:1], pos_m[0] + np.cumsum(dp, axis=0)])
 
 
-def _radius_estimate(exam: Exam, fused) -> dict | None:
+def _radius_estimate(exam: Exam, fused, lumen_scale: dict | None = None) -> dict | None:
+    """The lumen radius the fusion's scale state implies along the exam: the radius the steps amount to (the
+    prior's, times the lumen scale they were rescaled by) times ``1 + s``."""
     s = None if fused is None else fused.smoothed.scale
     if s is None:
         return None
-    r = exam.radius_m * (1.0 + s)
+    radius = exam.radius_m * (lumen_scale["factor"] if lumen_scale else 1.0)
+    r = radius * (1.0 + s)
     return {"median": float(np.median(r)), "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)),
-            "median_1sigma": float(exam.radius_m * np.median(fused.smoothed.scale_sd))}
+            "median_1sigma": float(radius * np.median(fused.smoothed.scale_sd))}
 
 
 def _csv_cells(row: list) -> list:
@@ -1096,7 +1138,8 @@ def _fuse_task(task: dict) -> dict:
         "sd_heading": np.sqrt(np.trace(sm.cov[:, 3:, 3:], axis1=1, axis2=2)),
         "channel": ({**loc.channel.as_dict(), "kappa_smoothed_mean": round(float(np.mean(loc.kappa_smoothed)), 3)}
                     if loc.channel else None),
-        "radius": _radius_estimate(exam, loc)}}
+        "radius": _radius_estimate(exam, loc, (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get(
+            "lumen_scale"))}}
 
 
 def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list, settings: BatchSettings,
@@ -1205,6 +1248,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
     from bodyslam.plots import Mark, Path3D
     from bodyslam.report import table, view_3d, write_page
     from bodyslam.steps import LOST_STEP_FLOOR_R, MISSING_STEP_REL_SD
+    from bodyslam.vision.lumen_scale import lumen_scale_text
 
     if len(t) < 2:
         return
@@ -1229,7 +1273,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                 if sm["steps_beside_wall"] else "")],
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
             ["trajectory", sm["trajectory"]],
-            ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the visual scale)"],
+            ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the prior)"],
+            ["lumen scale seen in the frames", lumen_scale_text(sm.get("lumen_scale"))],
             ["lumen shape", f"steps +- {exam.shape_sd_rel:.0%} (1-sigma) for a lumen that is not a cylinder"
              if exam.shape_sd_rel > 0 else "a cylinder (each step's 1-sigma has no shape share)"],
             ["steps measured by", sm["vision"]],

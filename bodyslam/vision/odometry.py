@@ -123,6 +123,8 @@ class MotionSettings:
     #                              guided matching when it can (status rotation; bodyslam.vision.guided)
     rescue: bool = True  # fast mode: where tracking and the smaller detections fail, SIFT on the full frame
     #                      (bodyslam.vision.matching, "rescue"); off: such a step fails as before session 24
+    lumen_scale: bool = True  # tube estimator: the exam's steps rescaled by the lumen's scale seen in a sample of
+    #                           them (bodyslam.vision.lumen_scale); off: the radius prior's scale, as to session 37
 
     def __post_init__(self) -> None:
         for name, allowed in (("match_mode", MATCH_MODES), ("estimator", ESTIMATORS), ("unroll_mode", UNROLL_MODES)):
@@ -201,7 +203,7 @@ class VisualOdometry:
         return estimate_thesis(m, self.unroller, self.radius_m, min_matches=self.settings.min_matches), None
 
     def estimate_pair(self, f1, f2, estimator: str | None = None, rotation: bool = True,
-                      ahead: bool = False) -> StepMotion:
+                      ahead: bool = False, ring: bool = False) -> StepMotion:
         """Match two frames' features and estimate the step from the first matches of the matcher's cascade
         (:meth:`~bodyslam.vision.matching.Matcher.cascade`) the estimate succeeds on: in fast mode tracking, then
         coarse descriptors, then descriptors, then the full-frame rescue, so the cheap tries never cost coverage. A
@@ -215,7 +217,8 @@ class VisualOdometry:
         :data:`BESIDE_WALL_RADII`) or, with ``ahead`` (both frames were classified facing the tunnel), its axis more
         than :data:`ACROSS_TILT_RAD` off the view gets :data:`BESIDE_WALL_SIGMA_RADII` lumen radii in its 1-sigma
         distance and its rotation's 1-sigma times :data:`BESIDE_WALL_ROTATION_FACTOR`, and says so (``beside_wall``).
-        The step is in the body frame
+        ``ring``: a fitted step also gets its ``ring_ratio`` (:func:`bodyslam.vision.lumen_scale.ring_distance_ratio`,
+        the exam's lumen scale is measured on such steps). The step is in the body frame
         (:meth:`to_body`)."""
         from bodyslam.vision.motion import axis_tilt_rad, camera_off_axis_radii
 
@@ -224,6 +227,10 @@ class VisualOdometry:
             s, x = self._fit(m, estimator)
             if s.ok:
                 break
+        if ring and s.ok and x is not None:
+            from bodyslam.vision.lumen_scale import ring_distance_ratio
+
+            s = replace(s, ring_ratio=ring_distance_ratio(m.pts1_px, m.pts2_px, self.camera, self.radius_m, x))
         if s.ok and x is not None and (camera_off_axis_radii(x, self.radius_m) > BESIDE_WALL_RADII
                                        or (ahead and axis_tilt_rad(x) > ACROSS_TILT_RAD)):
             s = replace(s, sigma_distance_m=math.hypot(s.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * self.radius_m),
@@ -253,16 +260,16 @@ class VisualOdometry:
             return rotation_step(R, s.n_matches, s.sigma_rotation_rad)
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
         return replace(motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad, s.status),
-                       beside_wall=s.beside_wall)
+                       beside_wall=s.beside_wall, ring_ratio=s.ring_ratio)
 
-    def estimate_wall(self, f1, f2) -> StepMotion:
+    def estimate_wall(self, f1, f2, ring: bool = False) -> StepMotion:
         """A step touching a frame that faces the wall. The dissertation drops it (its unrolling needs the lumen
         in view, Sec. 3.2.1: status ``no_lumen``, as with ``wall_steps="drop"`` or the thesis estimator); the tube
         fit does not need the lumen in view, only the wall, so by default it is estimated (status ``wall``) with
         its 1-sigma times :data:`WALL_SIGMA_FACTOR`. A failed fit keeps its own reason."""
         if self.settings.wall_steps == "drop" or self.settings.estimator != "tube":
             return StepMotion.failed(StepStatus.NO_LUMEN)
-        s = self.estimate_pair(f1, f2)
+        s = self.estimate_pair(f1, f2, ring=ring)
         if not s.ok:
             return s
         return replace(s, status=StepStatus.WALL, sigma_distance_m=s.sigma_distance_m * WALL_SIGMA_FACTOR,
@@ -281,8 +288,10 @@ class VisualOdometry:
         return str(self.classifier.predict(frame_features(img, self.fov, work_px=self.work_px)[None])[0]), status
 
     # -- a range of frames ------------------------------------------------------------------------------------
-    def run(self, frames: Iterable[Frame], first: int) -> ChunkResult:
-        """Records and steps of the frames at positions ``first ..`` (module docstring)."""
+    def run(self, frames: Iterable[Frame], first: int, ring_every: int = 0) -> ChunkResult:
+        """Records and steps of the frames at positions ``first ..`` (module docstring). ``ring_every``: the
+        fitted steps into positions divisible by it get their ``ring_ratio`` (the exam's lumen scale sample,
+        :func:`bodyslam.vision.lumen_scale.ring_every`; 0: none)."""
         cam = self.camera
         out = ChunkResult([], [], [])
         prev = None  # (features or None, class, frame status)
@@ -305,14 +314,15 @@ class VisualOdometry:
                 out.problems.extend([fr.path, fr.index, sev, reason] for sev, reason in notes)
                 out.frames.append([fr.index, fr.label, fr.t_s, cls, status])
             if fr.pos > first:
+                ring = ring_every > 0 and fr.pos % ring_every == 0
                 if prev is None or prev[0] is None or feats is None:
                     s = StepMotion.failed(StepStatus.BAD_FRAME)
                 elif self.classifier is not None and (prev[2] != "ok" or status != "ok"):
                     s = StepMotion.failed(StepStatus.NO_LUMEN)  # a dark or saturated frame: nothing to fit
                 elif self.classifier is not None and (prev[1] != "FT" or cls != "FT"):
-                    s = self.estimate_wall(prev[0], feats)
+                    s = self.estimate_wall(prev[0], feats, ring=ring)
                 else:  # both frames face the tunnel where they were classified
-                    s = self.estimate_pair(prev[0], feats, ahead=self.classifier is not None)
+                    s = self.estimate_pair(prev[0], feats, ahead=self.classifier is not None, ring=ring)
                 out.steps.append((fr.pos, fr.index, fr.t_s, s))
             prev = (feats, cls, status)
         return out
@@ -353,7 +363,7 @@ def chunk_task(task: dict) -> ChunkResult:
     set_worker_threads()
     vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
     src: FrameSource = task["source"]
-    return vo.run(src.read(task["first"], task["last"]), task["first"])
+    return vo.run(src.read(task["first"], task["last"]), task["first"], task.get("ring_every", 0))
 
 
 def bridge_task(task: dict) -> StepMotion | None:
@@ -629,12 +639,18 @@ def chunk_bounds(n: int, size: int) -> list[tuple[int, int]]:
 def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = MotionSettings(),
                     jobs: int | None = None, radius_m: float | None = None, chunk_frames: int = 50,
                     progress: Callable[[int, int], None] | None = None, camera: str = "front",
-                    problems: list | None = None, fov_used: list | None = None) -> list[StepMotion]:
+                    problems: list | None = None, fov_used: list | None = None,
+                    lumen_scale_used: list | None = None) -> list[StepMotion]:
     """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order), gaps
-    bridged. ``camera="rear"``: a dual-camera capsule's rear frames, reported as the body's motion.
-    ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame; ``fov_used``: one that
-    receives the field-of-view mask the run used (None: the image circle; :func:`write_mask` writes it)."""
+    bridged, rescaled by the lumen's scale seen in a sample of them where the radius is a prior
+    (:func:`lumen_scale_measured`, :mod:`bodyslam.vision.lumen_scale`). ``camera="rear"``: a dual-camera capsule's rear frames, reported as the
+    body's motion. ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame;
+    ``fov_used``: one that receives the field-of-view mask the run used (None: the image circle; :func:`write_mask`
+    writes it); ``lumen_scale_used``: one that receives the scale's summary
+    (:func:`~bodyslam.vision.lumen_scale.lumen_scale_summary`), or None where it was not measured."""
     from bodyslam.parallel import imap_tasks
+    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary, rescaled
+    from bodyslam.vision.lumen_scale import ring_every as sample_every
 
     seq = Sequence.open(seq_dir, radius_m, camera)
     n = seq.n_frames
@@ -644,7 +660,10 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     if fov_used is not None:
         fov_used.append(mask)
     base = seq.task_base(settings, mask)
-    tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b) for a, b in chunk_bounds(n, chunk_frames)]
+    measure = lumen_scale_measured(settings, seq.radius_sd_rel)
+    every = sample_every(n) if measure else 0
+    tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b, ring_every=every)
+             for a, b in chunk_bounds(n, chunk_frames)]
     steps: list[StepMotion] = []
     for res in imap_tasks(chunk_task, tasks, jobs):
         for _, _, _, s in res.steps:
@@ -657,7 +676,22 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             progress(len(steps), n - 1)
     for i, s in bridge_gaps(steps, settings, base, jobs).items():
         steps[i] = s
+    if measure:
+        factor, samples = exam_scale(s.ring_ratio for s in steps)
+        log.info("lumen scale: %.3f from %d ring ratios (every %d-th step)", factor, samples, every)
+        steps = [rescaled(s, factor) for s in steps]
+        if lumen_scale_used is not None:
+            lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m))
+    elif lumen_scale_used is not None:
+        lumen_scale_used.append(None)
     return with_lumen_uncertainty(steps, seq.radius_sd_rel, seq.shape_sd_rel)
+
+
+def lumen_scale_measured(settings: MotionSettings, radius_sd_rel: float) -> bool:
+    """Whether an exam's steps are rescaled by the lumen scale seen in them (:mod:`bodyslam.vision.lumen_scale`):
+    with the tube estimator, where the settings ask for it and the radius is a prior (``radius_sd_rel > 0``); a
+    radius known exactly (the ideal testbed's, or one given on the command line) is the scale."""
+    return settings.lumen_scale and settings.estimator == "tube" and radius_sd_rel > 0
 
 
 def with_lumen_uncertainty(steps: list[StepMotion], radius_sd_rel: float,

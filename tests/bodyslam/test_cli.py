@@ -102,6 +102,9 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
     assert p.returncode == 0, p.stderr
     summary = json.loads((tmp_path / "b" / "demo_seed0" / "summary.json").read_text())
     assert "bias states" in summary["trajectory"], summary["trajectory"]
+    # the count of fits beside the wall is printed where there are any (the ideal demo tube has none: no noise)
+    assert ("fitted beside the wall" in p.stdout) == (summary["steps_beside_wall"] > 0), p.stdout
+    assert "steps estimated" in p.stdout
     assert (tmp_path / "b" / "demo_seed0" / "rss_bias.csv").is_file()
     p = run("batch", str(DEMO / "frames"), "--out", str(tmp_path / "b2"), "--jobs", "1")
     assert p.returncode == 0, p.stderr

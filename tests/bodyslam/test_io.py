@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -75,20 +77,46 @@ def test_motion_csv_keeps_a_fit_beside_the_wall_and_reads_files_without_the_colu
     with its file and line."""
     from dataclasses import replace
 
-    from bodyslam.io import read_motion_steps, write_motion_csv
+    from bodyslam.io import MOTION_COLUMNS, read_motion_steps, write_motion_csv
     from bodyslam.steps import motion_from_transform
 
     s = motion_from_transform(Rotation.from_rotvec([0.0, 0.0, 0.1]), [0.0, 0.0, 0.002], 40, 1e-3, 0.01)
     write_motion_csv(tmp_path / "m.csv", [1, 2], [0.5, 1.0], [replace(s, beside_wall=True), s])
-    lines = (tmp_path / "m.csv").read_text().splitlines()
-    assert lines[0].endswith(",beside_wall") and lines[1].endswith(",1") and lines[2].endswith(",0")
+    rows = [ln.split(",") for ln in (tmp_path / "m.csv").read_text().splitlines()]
+    i = MOTION_COLUMNS.index("beside_wall")
+    assert rows[0][i] == "beside_wall" and rows[1][i] == "1" and rows[2][i] == "0"
     a, b = read_motion_steps(tmp_path / "m.csv", [1, 2])
     assert a.beside_wall and not b.beside_wall and a.distance_m == pytest.approx(0.002)
 
-    old = [ln.rsplit(",", 1)[0] for ln in lines]  # the columns before session 37
+    old = [",".join(r[:i]) for r in rows]  # the columns before session 37
     (tmp_path / "old.csv").write_text("\n".join(old) + "\n")
     assert [x.beside_wall for x in read_motion_steps(tmp_path / "old.csv", [1, 2])] == [False, False]
 
-    (tmp_path / "bad.csv").write_text("\n".join([lines[0], lines[1][:-1] + "yes"]) + "\n")
+    rows[1][i] = "yes"
+    (tmp_path / "bad.csv").write_text("\n".join(",".join(r) for r in rows[:2]) + "\n")
     with pytest.raises(InputError, match=r"bad\.csv:2: beside_wall 'yes' is not 0 or 1"):
         read_motion_steps(tmp_path / "bad.csv", [1])
+
+
+def test_motion_csv_keeps_a_steps_ring_ratio(tmp_path):
+    """``ring_ratio`` (StepMotion.ring_ratio, bodyslam.vision.lumen_scale) goes through motion.csv; a step without
+    one, or a file without the column, reads as NaN; a cell that is not a positive number is refused with its file
+    and line."""
+    from dataclasses import replace
+
+    from bodyslam.io import MOTION_COLUMNS, read_motion_steps, write_motion_csv
+    from bodyslam.steps import motion_from_transform
+
+    s = motion_from_transform(Rotation.from_rotvec([0.0, 0.0, 0.1]), [0.0, 0.0, 0.002], 40, 1e-3, 0.01)
+    write_motion_csv(tmp_path / "m.csv", [1, 2], [0.5, 1.0], [replace(s, ring_ratio=0.875), s])
+    a, b = read_motion_steps(tmp_path / "m.csv", [1, 2])
+    assert a.ring_ratio == pytest.approx(0.875) and math.isnan(b.ring_ratio)
+    rows = [ln.split(",") for ln in (tmp_path / "m.csv").read_text().splitlines()]
+    i = MOTION_COLUMNS.index("ring_ratio")
+    (tmp_path / "old.csv").write_text("\n".join(",".join(r[:i]) for r in rows) + "\n")
+    assert all(math.isnan(x.ring_ratio) for x in read_motion_steps(tmp_path / "old.csv", [1, 2]))
+    for cell in ("abc", "-0.5", "0"):
+        rows[1][i] = cell
+        (tmp_path / "bad.csv").write_text("\n".join(",".join(r) for r in rows[:2]) + "\n")
+        with pytest.raises(InputError, match=rf"bad\.csv:2: ring_ratio '{cell}' is not a"):
+            read_motion_steps(tmp_path / "bad.csv", [1])

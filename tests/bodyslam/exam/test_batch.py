@@ -428,3 +428,39 @@ def test_the_summary_counts_the_steps_fitted_beside_the_wall(tmp_path, monkeypat
     assert summary["steps_beside_wall"] == len(flagged) > 0
     assert all(r["status"] in ("ok", "wall") for r in flagged)
     assert f"{len(flagged)} of the estimated steps fitted beside the wall" in (d / "report.html").read_text()
+
+
+def test_the_lumen_scale_rescales_every_step_with_a_pose(tmp_path, monkeypatch):
+    """The exam's lumen scale (bodyslam.vision.lumen_scale), the median of the sampled steps' ring ratios, rescales
+    the translation of every step with a pose in motion.csv and leaves its rotation; summary.json says what was
+    applied. The ratio is fixed here at 0.9 so the check is exact, and the least sample lowered to fit 12 frames."""
+    from dataclasses import replace
+
+    from bodyslam.vision import lumen_scale
+
+    monkeypatch.setattr(lumen_scale, "ring_distance_ratio", lambda *a, **k: 0.9)
+    monkeypatch.setattr(lumen_scale, "RING_MIN_SAMPLES", 2)
+    folder = _plain_folder(tmp_path / "exam", 12)
+    run_batch(open_exams([str(folder)]), tmp_path / "on", FAST, jobs=1)
+    off = replace(FAST, motion=replace(FAST.motion, lumen_scale=False))
+    run_batch(open_exams([str(folder)]), tmp_path / "off", off, jobs=1)
+    on_rows, off_rows = _rows(tmp_path / "on" / "exam" / "motion.csv"), _rows(tmp_path / "off" / "exam" / "motion.csv")
+    sampled = [r for r in on_rows if r["ring_ratio"] != "nan"]
+    every = lumen_scale.ring_every(12)
+    assert every > 0 and len(sampled) >= 2 and all(int(r["frame"]) % every == 0 for r in sampled)
+    assert all(r["ring_ratio"] == "nan" for r in off_rows)
+    n_pose = 0
+    for a, b in zip(on_rows, off_rows):
+        assert a["status"] == b["status"] and a["rx_rad"] == b["rx_rad"] and a["roll_rad"] == b["roll_rad"]
+        if a["status"] in ("ok", "wall", "bridged"):
+            n_pose += 1
+            for c in ("distance_m", "tx_m", "tz_m"):
+                assert float(a[c]) == pytest.approx(0.9 * float(b[c]), rel=1e-7, abs=1e-12)
+        else:
+            assert a["distance_m"] == b["distance_m"]
+    assert n_pose > 5
+    sc = json.loads((tmp_path / "on" / "exam" / "summary.json").read_text())["lumen_scale"]
+    assert sc["factor"] == pytest.approx(0.9) and sc["samples"] == len(sampled) and sc["applied"]
+    assert sc["effective_radius_m"] == pytest.approx(0.9 * json.loads(
+        (tmp_path / "on" / "exam" / "summary.json").read_text())["radius_m"])
+    assert json.loads((tmp_path / "off" / "exam" / "summary.json").read_text())["lumen_scale"] is None

@@ -1,0 +1,219 @@
+"""The lumen's scale seen in the images: a tube with one contraction ring, fitted to a sample of the steps.
+
+Why: the tube fit (:func:`bodyslam.vision.motion.fit_tube`) takes its scale from the radius it is told, a
+population prior on real exams. Where the gut narrows -- a contraction ring, a collapsed lumen -- the wall the
+matches lie on is nearer than that cylinder, and the fit reads it as a cylinder of the prior's radius seen from
+farther away: every step comes out too long, by the same factor along a stretch of gut (on the realistic testbed's
+reporting seeds 18% long on average, the largest part of its per-step distance error). One cylinder cannot see that. A tube whose
+radius narrows in one ring along the axis,
+
+    r(z) = R (1 - A exp(-(z - c)^2 / (2 w^2))),   z the axial distance from the camera, w = RING_WIDTH_RADII R,
+
+(two more unknowns: the ring's depth ``A``, bounded to +-RING_MAX_DEPTH, and its place ``c``; both frames see the
+same wall) explains the same matches better (session 37: robust cost lower by 76 at the median on realistic
+steps) and reads the step shorter where the lumen narrows. Taken step by step it is noisier than the cylinder
+(docs/RESULTS.md, session 37), so it is used only for the *scale*: the ratio of its step length to the cylinder's,
+on a sample of the exam's steps, whose median rescales every step of the exam
+(:func:`exam_scale`; the fusion, the path travelled and motion.csv then carry the rescaled steps).
+
+On the ideal tube (`thesis`) the ring fits nothing and the median ratio is 0.999-1.000 (tuning seed 566; there the
+radius is told exactly, and a known radius is not rescaled: :func:`bodyslam.vision.odometry.lumen_scale_measured`);
+on realistic tuning seeds 562-565 the factors are 0.78-0.96 and the per-step distance error falls 0.076 -> 0.059
+cm, on reporting seeds 700-709 0.068 -> 0.059 cm (docs/RESULTS.md, "The lumen's scale from a contraction ring").
+
+The ray-wall intersection has no closed form here: each ray is stepped along a grid of :data:`RING_GRID` depths
+(denser near the camera) to the first point outside the wall, then refined by two regula-falsi steps. The fit is
+started from the cylinder's solution with the ring at each of :data:`RING_STARTS_RADII` and the lowest robust cost
+kept (its cost has a minimum per place the ring can sit).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from bodyslam.camera import CameraModel
+from bodyslam.geometry import rotvec_to_matrix
+from bodyslam.steps import StepMotion
+
+__all__ = ["RING_EVERY_MIN", "RING_SAMPLES_MAX", "RING_MIN_SAMPLES", "ring_every", "ring_distance_ratio",
+           "exam_scale", "rescaled", "lumen_scale_summary", "lumen_scale_text"]
+
+RING_WIDTH_RADII = 0.7  # the ring's width w (Gaussian sigma along the axis), lumen radii (session 37)
+RING_MAX_DEPTH = 0.6  # |A| bound: the ring closes the lumen by at most 60% (A = 0.6 tanh(a / 0.6))
+RING_DEPTH_SD = 0.3  # the prior on A (about 0): a ring must be seen to be fitted
+RING_PLACE_SD_RADII = 2.0  # the prior on the ring's place about its start, lumen radii
+RING_STARTS_RADII = (1.0, 2.0, 3.5)  # its places tried, lumen radii ahead of the camera
+RING_GRID = 32  # depths per ray for the first wall crossing (32 and 64 gave the same ratios within 1-2%)
+# the sample: every RING_EVERY_MIN-th step at most, and at most ~RING_SAMPLES_MAX in an exam (each fit ~0.2-0.5 s:
+# a whole exam's 64 cost ~half a minute of one core). An exam with fewer than RING_MIN_SAMPLES measured ratios keeps
+# the prior's scale: on realistic tuning seeds one step's ratio scatters by ~0.2 (robust sigma; 0.003 on the ideal
+# tube), so the median of 24 is good to ~5%, against the ~10% it corrects; 8 on the demo clip gave 0.99 forwards and
+# 0.91 played backwards. An exam too short to reach it is not sampled at all.
+RING_EVERY_MIN = 2
+RING_SAMPLES_MAX = 64
+RING_MIN_SAMPLES = 24
+MIN_TUBE_STEP_M = 1e-5  # a step shorter than this has no ratio (0/0)
+
+
+def ring_every(n_positions: int) -> int:
+    """Which steps are sampled: those into positions divisible by this (so the sample is the same whatever the
+    chunking): every :data:`RING_EVERY_MIN`-th, thinned so an exam has at most ~:data:`RING_SAMPLES_MAX`; 0 (none)
+    where the exam is too short to reach :data:`RING_MIN_SAMPLES`."""
+    n = max(int(n_positions), 1)
+    every = max(RING_EVERY_MIN, math.ceil(n / RING_SAMPLES_MAX))
+    return every if (n - 1) // every >= RING_MIN_SAMPLES else 0
+
+
+def _ring_points(P: np.ndarray, b1: np.ndarray, radius: float, max_depth: float, grid: np.ndarray):
+    """Where frame-1 rays ``b1 (n, 3)`` first leave the ringed tube, in frame 2's axes, for parameter vectors
+    ``P (B, 12)`` (the cylinder's 10, then the ring's depth parameter and its place in radii)."""
+    R = rotvec_to_matrix(P[:, 0:3])
+    ax, ay = P[:, 6:7], P[:, 7:8]
+    inv = 1.0 / np.sqrt(ax * ax + ay * ay + 1.0)
+    ax, ay, az = ax * inv, ay * inv, inv
+    ox, oy = P[:, 8:9], P[:, 9:10]
+    A = RING_MAX_DEPTH * np.tanh(P[:, 10:11] / RING_MAX_DEPTH)
+    c = P[:, 11:12] * radius
+    w = RING_WIDTH_RADII * radius
+    bx, by, bz = b1[:, 0], b1[:, 1], b1[:, 2]
+    wx, wy, wz = by * az - bz * ay, bz * ax - bx * az, bx * ay - by * ax  # the ray's distance from the axis:
+    ux, uy, uz = oy * az, -ox * az, ox * ay - oy * ax  # |lam w - u|, as in the cylinder's closed form
+    ww = wx * wx + wy * wy + wz * wz
+    wu = wx * ux + wy * uy + wz * uz
+    uu = ux * ux + uy * uy + uz * uz
+    ba = bx * ax + by * ay + bz * az  # axial distance per unit depth
+
+    def f(lam):  # squared distance from the axis minus the wall's squared radius: < 0 inside
+        z = lam * ba[..., None] if lam.ndim == 3 else lam * ba
+        Ae, ce = (A[..., None], c[..., None]) if lam.ndim == 3 else (A, c)
+        r = radius * (1.0 - Ae * np.exp(-0.5 * ((z - ce) / w) ** 2))
+        w2, wu2, uu2 = (ww[..., None], wu[..., None], uu[..., None]) if lam.ndim == 3 else (ww, wu, uu)
+        return lam * lam * w2 - 2.0 * lam * wu2 + uu2 - r * r
+
+    lam = max_depth * grid
+    F = f(np.broadcast_to(lam, ww.shape + lam.shape))
+    outside = F >= 0
+    first = np.argmax(outside, axis=-1)
+    hit = np.take_along_axis(outside, first[..., None], -1)[..., 0]
+    j0 = np.maximum(first - 1, 0)
+    f0 = np.take_along_axis(F, j0[..., None], -1)[..., 0]
+    f1 = np.take_along_axis(F, first[..., None], -1)[..., 0]
+    l0, l1 = lam[j0], lam[first]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lh = np.where(f1 != f0, l0 - f0 * (l1 - l0) / (f1 - f0), l1)
+        lh = np.where(first == 0, l1, lh)
+        for _ in range(2):  # regula falsi inside the bracket
+            fh = f(lh)
+            inside = fh < 0
+            l0, f0 = np.where(inside, lh, l0), np.where(inside, fh, f0)
+            l1, f1 = np.where(inside, l1, lh), np.where(inside, f1, fh)
+            nl = np.where(f1 != f0, l0 - f0 * (l1 - l0) / (f1 - f0), lh)
+            lh = np.where(first == 0, lh, nl)
+    lam_hit = np.where(hit, np.clip(lh, 1e-4, max_depth), max_depth)
+    Xx, Xy, Xz = lam_hit * bx - P[:, 3:4], lam_hit * by - P[:, 4:5], lam_hit * bz - P[:, 5:6]
+    cc = R[:, :, :, None]
+    return (cc[:, 0, 0] * Xx + cc[:, 1, 0] * Xy + cc[:, 2, 0] * Xz,
+            cc[:, 0, 1] * Xx + cc[:, 1, 1] * Xy + cc[:, 2, 1] * Xz,
+            cc[:, 0, 2] * Xx + cc[:, 1, 2] * Xy + cc[:, 2, 2] * Xz)
+
+
+def _ring_residuals(P, b1, b2, radius, max_depth, noise_rad, grid, c0):
+    """The cylinder fit's residuals (ray angles over ``noise_rad``, the axis priors) for the ringed tube, and the
+    ring's two priors."""
+    x, y, z = _ring_points(P, b1, radius, max_depth, grid)
+    inv = 1.0 / (noise_rad * np.sqrt(x * x + y * y + z * z))
+    cx, cy, cz = b2[:, 0], b2[:, 1], b2[:, 2]
+    r = np.stack([(cy * z - cz * y) * inv, (cz * x - cx * z) * inv, (cx * y - cy * x) * inv], axis=-1)
+    prior = np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])  # the cylinder fit's axis priors
+    return np.concatenate([r.reshape(len(P), -1), P[:, 6:10] / prior, P[:, 10:11] / RING_DEPTH_SD,
+                           (P[:, 11:12] - c0) / RING_PLACE_SD_RADII], axis=1)
+
+
+def ring_distance_ratio(pts1_px: np.ndarray, pts2_px: np.ndarray, camera: CameraModel, radius_m: float,
+                        x_tube: np.ndarray, noise_rad: float = 0.003, max_depth_m: float = 0.3,
+                        max_points: int = 150) -> float:
+    """The step's length under the ringed tube over its length under the cylinder (``x_tube``: the cylinder fit's
+    10-vector on the same matches, :func:`bodyslam.vision.motion.fit_tube`), NaN where there is none (a step of
+    no length, a failed fit). The rays are the cylinder fit's: unprojected, valid in both frames, at most
+    ``max_points`` evenly taken."""
+    from bodyslam.vision.motion import _lm_soft_l1
+
+    x_tube = np.asarray(x_tube, float)
+    d_tube = float(np.linalg.norm(x_tube[3:6]))
+    if not (np.all(np.isfinite(x_tube)) and d_tube > MIN_TUBE_STEP_M):
+        return math.nan
+    b1, v1 = camera.unproject(np.asarray(pts1_px, float))
+    b2, v2 = camera.unproject(np.asarray(pts2_px, float))
+    ok = v1 & v2
+    b1, b2 = b1[ok], b2[ok]
+    if len(b1) < 12:
+        return math.nan
+    if len(b1) > max_points:
+        sel = np.linspace(0, len(b1) - 1, max_points).astype(int)
+        b1, b2 = b1[sel], b2[sel]
+    grid = (np.arange(1, RING_GRID + 1) / RING_GRID) ** 2
+    x_scale = np.r_[[0.05] * 3, [0.003] * 3, [0.2] * 2, [0.005] * 2, [0.1, 0.5]]
+    h = 1e-6 * x_scale
+    h[11] = 1e-3  # the ring's place moves the first crossing by grid cells: a finite step
+    best = None
+    for c0 in RING_STARTS_RADII:
+        def fun(q, c0=c0):
+            return _ring_residuals(q[None], b1, b2, radius_m, max_depth_m, noise_rad, grid, c0)[0]
+
+        def fun_jac(q, c0=c0):
+            Q = np.repeat(q[None], 13, axis=0)
+            Q[1:] += np.diag(h)
+            F = _ring_residuals(Q, b1, b2, radius_m, max_depth_m, noise_rad, grid, c0)
+            return F[0], ((F[1:] - F[0]) / h[:, None]).T
+
+        with np.errstate(all="ignore"):
+            q, _, _, cost = _lm_soft_l1(np.r_[x_tube, 0.2, c0], fun_jac, fun, x_scale, 2.0)
+        if np.all(np.isfinite(q)) and np.isfinite(cost) and (best is None or cost < best[1]):
+            best = (q, cost)
+    if best is None:
+        return math.nan
+    return float(np.linalg.norm(best[0][3:6]) / d_tube)
+
+
+def exam_scale(ratios) -> tuple[float, int]:
+    """``(factor, samples)``: the median of an exam's finite ring ratios, or 1.0 (the prior's scale) where fewer
+    than :data:`RING_MIN_SAMPLES` were measured."""
+    r = np.asarray([x for x in ratios if x is not None and math.isfinite(x) and x > 0], float)
+    if len(r) < RING_MIN_SAMPLES:
+        return 1.0, int(len(r))
+    return float(np.median(r)), int(len(r))
+
+
+def rescaled(s: StepMotion, factor: float) -> StepMotion:
+    """A step with a full pose rescaled by ``factor`` (its translation, distance and their 1-sigma); any other
+    step as it is."""
+    if factor == 1.0 or not s.has_estimate:
+        return s
+    return replace(s, distance_m=s.distance_m * factor, t_c1_c2_m=s.t_c1_c2_m * factor,
+                   sigma_distance_m=s.sigma_distance_m * factor)
+
+
+def lumen_scale_summary(factor: float, samples: int, every: int, radius_m: float) -> dict:
+    """What ``summary.json`` and the CLIs say of it: the factor applied, the ratios behind it, and the radius of
+    the cylinder the rescaled steps amount to."""
+    return {"factor": float(factor), "samples": int(samples), "every_nth_step": int(every),
+            "applied": bool(factor != 1.0), "min_samples": RING_MIN_SAMPLES,
+            "effective_radius_m": float(radius_m * factor)}
+
+
+def lumen_scale_text(sc: dict | None) -> str:
+    """What the CLIs print and the report says of a run's lumen scale (:func:`lumen_scale_summary`, None where it
+    was not measured)."""
+    if sc is None:
+        return ("not measured (the radius is known, the lumen scale is off, or the thesis estimator): the steps keep "
+                "the radius's scale")
+    if not sc["applied"]:
+        return (f"not applied ({sc['samples']} step(s) measured it, {sc['min_samples']} needed"
+                + ("; too few frames to sample" if not sc["every_nth_step"] else "")
+                + "): the steps keep the radius prior's scale")
+    return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps (every {sc['every_nth_step']}-th) of "
+            f"a tube with one contraction ring against the cylinder: a cylinder of "
+            f"{sc['effective_radius_m'] * 100:.2f} cm")

@@ -1,0 +1,147 @@
+"""The lumen's scale from a tube with one contraction ring (bodyslam.vision.lumen_scale)."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bodyslam.steps import StepMotion, rotation_step
+from bodyslam.vision.lumen_scale import (RING_MIN_SAMPLES, RING_SAMPLES_MAX, exam_scale, rescaled,
+                                         ring_distance_ratio, ring_every)
+from bodyslam.vision.motion import fit_tube, motion_from_transform
+from tests.bodyslam.vision.test_motion import CAM, R_TUBE, synth_matches
+
+
+def ringed_tube_points(n, rng, depth, centre_m, width_m, s_range=(0.002, 0.06)):
+    """Points on a tube along the optical axis whose radius narrows in one ring: R (1 - depth exp(-(z - c)^2 /
+    2 w^2))."""
+    z = rng.uniform(*s_range, n)
+    a = rng.uniform(0, 2 * math.pi, n)
+    r = R_TUBE * (1.0 - depth * np.exp(-0.5 * ((z - centre_m) / width_m) ** 2))
+    return np.c_[r * np.cos(a), r * np.sin(a), z]
+
+
+def _ratio_and_fit(X1, rv, t, rng):
+    m = synth_matches(X1, Rotation.from_rotvec(rv), np.array(t), noise_px=0.3, rng=rng)
+    s, x = fit_tube(m, CAM, R_TUBE)
+    assert s.ok
+    return ring_distance_ratio(m.pts1_px, m.pts2_px, CAM, R_TUBE, x), s
+
+
+@pytest.mark.parametrize("rv, t", [((0.0, 0.0, 0.14), (0.0, 0.0, 0.0041)),
+                                   ((0.04, -0.03, 0.1), (0.0004, -0.0002, 0.005))])
+def test_a_plain_cylinder_keeps_its_scale(rv, t):
+    """On the cylinder the fit assumes, the ring has nothing to explain: the ratio is 1 (within 3%: 0.3 px noise
+    on 150 rays lets the ring's depth wander by a few hundredths)."""
+    rng = np.random.default_rng(5)
+    X1 = ringed_tube_points(300, rng, 0.0, 0.03, 0.7 * R_TUBE)
+    ratio, _ = _ratio_and_fit(X1, rv, t, rng)
+    assert abs(ratio - 1.0) < 0.03
+
+
+def test_a_contraction_ring_shortens_the_step_toward_the_truth():
+    """Where the lumen narrows by 45% in a ring two radii ahead, the cylinder of the prior's radius reads the near
+    wall as farther and the step comes out too long; the ring's ratio takes at least half of that error back."""
+    rng = np.random.default_rng(7)
+    t = np.array([0.0, 0.0, 0.0041])
+    X1 = ringed_tube_points(300, rng, 0.45, 2.0 * R_TUBE, 0.7 * R_TUBE)
+    ratio, s = _ratio_and_fit(X1, (0.0, 0.0, 0.1), t, rng)
+    true_d = motion_from_transform(Rotation.identity(), t).distance_m
+    assert s.distance_m > 1.05 * true_d  # the cylinder's reading is long: the test sees the bias it is about
+    assert ratio < 0.97
+    assert abs(ratio * s.distance_m - true_d) < 0.5 * abs(s.distance_m - true_d)
+
+
+def test_no_ratio_without_a_step_or_a_fit():
+    x = np.zeros(10)
+    assert math.isnan(ring_distance_ratio(np.zeros((30, 2)), np.zeros((30, 2)), CAM, R_TUBE, x))  # no length
+    x[5] = 0.004
+    x[0] = np.nan
+    assert math.isnan(ring_distance_ratio(np.zeros((30, 2)), np.zeros((30, 2)), CAM, R_TUBE, x))  # no fit
+
+
+def test_the_exam_scale_is_the_median_of_enough_ratios():
+    r = [0.9] * RING_MIN_SAMPLES + [math.nan, None, -1.0, 5.0]  # not measured / impossible: left out
+    assert exam_scale(r) == (pytest.approx(0.9), RING_MIN_SAMPLES + 1)
+    assert exam_scale([0.8] * (RING_MIN_SAMPLES - 1)) == (1.0, RING_MIN_SAMPLES - 1)  # too few: the prior's scale
+    odd = [0.7, 0.8, 0.9, 1.0, 1.1, 5.0, 0.85, 0.95] * (RING_MIN_SAMPLES // 8 + 1)  # an outlier does not move it
+    assert exam_scale(odd) == (pytest.approx(0.925), len(odd))
+
+
+def test_the_sample_thins_with_the_exam_and_stays_in_bounds():
+    assert ring_every(100) == 2 and ring_every(200) == 4
+    assert ring_every(40) == 0 and ring_every(2) == 0  # too short to reach RING_MIN_SAMPLES: not sampled
+    assert (ring_every(2 * RING_MIN_SAMPLES + 1), ring_every(2 * RING_MIN_SAMPLES)) == (2, 0)
+    for n in (300, 10_000, 55_000):
+        every = ring_every(n)
+        assert n / every <= RING_SAMPLES_MAX and n / (every - 1) > RING_SAMPLES_MAX
+
+
+def test_rescaled_moves_the_translation_and_its_sigma_only():
+    s = motion_from_transform(Rotation.from_rotvec([0.01, 0.02, 0.1]), np.array([0.001, 0.0, 0.004]), 50,
+                              sigma_distance_m=2e-4, sigma_rotation_rad=0.01)
+    r = rescaled(s, 0.9)
+    assert r.distance_m == pytest.approx(0.9 * s.distance_m)
+    assert np.allclose(r.t_c1_c2_m, 0.9 * s.t_c1_c2_m) and r.sigma_distance_m == pytest.approx(1.8e-4)
+    assert np.array_equal(r.R_c1_c2, s.R_c1_c2) and r.roll_rad == s.roll_rad and r.tilt_rad == s.tilt_rad
+    rot = rotation_step(Rotation.from_rotvec([0.0, 0.0, 0.2]), 30, 0.02)
+    assert rescaled(rot, 0.9) is rot
+    failed = StepMotion.failed("lost")
+    assert rescaled(failed, 0.9) is failed
+
+
+def test_the_scale_is_measured_only_where_the_radius_is_a_prior():
+    """A radius known exactly (the ideal testbed's, or --radius-m) is the scale: nothing to correct; the thesis
+    estimator has no tube fit to compare; --no-lumen-scale turns it off."""
+    from bodyslam.vision.odometry import MotionSettings, lumen_scale_measured
+
+    assert lumen_scale_measured(MotionSettings(), 0.2)
+    assert not lumen_scale_measured(MotionSettings(), 0.0)
+    assert not lumen_scale_measured(MotionSettings(estimator="thesis"), 0.2)
+    assert not lumen_scale_measured(MotionSettings(lumen_scale=False), 0.2)
+
+
+def test_what_a_run_says_of_its_lumen_scale():
+    from bodyslam.vision.lumen_scale import lumen_scale_summary, lumen_scale_text
+
+    assert "not measured" in lumen_scale_text(None)
+    short = lumen_scale_text(lumen_scale_summary(1.0, 0, 0, 0.0125))
+    assert "not applied" in short and "too few frames" in short
+    few = lumen_scale_text(lumen_scale_summary(1.0, RING_MIN_SAMPLES - 3, 2, 0.0125))
+    assert f"{RING_MIN_SAMPLES - 3} step(s) measured it, {RING_MIN_SAMPLES} needed" in few and "frames" not in few
+    done = lumen_scale_summary(0.88, 30, 4, 0.0125)
+    assert done["effective_radius_m"] == pytest.approx(0.011) and done["applied"]
+    assert "steps x0.880, the median over 30 steps (every 4-th)" in lumen_scale_text(done)
+    assert "1.10 cm" in lumen_scale_text(done)
+
+
+def test_motion_and_batch_apply_the_same_lumen_scale(tmp_path, monkeypatch):
+    """``bodyslam motion``'s engine (sequence_motion) and ``batch`` (chunks, then the scale from their rows) write the
+    same motion.csv with the lumen scale applied, byte for byte. The demo tells its radius exactly, so the copy here
+    makes it a prior; the least sample is lowered to fit its 40 frames."""
+    import json
+    import shutil
+
+    from bodyslam.exam.batch import BatchSettings, open_exams, run_batch
+    from bodyslam.io import write_motion_csv
+    from bodyslam.vision import lumen_scale
+    from bodyslam.vision.odometry import MotionSettings, sequence_motion
+    from tests.bodyslam.exam.test_batch import DEMO
+
+    monkeypatch.setattr(lumen_scale, "RING_MIN_SAMPLES", 4)
+    seq = tmp_path / "seq"
+    shutil.copytree(DEMO, seq, ignore=shutil.ignore_patterns("depth"))
+    meta = json.loads((seq / "meta.json").read_text())
+    meta["tube_radius_sd_m"] = 0.2 * meta["tube_radius_m"]
+    (seq / "meta.json").write_text(json.dumps(meta))
+    settings = MotionSettings(match_mode="fast")
+    used: list = []
+    steps = sequence_motion(seq, settings, jobs=1, lumen_scale_used=used)
+    assert used[0]["applied"] and used[0]["factor"] != 1.0
+    stamps = np.arange(len(steps) + 1) / meta["frame_rate_hz"]
+    write_motion_csv(tmp_path / "motion.csv", range(1, len(steps) + 1), stamps[1:], steps)
+    run_batch(open_exams([str(seq)]), tmp_path / "batch", BatchSettings(settings, chunk_frames=7), jobs=1)
+    assert (tmp_path / "motion.csv").read_text() == (tmp_path / "batch" / "seq" / "motion.csv").read_text()
+    summary = json.loads((tmp_path / "batch" / "seq" / "summary.json").read_text())
+    assert summary["lumen_scale"]["factor"] == used[0]["factor"]
