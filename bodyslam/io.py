@@ -278,7 +278,7 @@ MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad"
                   # 1 where the tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall)
                   "beside_wall",
                   # the step's length under a ringed tube over the cylinder's, where the lumen's scale was measured
-                  # (StepMotion.ring_ratio, bodyslam.vision.lumen_scale); empty elsewhere
+                  # (StepMotion.ring_ratio, bodyslam.vision.lumen_scale); nan elsewhere (a file without it: nan)
                   "ring_ratio"]
 _FULL_STEP = ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad")
 
