@@ -888,6 +888,11 @@ def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
         tmp.write_text(json.dumps({"lumen_scale": res}), encoding="utf-8")
 
 
+def _lumen_scale_of(d: Path) -> dict | None:
+    """The exam's lumen scale as :func:`_lumen_scale_exam` wrote it (None: not measured, or no checkpoint)."""
+    return (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get("lumen_scale")
+
+
 def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
     """The k-step check of the per-step 1-sigma (:func:`bodyslam.vision.odometry.step_consistency`: up to 30
     three-frame pairs spread over the exam, each estimated straight and against its single steps); a checkpoint
@@ -916,7 +921,7 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
     from bodyslam.vision.odometry import with_lumen_uncertainty
 
     bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
-    sc = (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get("lumen_scale")
+    sc = _lumen_scale_of(d)
     factor = sc["factor"] if sc else 1.0
     rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
     item = 0
@@ -1030,7 +1035,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                # the lumen radius the fusion's scale state implies along the exam (radius * (1 + s), smoothed)
                "lumen_radius_estimate_m": None if fused is None else fused["radius"],
                # the scale the steps were rescaled by, seen in the images (bodyslam.vision.lumen_scale)
-               "lumen_scale": (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get("lumen_scale"),
+               "lumen_scale": _lumen_scale_of(d),
                "marks": len(marks), "problems": len(problems), "assumed": exam.assumed,
                "camera": exam.camera, "radius_m": exam.radius_m, "radius_sd_m": exam.radius_sd_m,
                "lumen_shape_sd_rel": exam.shape_sd_rel,
@@ -1138,8 +1143,7 @@ def _fuse_task(task: dict) -> dict:
         "sd_heading": np.sqrt(np.trace(sm.cov[:, 3:, 3:], axis1=1, axis2=2)),
         "channel": ({**loc.channel.as_dict(), "kappa_smoothed_mean": round(float(np.mean(loc.kappa_smoothed)), 3)}
                     if loc.channel else None),
-        "radius": _radius_estimate(exam, loc, (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get(
-            "lumen_scale"))}}
+        "radius": _radius_estimate(exam, loc, _lumen_scale_of(d))}}
 
 
 def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list, settings: BatchSettings,
