@@ -16,6 +16,7 @@ projections), error against step, error histogram and error CDF.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -34,6 +35,7 @@ from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
 from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION, lost_step_floor_m
 from bodyslam.fusion.rf import locate_nls
+from bodyslam.vision.lumen_scale import exam_scale
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
 from testbed.score import CHI2_3_683, score_motion, score_path
 from testbed.simulate import prepare_output_dir, simulate
@@ -116,6 +118,8 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "orientation_error_deg": {k: orientation_errors_deg(r.rotations_w_c, grot) for k, r in with_cov.items()},
             "motion": score_motion(d, d / "motion.csv"),
             "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
+            # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured or too few)
+            "lumen_scale": dict(zip(("factor", "samples"), exam_scale(s.ring_ratio for s in steps))),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": float(np.mean(loc.kappa_smoothed)), "whole_run": loc.channel.kappa,
                       "online_last_frame": float(loc.kappa_online[-1])}}
@@ -349,6 +353,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     rot_blocks: list[dict] = []
     beside_blocks: list[dict] = []
     paths: list[dict] = []
+    lumen: list[dict] = []
     cons: dict[str, list] = {}
     orient: dict[str, list] = {}
     sm, sm_eff = [], []
@@ -372,6 +377,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         rot_blocks.append(res["motion"].get("rotation_only", {}))
         beside_blocks.append(res["motion"].get("beside_wall_only", {}))
         paths.append(res["path_travelled"])
+        lumen.append(res["lumen_scale"])
         for st, c in res["motion"]["status_counts"].items():
             step_counts[st] = step_counts.get(st, 0) + c
         timing.append(res["seconds"])
@@ -385,6 +391,9 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                                                  round(float(np.mean(c["orientation_inside_68"])), 4)}
                                          for a, c in res["consistency"].items()},
                          "path_travelled": {k: round(v, 5) for k, v in res["path_travelled"].items()},
+                         "lumen_scale": {"factor": round(lumen[-1]["factor"], 4), "samples": lumen[-1]["samples"],
+                                         "distance_scale_after": round(res["motion"]["all"].get("distance_scale",
+                                                                                                math.nan), 4)},
                          "orientation_error_deg": {a: {k: round(v, 2) for k, v in _orientation_stats(e).items()}
                                                    for a, e in res["orientation_error_deg"].items()},
                          "seconds": {k: round(v, 2) for k, v in res["seconds"].items()}})
@@ -439,6 +448,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
         "orientation_error_deg": {a: _orientation_stats(np.concatenate(v, axis=1)) for a, v in orient.items()},
         # how far along the gut (vision only, the figure marks and plots give): testbed.score.score_path
         "path_travelled": _path_summary(paths),
+        # the lumen scale seen in the frames, run by run (bodyslam.vision.lumen_scale)
+        "lumen_scale": _lumen_summary(lumen),
         "per_seed": per_seed,
         "seconds": {"wall": round(time.perf_counter() - t_start, 2), "jobs": jobs,
                     **{f"{k}_total": round(sum(t[k] for t in timing), 2) for k in timing[0]}},
@@ -458,6 +469,33 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
 def _band_cell(b: dict | None) -> str:
     """A :func:`nees_band` result as one table cell: inside (below / above); the band is the header's."""
     return f"{b['frames_inside']:.2f} ({b['frames_below']:.2f} / {b['frames_above']:.2f})" if b else "--"
+
+
+def _lumen_summary(lumen: list[dict]) -> dict:
+    """The runs' lumen scales (:func:`bodyslam.vision.lumen_scale.exam_scale` of their steps): on how many runs one
+    was applied (enough ratios: a radius prior, the tube estimator, a run long enough), its factor over those runs,
+    and the ratios behind it."""
+    f = np.array([x["factor"] for x in lumen if x["factor"] != 1.0])
+    return {"runs": len(lumen), "runs_applied": int(len(f)),
+            "factor_mean": float(f.mean()) if len(f) else None, "factor_min": float(f.min()) if len(f) else None,
+            "factor_max": float(f.max()) if len(f) else None,
+            "samples_mean": float(np.mean([x["samples"] for x in lumen]))}
+
+
+def _lumen_html(sc: dict | None, distance_scale: float | None) -> str:
+    """The report page's line on the lumen scale ("" for a report written before it, or where no run measured
+    one)."""
+    if not sc or not sc["samples_mean"]:
+        return ""
+    text = (f"<p>Lumen scale seen in the frames (a tube with one contraction ring against the cylinder, "
+            f"bodyslam.vision.lumen_scale): applied on {sc['runs_applied']} of {sc['runs']} runs")
+    if sc["runs_applied"]:
+        text += (f", the steps x{sc['factor_mean']:.3f} on average ({sc['factor_min']:.3f} to "
+                 f"{sc['factor_max']:.3f})")
+    text += f", from {sc['samples_mean']:.0f} ratios a run on average"
+    if distance_scale is not None and math.isfinite(distance_scale):
+        text += f"; the factor that would still fit the steps best to the truth: {distance_scale:.3f} (mean over runs)"
+    return text + ".</p>"
 
 
 def _path_summary(paths: list[dict]) -> dict:
@@ -549,6 +587,7 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
             + _rotation_html(report.get("rotation_steps", {}))
             + _beside_wall_html(report.get("beside_wall_steps", {}))
             + _path_html(report.get("path_travelled"))
+            + _lumen_html(report.get("lumen_scale"), report["table_4_1"].get("distance_scale"))
             + view_html + "<h2>Plots (Fig. 4.20-4.24)</h2>")
     write_report_page(out, report["scenario"], f"{report['n_runs']} runs (seeds {_seed_text(report['seeds'])}), "
                       f"{report['frames_per_run']} frames each; errors per frame against the ground truth. "

@@ -24,7 +24,8 @@ cm, on reporting seeds 700-709 0.068 -> 0.059 cm (docs/RESULTS.md, "The lumen's 
 The ray-wall intersection has no closed form here: each ray is stepped along a grid of :data:`RING_GRID` depths
 (denser near the camera) to the first point outside the wall, then refined by two regula-falsi steps. The fit is
 started from the cylinder's solution with the ring at each of :data:`RING_STARTS_RADII` and the lowest robust cost
-kept (its cost has a minimum per place the ring can sit).
+kept (its cost has a minimum per place the ring can sit). The residuals are compiled beside the cylinder's
+(``_tube_fit.c``: ~0.07 s a fit instead of numpy's ~0.4 s on realistic tuning steps, ratios equal to ~1e-6).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import numpy as np
 from bodyslam.camera import CameraModel
 from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import StepMotion
+from bodyslam.vision.motion import _lm_soft_l1, _tube_c  # _tube_c: the compiled residuals (None: not built)
 
 __all__ = ["RING_EVERY_MIN", "RING_SAMPLES_MAX", "RING_MIN_SAMPLES", "ring_every", "ring_distance_ratio",
            "exam_scale", "rescaled", "lumen_scale_summary", "lumen_scale_text"]
@@ -47,8 +49,8 @@ RING_DEPTH_SD = 0.3  # the prior on A (about 0): a ring must be seen to be fitte
 RING_PLACE_SD_RADII = 2.0  # the prior on the ring's place about its start, lumen radii
 RING_STARTS_RADII = (1.0, 2.0, 3.5)  # its places tried, lumen radii ahead of the camera
 RING_GRID = 32  # depths per ray for the first wall crossing (32 and 64 gave the same ratios within 1-2%)
-# the sample: every RING_EVERY_MIN-th step at most, and at most ~RING_SAMPLES_MAX in an exam (each fit ~0.2-0.5 s:
-# a whole exam's 64 cost ~half a minute of one core). An exam with fewer than RING_MIN_SAMPLES measured ratios keeps
+# the sample: every RING_EVERY_MIN-th step at most, and at most ~RING_SAMPLES_MAX in an exam (each fit ~0.07 s
+# compiled, ~0.2-0.5 s in numpy: a whole exam's 64 cost ~5 s of one core, ~half a minute in numpy). An exam with fewer than RING_MIN_SAMPLES measured ratios keeps
 # the prior's scale: on realistic tuning seeds one step's ratio scatters by ~0.2 (robust sigma; 0.003 on the ideal
 # tube), so the median of 24 is good to ~5%, against the ~10% it corrects; 8 on the demo clip gave 0.99 forwards and
 # 0.91 played backwards. An exam too short to reach it is not sampled at all.
@@ -122,7 +124,22 @@ def _ring_points(P: np.ndarray, b1: np.ndarray, radius: float, max_depth: float,
 
 def _ring_residuals(P, b1, b2, radius, max_depth, noise_rad, grid, c0):
     """The cylinder fit's residuals (ray angles over ``noise_rad``, the axis priors) for the ringed tube, and the
-    ring's two priors."""
+    ring's two priors: ``P (B, 12)`` -> ``(B, 3 n + 6)``. Compiled where ``_tube_fit.c`` was built (the same
+    formulas, equal to ~1e-12; a fit ~x faster), else :func:`_ring_residuals_numpy`."""
+    prior = np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])  # the cylinder fit's axis priors
+    if _tube_c is None:
+        return _ring_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, grid, c0)
+    out = np.empty((len(P), 3 * len(b1) + 6))
+    _tube_c.ring_residuals(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(b1, np.float64),
+                           np.ascontiguousarray(b2, np.float64), float(radius), float(max_depth), float(noise_rad),
+                           prior, np.ascontiguousarray(grid, np.float64),
+                           np.array([RING_MAX_DEPTH, RING_WIDTH_RADII, RING_DEPTH_SD, RING_PLACE_SD_RADII, c0],
+                                    np.float64), out)
+    return out
+
+
+def _ring_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, grid, c0):
+    """:func:`_ring_residuals` in numpy."""
     x, y, z = _ring_points(P, b1, radius, max_depth, grid)
     inv = 1.0 / (noise_rad * np.sqrt(x * x + y * y + z * z))
     cx, cy, cz = b2[:, 0], b2[:, 1], b2[:, 2]
@@ -139,8 +156,6 @@ def ring_distance_ratio(pts1_px: np.ndarray, pts2_px: np.ndarray, camera: Camera
     10-vector on the same matches, :func:`bodyslam.vision.motion.fit_tube`), NaN where there is none (a step of
     no length, a failed fit). The rays are the cylinder fit's: unprojected, valid in both frames, at most
     ``max_points`` evenly taken."""
-    from bodyslam.vision.motion import _lm_soft_l1
-
     x_tube = np.asarray(x_tube, float)
     d_tube = float(np.linalg.norm(x_tube[3:6]))
     if not (np.all(np.isfinite(x_tube)) and d_tube > MIN_TUBE_STEP_M):
@@ -154,6 +169,13 @@ def ring_distance_ratio(pts1_px: np.ndarray, pts2_px: np.ndarray, camera: Camera
     if len(b1) > max_points:
         sel = np.linspace(0, len(b1) - 1, max_points).astype(int)
         b1, b2 = b1[sel], b2[sel]
+    return _ring_ratio_rays(b1, b2, radius_m, x_tube, noise_rad, max_depth_m)
+
+
+def _ring_ratio_rays(b1: np.ndarray, b2: np.ndarray, radius_m: float, x_tube: np.ndarray, noise_rad: float,
+                     max_depth_m: float) -> float:
+    """:func:`ring_distance_ratio` on the matches' unit rays ``b1``, ``b2 (n, 3)``."""
+    d_tube = float(np.linalg.norm(x_tube[3:6]))
     grid = (np.arange(1, RING_GRID + 1) / RING_GRID) ** 2
     x_scale = np.r_[[0.05] * 3, [0.003] * 3, [0.2] * 2, [0.005] * 2, [0.1, 0.5]]
     h = 1e-6 * x_scale
@@ -204,6 +226,12 @@ def lumen_scale_summary(factor: float, samples: int, every: int, radius_m: float
             "effective_radius_m": float(radius_m * factor)}
 
 
+def _ordinal(n: int) -> str:
+    """2 -> "2nd", 4 -> "4th", 11 -> "11th", 23 -> "23rd"."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
 def lumen_scale_text(sc: dict | None) -> str:
     """What the CLIs print and the report says of a run's lumen scale (:func:`lumen_scale_summary`, None where it
     was not measured)."""
@@ -214,6 +242,6 @@ def lumen_scale_text(sc: dict | None) -> str:
         return (f"not applied ({sc['samples']} step(s) measured it, {sc['min_samples']} needed"
                 + ("; too few frames to sample" if not sc["every_nth_step"] else "")
                 + "): the steps keep the radius prior's scale")
-    return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps (every {sc['every_nth_step']}-th) of "
+    return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps (every {_ordinal(sc['every_nth_step'])}) of "
             f"a tube with one contraction ring against the cylinder: a cylinder of "
             f"{sc['effective_radius_m'] * 100:.2f} cm")

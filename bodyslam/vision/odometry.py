@@ -678,7 +678,7 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
         steps[i] = s
     if measure:
         factor, samples = exam_scale(s.ring_ratio for s in steps)
-        log.info("lumen scale: %.3f from %d ring ratios (every %d-th step)", factor, samples, every)
+        log.info("lumen scale: %.3f from %d ring ratios (one step in %d)", factor, samples, every)
         steps = [rescaled(s, factor) for s in steps]
         if lumen_scale_used is not None:
             lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m))

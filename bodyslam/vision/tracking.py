@@ -102,7 +102,10 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     around it: ``(mean_m (n,), sd_m (n,))``, NaN at the estimated steps.
 
     The capsule's step length is a hidden state on a log-spaced grid (``_GRID_LO_R`` to :data:`STEP_MAX_R` lumen
-    radii ``radius_m``: the radius the steps assumed) that changes little from step to step (a Gaussian in ln
+    radii ``radius_m``: the radius the steps were fitted with, the prior's where the radius is one, *not* rescaled by
+    the lumen scale (:mod:`bodyslam.vision.lumen_scale`): the loss curve below was fitted in its units, and on
+    realistic tuning seeds 567-574 the matcher's losses follow d / prior radius better than d / the rescaled radius
+    (docs/RESULTS.md, session 39)) that changes little from step to step (a Gaussian in ln
     length whose spread is the exam's own: consecutive estimated steps, robust) and with chance
     :data:`SPEED_JUMP_PROB` jumps to any value. An estimated step observes it (its length, with its 1-sigma and at
     least ``_MEASURED_REL_SD`` of it); a step lost to motion (:func:`~bodyslam.steps.lost_to_motion`) observes that
