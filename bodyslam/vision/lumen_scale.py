@@ -20,6 +20,10 @@ On the ideal tube (`thesis`) the ring fits nothing and the median ratio is 0.999
 radius is told exactly, and a known radius is not rescaled: :func:`bodyslam.vision.odometry.lumen_scale_measured`);
 on realistic tuning seeds 562-565 the factors are 0.78-0.96 and the per-step distance error falls 0.076 -> 0.059
 cm, on reporting seeds 700-709 0.068 -> 0.059 cm (docs/RESULTS.md, "The lumen's scale from a contraction ring").
+The ring's width, one lumen radius (session 39; 0.7 before, the testbed's own contraction rings' width), was chosen
+on tuning seeds 562-570: wider, the ring also takes in the lumen's other narrowing (folds, a collapsed section), and
+the reporting seeds' per-step distance error falls further, 0.059 -> 0.056 cm; a lone ring narrower than that is
+over-corrected (docs/RESULTS.md, "The ring's width").
 
 The ray-wall intersection has no closed form here: each ray is stepped along a grid of :data:`RING_GRID` depths
 (denser near the camera) to the first point outside the wall, then refined by two regula-falsi steps. The fit is
@@ -43,7 +47,7 @@ from bodyslam.vision.motion import _lm_soft_l1, _tube_c  # _tube_c: the compiled
 __all__ = ["RING_EVERY_MIN", "RING_SAMPLES_MAX", "RING_MIN_SAMPLES", "ring_every", "ring_distance_ratio",
            "exam_scale", "rescaled", "lumen_scale_summary", "lumen_scale_text"]
 
-RING_WIDTH_RADII = 0.7  # the ring's width w (Gaussian sigma along the axis), lumen radii (session 37)
+RING_WIDTH_RADII = 1.0  # the ring's width w (Gaussian sigma along the axis), lumen radii (session 39; 0.7 to 38)
 RING_MAX_DEPTH = 0.6  # |A| bound: the ring closes the lumen by at most 60% (A = 0.6 tanh(a / 0.6))
 RING_DEPTH_SD = 0.3  # the prior on A (about 0): a ring must be seen to be fitted
 RING_PLACE_SD_RADII = 2.0  # the prior on the ring's place about its start, lumen radii
