@@ -23,7 +23,7 @@ cm, on reporting seeds 700-709 0.068 -> 0.059 cm (docs/RESULTS.md, "The lumen's 
 The ring's width, one lumen radius (session 39; 0.7 before, the testbed's own contraction rings' width), was chosen
 on tuning seeds 562-570: wider, the ring also takes in the lumen's other narrowing (folds, a collapsed section), and
 the reporting seeds' per-step distance error falls further, 0.059 -> 0.056 cm; a lone ring narrower than that is
-over-corrected (docs/RESULTS.md, "The ring's width").
+over-corrected (docs/RESULTS.md, "The lumen scale: its ring fit compiled, the ring wider").
 
 The ray-wall intersection has no closed form here: each ray is stepped along a grid of :data:`RING_GRID` depths
 (denser near the camera) to the first point outside the wall, then refined by two regula-falsi steps. The fit is
@@ -54,10 +54,11 @@ RING_PLACE_SD_RADII = 2.0  # the prior on the ring's place about its start, lume
 RING_STARTS_RADII = (1.0, 2.0, 3.5)  # its places tried, lumen radii ahead of the camera
 RING_GRID = 32  # depths per ray for the first wall crossing (32 and 64 gave the same ratios within 1-2%)
 # the sample: every RING_EVERY_MIN-th step at most, and at most ~RING_SAMPLES_MAX in an exam (each fit ~0.07 s
-# compiled, ~0.2-0.5 s in numpy: a whole exam's 64 cost ~5 s of one core, ~half a minute in numpy). An exam with fewer than RING_MIN_SAMPLES measured ratios keeps
-# the prior's scale: on realistic tuning seeds one step's ratio scatters by ~0.2 (robust sigma; 0.003 on the ideal
-# tube), so the median of 24 is good to ~5%, against the ~10% it corrects; 8 on the demo clip gave 0.99 forwards and
-# 0.91 played backwards. An exam too short to reach it is not sampled at all.
+# compiled, ~0.2-0.5 s in numpy: a whole exam's 64 cost ~5 s of one core, ~half a minute in numpy). An exam with
+# fewer than RING_MIN_SAMPLES measured ratios keeps the prior's scale: on realistic tuning seeds one step's ratio
+# scatters by ~0.2 (robust sigma; 0.003 on the ideal tube), so the median of 24 is good to ~5%, against the ~10% it
+# corrects; 8 on the demo clip gave 0.99 forwards and 0.91 played backwards. An exam too short to reach it is not
+# sampled at all.
 RING_EVERY_MIN = 2
 RING_SAMPLES_MAX = 64
 RING_MIN_SAMPLES = 24
@@ -129,10 +130,10 @@ def _ring_points(P: np.ndarray, b1: np.ndarray, radius: float, max_depth: float,
 def _ring_residuals(P, b1, b2, radius, max_depth, noise_rad, grid, c0):
     """The cylinder fit's residuals (ray angles over ``noise_rad``, the axis priors) for the ringed tube, and the
     ring's two priors: ``P (B, 12)`` -> ``(B, 3 n + 6)``. Compiled where ``_tube_fit.c`` was built (the same
-    formulas, equal to ~1e-12; a fit ~x faster), else :func:`_ring_residuals_numpy`."""
-    prior = np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])  # the cylinder fit's axis priors
+    formulas, equal to ~1e-12; a call ~10x faster, a fit ~6x), else :func:`_ring_residuals_numpy`."""
     if _tube_c is None:
         return _ring_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, grid, c0)
+    prior = np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])  # the cylinder fit's axis priors
     out = np.empty((len(P), 3 * len(b1) + 6))
     _tube_c.ring_residuals(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(b1, np.float64),
                            np.ascontiguousarray(b2, np.float64), float(radius), float(max_depth), float(noise_rad),
@@ -246,6 +247,6 @@ def lumen_scale_text(sc: dict | None) -> str:
         return (f"not applied ({sc['samples']} step(s) measured it, {sc['min_samples']} needed"
                 + ("; too few frames to sample" if not sc["every_nth_step"] else "")
                 + "): the steps keep the radius prior's scale")
-    return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps (every {_ordinal(sc['every_nth_step'])}) of "
-            f"a tube with one contraction ring against the cylinder: a cylinder of "
-            f"{sc['effective_radius_m'] * 100:.2f} cm")
+    return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps "
+            f"(every {_ordinal(sc['every_nth_step'])}) of a tube with one contraction ring against the cylinder: "
+            f"a cylinder of {sc['effective_radius_m'] * 100:.2f} cm")

@@ -94,7 +94,8 @@ def test_the_runs_lumen_scales_summed_and_said():
     where no run measured a ratio, no line."""
     from testbed.evaluate import _lumen_html, _lumen_summary
 
-    sc = _lumen_summary([{"factor": 0.9, "samples": 30}, {"factor": 0.8, "samples": 40}, {"factor": 1.0, "samples": 20}])
+    sc = _lumen_summary([{"factor": 0.9, "samples": 30}, {"factor": 0.8, "samples": 40},
+                         {"factor": 1.0, "samples": 20}])
     assert sc["runs"] == 3 and sc["runs_applied"] == 2 and sc["samples_mean"] == pytest.approx(30.0)
     assert (sc["factor_mean"], sc["factor_min"], sc["factor_max"]) == (pytest.approx(0.85), 0.8, 0.9)
     line = _lumen_html(sc, 1.04)
