@@ -129,17 +129,31 @@ def _contact(args) -> int:
 
 
 def parse_seeds(text: str) -> list[int]:
+    """``--seeds``: ``N`` (a count: seeds 0..N-1), ``A-B`` (A to B, both included) or ``a,b,c``; one that names no
+    seed (``0``, ``5-3``) is refused."""
     from bodyslam.errors import ConfigError
 
     try:
         if "," in text:
-            return [int(x) for x in text.split(",")]
-        if "-" in text:
+            seeds = [int(x) for x in text.split(",")]
+        elif "-" in text:
             a, b = (int(x) for x in text.split("-"))
-            return list(range(a, b + 1))
-        return list(range(int(text)))
+            seeds = list(range(a, b + 1))
+        else:
+            seeds = list(range(int(text)))
     except ValueError:
         raise ConfigError(f"--seeds must be N, A-B or a,b,c; got {text!r}") from None
+    if not seeds:
+        raise ConfigError(f"--seeds {text!r} names no seed (N counts seeds 0..N-1; A-B needs A <= B)")
+    return seeds
+
+
+def _seeds_said(text: str, seeds: list[int]) -> list[int]:
+    """The seeds of ``--seeds``, with a line where a count was given: ``--seeds 700`` is seeds 0-699, not seed 700."""
+    if text.strip().isdigit() and len(seeds) > 1:
+        print(f"--seeds {text.strip()}: {len(seeds)} runs, seeds 0-{seeds[-1]} (one seed alone: --seeds "
+              f"{text.strip()}-{text.strip()})", flush=True)
+    return seeds
 
 
 def _evaluate(args) -> int:
@@ -147,6 +161,7 @@ def _evaluate(args) -> int:
     from testbed.scenario import load_scenario
 
     scn = load_scenario(args.scenario, args.overrides)
+    seeds = _seeds_said(args.seeds, parse_seeds(args.seeds))  # before any work: a count is not a seed
     system = _paper_system(scn)
     if system is not None:
         from pathlib import Path
@@ -154,12 +169,12 @@ def _evaluate(args) -> int:
         from testbed.simulate import prepare_output_dir
 
         prepare_output_dir(Path(args.out), args.force)
-        rep = system.evaluate_scenario(scn, parse_seeds(args.seeds), args.out, jobs=args.jobs,
+        rep = system.evaluate_scenario(scn, seeds, args.out, jobs=args.jobs,
                                        progress=lambda msg: print(msg, flush=True))
         print(system.report_line(rep))
         print(f"wrote {args.out}/report.json, report.html and plots")
         return 0
-    report = evaluate(scn, parse_seeds(args.seeds), args.out, n_frames=args.frames, force=args.force or args.reuse,
+    report = evaluate(scn, seeds, args.out, n_frames=args.frames, force=args.force or args.reuse,
                       keep=args.keep_frames, progress=lambda msg: print(msg, flush=True), jobs=args.jobs,
                       reuse=args.reuse)
     print(main_report_line(report))

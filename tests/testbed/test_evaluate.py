@@ -261,3 +261,21 @@ def test_steps_beside_the_wall_are_summed_over_seeds_by_their_count():
     assert bw["distance_within_1sigma"] == pytest.approx(0.75) and "rotation_within_68pct" not in bw
     assert "40 (25% of the measured), distance error 0.0900 cm" in _beside_wall_html(bw)
     assert _beside_wall_html(_beside_wall_summary([], 100)) == ""
+
+
+def test_seeds_as_a_count_a_range_or_a_list_and_a_count_said(capsys):
+    """``--seeds``: N counts seeds 0..N-1 (so ``--seeds 700`` is 700 runs, which the CLI says before any work), A-B
+    includes both ends, a,b,c lists them; a set with no seed is refused."""
+    from bodyslam.errors import ConfigError
+    from testbed.cli import _seeds_said, parse_seeds
+
+    assert parse_seeds("3") == [0, 1, 2] and parse_seeds("700-702") == [700, 701, 702]
+    assert parse_seeds("5,9") == [5, 9] and parse_seeds("7-7") == [7]
+    for bad in ("0", "5-3", "x", "1-2-3"):
+        with pytest.raises(ConfigError, match="--seeds"):
+            parse_seeds(bad)
+    assert _seeds_said("700", parse_seeds("700"))[-1] == 699
+    assert "--seeds 700: 700 runs, seeds 0-699 (one seed alone: --seeds 700-700)" in capsys.readouterr().out
+    _seeds_said("700-709", parse_seeds("700-709"))
+    _seeds_said("1", parse_seeds("1"))
+    assert capsys.readouterr().out == ""  # a range, or a count of one, says nothing more
