@@ -1078,7 +1078,7 @@ def _radius_estimate(exam: Exam, fused, lumen_scale: dict | None = None) -> dict
     s = None if fused is None else fused.smoothed.scale
     if s is None:
         return None
-    radius = exam.radius_m * (lumen_scale["factor"] if lumen_scale else 1.0)
+    radius = lumen_scale["effective_radius_m"] if lumen_scale else exam.radius_m
     r = radius * (1.0 + s)
     return {"median": float(np.median(r)), "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)),
             "median_1sigma": float(radius * np.median(fused.smoothed.scale_sd))}
