@@ -105,7 +105,11 @@ def _parser() -> argparse.ArgumentParser:
                             "fail (faster on fast motion, fewer steps estimated)")
         q.add_argument("--no-lumen-scale", action="store_true",
                        help="tube estimator: keep the radius prior's scale instead of rescaling the steps by the "
-                            "lumen's scale seen in a sample of them (a tube with one contraction ring; README)")
+                            "lumen's scale seen in a sample of them (a tube with one contraction ring; README); "
+                            "the scale chain goes off with it")
+        q.add_argument("--no-scale-chain", action="store_true",
+                       help="tube estimator, radius a prior: do not tie each step's scale to its neighbours' by "
+                            "the depths of the points they share (README)")
         q.add_argument("--model", default=None, help="FT/FL classifier model (default: the shipped one)")
         q.add_argument("--bridge-gaps", type=int, default=15, metavar="N",
                        help="measure runs of up to N steps without an estimate end to end (0: off; default 15)")
@@ -231,7 +235,7 @@ def _motion_settings(args):
                           classify=not args.no_classify, model=args.model, bridge_gaps=args.bridge_gaps,
                           wall_steps="drop" if args.drop_wall_steps else "estimate",
                           rotation_steps=not args.no_rotation_steps, rescue=not args.no_rescue,
-                          lumen_scale=not args.no_lumen_scale)
+                          lumen_scale=not args.no_lumen_scale, scale_chain=not args.no_scale_chain)
 
 
 def _print_problems(problems: list, limit: int = 20) -> int:

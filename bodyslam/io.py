@@ -279,7 +279,12 @@ MOTION_COLUMNS = ["frame", "t", "distance_m", "roll_rad", "pitch_rad", "yaw_rad"
                   "beside_wall",
                   # the step's length under a ringed tube over the cylinder's, where the lumen's scale was measured
                   # (StepMotion.ring_ratio, bodyslam.vision.lumen_scale); nan elsewhere (a file without it: nan)
-                  "ring_ratio"]
+                  "ring_ratio",
+                  # the step's scale against the previous step's (log ratio, from the points both matched in their
+                  # shared frame) and its 1-sigma, and the factor its length was multiplied by to tie it to its
+                  # neighbours' (StepMotion.scale_link, scale_link_sd, chain_factor; bodyslam.vision.scale_chain);
+                  # nan where there is none (a file without them: nan)
+                  "scale_link", "scale_link_sd", "chain_factor"]
 _FULL_STEP = ("tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad", "sigma_distance_m", "sigma_rotation_rad")
 
 
@@ -289,7 +294,8 @@ def motion_row(frame: int, t_s: float, s: StepMotion) -> list:
     rv = matrix_to_rotvec(s.R_c1_c2) if s.R_c1_c2 is not None else np.full(3, np.nan)
     return [int(frame), float(t_s), float(s.distance_m), float(s.roll_rad), float(s.pitch_rad), float(s.yaw_rad),
             float(s.tilt_rad), int(s.n_matches), str(s.status), *map(float, t), *map(float, rv),
-            float(s.sigma_distance_m), float(s.sigma_rotation_rad), int(s.beside_wall), float(s.ring_ratio)]
+            float(s.sigma_distance_m), float(s.sigma_rotation_rad), int(s.beside_wall), float(s.ring_ratio),
+            float(s.scale_link), float(s.scale_link_sd), float(s.chain_factor)]
 
 
 def write_motion_csv(path: str | os.PathLike, frames: Sequence[int], stamps_s: Sequence[float],
@@ -310,7 +316,9 @@ def step_from_row(row: dict) -> StepMotion:
         t = np.array(vals[:3], float)
     return StepMotion(row["distance_m"], row["roll_rad"], row["pitch_rad"], row["yaw_rad"], row["tilt_rad"],
                       int(row.get("n_matches", 0)), row["status"], R, t, vals[6], vals[7],
-                      bool(row.get("beside_wall", False)), float(row.get("ring_ratio", math.nan)))
+                      bool(row.get("beside_wall", False)), float(row.get("ring_ratio", math.nan)),
+                      float(row.get("scale_link", math.nan)), float(row.get("scale_link_sd", math.nan)),
+                      float(row.get("chain_factor", math.nan)))
 
 
 def read_motion_steps(path: str | os.PathLike, frames: Sequence[int]) -> list[StepMotion]:
@@ -452,5 +460,13 @@ def motion_values(row: dict, where: str = "motion row") -> tuple[int, dict[str, 
         raise InputError(f"{where}: ring_ratio {cell!r} is not a number") from None
     if not (math.isnan(vals["ring_ratio"]) or 0 < vals["ring_ratio"] < math.inf):
         raise InputError(f"{where}: ring_ratio {cell!r} is not a positive number")
+    for c in ("scale_link", "scale_link_sd", "chain_factor"):  # empty (or nan) where there is none
+        cell = row.get(c)
+        try:
+            vals[c] = float(cell) if cell not in (None, "") else math.nan
+        except ValueError:
+            raise InputError(f"{where}: {c} {cell!r} is not a number") from None
+        if math.isinf(vals[c]) or (c != "scale_link" and vals[c] <= 0):
+            raise InputError(f"{where}: {c} {cell!r} is not a {'finite' if c == 'scale_link' else 'positive'} number")
     vals["label"] = row.get("label") or ""
     return k, vals

@@ -126,6 +126,13 @@ class StepMotion:
     # the step's length under a tube with one contraction ring over its length under the cylinder, on the steps the
     # exam's lumen scale is measured on (bodyslam.vision.lumen_scale; NaN elsewhere); motion.csv's ``ring_ratio``
     ring_ratio: float = NAN
+    # log(this step's scale / the previous step's) from the depths of the points both matched in their shared frame,
+    # and its 1-sigma (bodyslam.vision.scale_chain; NaN where none); motion.csv's ``scale_link``, ``scale_link_sd``
+    scale_link: float = NAN
+    scale_link_sd: float = NAN
+    # the factor the step's length was multiplied by to tie its scale to its neighbours' (bodyslam.vision.scale_chain;
+    # NaN where the chain did not take it); motion.csv's ``chain_factor``
+    chain_factor: float = NAN
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", StepStatus(self.status))  # also refuses an unknown status

@@ -108,6 +108,7 @@ DEFAULT_FPS = 2.0
 MAX_FRAME_RANGE = 10_000_000  # a frame range (``--mark 100-200``) longer than any exam is a typing error
 _SIGMA_D = MOTION_COLUMNS.index("sigma_distance_m")
 _DISTANCE, _TX = MOTION_COLUMNS.index("distance_m"), MOTION_COLUMNS.index("tx_m")
+_LINK, _CHAIN = MOTION_COLUMNS.index("scale_link"), MOTION_COLUMNS.index("chain_factor")
 
 
 # -- exams ------------------------------------------------------------------------------------------------------
@@ -549,7 +550,10 @@ def process_chunk(task: dict) -> dict:
     res = chunk_task(task)
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"],
             "frames": res.frames, "steps": [motion_row(idx, t, s) for _, idx, t, s in res.steps],
-            "problems": res.problems, "eof": res.eof}
+            "problems": res.problems, "eof": res.eof,
+            # the points of the first and last steps, for the seams' scale links (bodyslam.vision.scale_chain)
+            "seam_in": res.seam_in.to_json() if res.seam_in is not None else None,
+            "seam_out": res.seam_out.to_json() if res.seam_out is not None else None}
 
 
 # -- the run ----------------------------------------------------------------------------------------------------
@@ -880,12 +884,45 @@ def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
 
     every = _ring_every(exam, settings)
     res = None
-    if lumen_scale_measured(settings.motion, exam.radius_sd_rel):
+    measured = lumen_scale_measured(settings.motion, exam.radius_sd_rel)
+    chain = _scale_chain_exam(exam, d, d / "scale_chain.npz", measured and settings.motion.scale_chain)
+    if measured:
         i = MOTION_COLUMNS.index("ring_ratio")
         factor, samples = exam_scale(float(row[i]) for row in _step_rows(d) if len(row) > i)
-        res = lumen_scale_summary(factor, samples, every, exam.radius_m)
+        res = lumen_scale_summary(factor, samples, every, exam.radius_m,
+                                  chain if settings.motion.scale_chain else None)
     with atomic_path(d / "lumen_scale.json") as tmp:
         tmp.write_text(json.dumps({"lumen_scale": res}), encoding="utf-8")
+
+
+def _scale_chain_exam(exam: Exam, d: Path, f: Path, apply: bool) -> dict:
+    """The exam's steps' scale links, the seams' linked from the points the chunks handed on, and with ``apply``
+    (the radius a prior) the steps' scales tied to their neighbours' (:func:`bodyslam.vision.scale_chain.chain_factors`,
+    the rule ``bodyslam motion`` follows; else every factor 1): ``scale_chain.npz`` holds each step's factor and
+    link, which :func:`_exam_rows` applies. A few numbers a step."""
+    from bodyslam.steps import MEASURED
+    from bodyslam.vision.scale_chain import Signature, chain_factors, chain_summary, scale_link
+
+    cols = [MOTION_COLUMNS.index(c) for c in ("distance_m", "sigma_distance_m", "scale_link", "scale_link_sd")]
+    st = MOTION_COLUMNS.index("status")
+    vals, member, seam = [], [], None
+    for ch in _iter_chunks(d):
+        for j, row in enumerate(ch["steps"]):
+            v = [float(row[c]) if len(row) > c else math.nan for c in cols]
+            if j == 0 and seam is not None and ch.get("seam_in") is not None:  # the seam's link
+                v[2:4] = scale_link(seam, Signature.from_json(ch["seam_in"]))
+            vals.append(v)
+            member.append(row[st] in MEASURED)
+        seam = Signature.from_json(ch.get("seam_out"))
+        if ch["eof"] is not None:
+            break
+    a = np.array(vals, float).reshape(-1, 4)
+    factor = (chain_factors(a[:, 0], a[:, 1], a[:, 2], a[:, 3], np.array(member, bool), exam.radius_m) if apply
+              else np.ones(len(a)))
+    with atomic_path(f) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, factor=factor, link=a[:, 2], link_sd=a[:, 3])
+    return chain_summary(factor, np.isfinite(a[:, 2]))
 
 
 def _lumen_scale_of(d: Path) -> dict | None:
@@ -923,6 +960,10 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
     bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
     sc = _lumen_scale_of(d)
     factor = sc["factor"] if sc else 1.0
+    chain = None  # each step's factor and scale link (scale_chain.npz)
+    if (d / "scale_chain.npz").is_file():
+        with np.load(d / "scale_chain.npz") as z:
+            chain = (z["factor"], z["link"], z["link_sd"])
     rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
     item = 0
     for ch in _iter_chunks(d):
@@ -934,6 +975,14 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
         for row, step in zip(fr, ch["steps"]):
             if str(item) in bridged:
                 step = step[:2] + bridged[str(item)][2:]
+            if chain is not None and item < len(chain[0]):  # the seams' links, and the steps tied to neighbours
+                step = list(step) + [math.nan] * (len(MOTION_COLUMNS) - len(step))
+                step[_LINK:_LINK + 2] = float(chain[1][item]), float(chain[2][item])
+                if chain[0][item] != 1.0:
+                    f = float(chain[0][item])
+                    step[_DISTANCE] *= f
+                    step[_TX:_TX + 3] = [x * f for x in step[_TX:_TX + 3]]
+                    step[_CHAIN] = f
             item += 1
             s = step_from_row(dict(zip(MOTION_COLUMNS, step)))
             if factor != 1.0 and s.has_estimate:  # the exam's lumen scale (lumen_scale.json)

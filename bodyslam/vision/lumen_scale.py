@@ -223,12 +223,15 @@ def rescaled(s: StepMotion, factor: float) -> StepMotion:
                    sigma_distance_m=s.sigma_distance_m * factor)
 
 
-def lumen_scale_summary(factor: float, samples: int, every: int, radius_m: float) -> dict:
+def lumen_scale_summary(factor: float, samples: int, every: int, radius_m: float,
+                        scale_chain: dict | None = None) -> dict:
     """What ``summary.json`` and the CLIs say of it: the factor applied, the ratios behind it, and the radius of
     the cylinder the rescaled steps amount to."""
     return {"factor": float(factor), "samples": int(samples), "every_nth_step": int(every),
             "applied": bool(factor != 1.0), "min_samples": RING_MIN_SAMPLES,
-            "effective_radius_m": float(radius_m * factor)}
+            "effective_radius_m": float(radius_m * factor),
+            # the steps' scales tied to their neighbours' before this factor (bodyslam.vision.scale_chain)
+            "scale_chain": scale_chain}
 
 
 def _ordinal(n: int) -> str:
@@ -249,4 +252,14 @@ def lumen_scale_text(sc: dict | None) -> str:
                 + "): the steps keep the radius prior's scale")
     return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps "
             f"(every {_ordinal(sc['every_nth_step'])}) of a tube with one contraction ring against the cylinder: "
-            f"a cylinder of {sc['effective_radius_m'] * 100:.2f} cm")
+            f"a cylinder of {sc['effective_radius_m'] * 100:.2f} cm" + _chain_text(sc.get("scale_chain")))
+
+
+def _chain_text(ch: dict | None) -> str:
+    """The clause on the steps' scales tied to their neighbours' (:func:`bodyslam.vision.scale_chain.chained`)."""
+    if not ch:
+        return ""
+    if not ch["steps_chained"]:
+        return "; no step's scale tied to its neighbours' (no links)"
+    return (f"; {ch['steps_chained']} steps' scales tied to their neighbours' by {ch['links']} links (factors "
+            f"{ch['factor_p10']:.2f}-{ch['factor_p90']:.2f}, 10th-90th percentile)")

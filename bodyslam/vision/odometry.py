@@ -125,6 +125,9 @@ class MotionSettings:
     #                      (bodyslam.vision.matching, "rescue"); off: such a step fails as before session 24
     lumen_scale: bool = True  # tube estimator: the exam's steps rescaled by the lumen's scale seen in a sample of
     #                           them (bodyslam.vision.lumen_scale); off: the radius prior's scale, as to session 37
+    #                           (and no scale chain either)
+    scale_chain: bool = True  # tube estimator, radius a prior, lumen scale on: each step's scale tied to its
+    #                           neighbours' by the depths of the points they share (bodyslam.vision.scale_chain)
 
     def __post_init__(self) -> None:
         for name, allowed in (("match_mode", MATCH_MODES), ("estimator", ESTIMATORS), ("unroll_mode", UNROLL_MODES)):
@@ -164,6 +167,10 @@ class ChunkResult:
     steps: list[tuple[int, int, float, StepMotion]]
     problems: list[list]
     eof: int | None = None
+    # the points of the chunk's first step's first frame and of its last step's last frame (None where that step
+    # has no fit), so whoever joins the chunks links the seams (bodyslam.vision.scale_chain)
+    seam_in: object = None
+    seam_out: object = None
 
 
 class VisualOdometry:
@@ -189,6 +196,7 @@ class VisualOdometry:
                                else TunnelClassifier.default())
         self.work_px = classify_work_px(settings, self.classifier)
         self.T_body_cam = None
+        self.signatures = None  # the last estimate_pair's step points (bodyslam.vision.scale_chain.Signature x 2)
         if T_body_cam is not None:
             self.T_body_cam = (Rotation.from_quat(T_body_cam[0]), np.asarray(T_body_cam[1], float).reshape(3))
 
@@ -243,6 +251,11 @@ class VisualOdometry:
         if (rotation and estimator == "tube" and s.status == StepStatus.TOO_FEW_MATCHES
                 and s.n_matches <= LOST_MAX_MATCHES and self._textured(f1) and self._textured(f2)):
             s = StepMotion(n_matches=s.n_matches, status=StepStatus.LOST)
+        self.signatures = None  # the step's points in both frames, for its scale link (bodyslam.vision.scale_chain)
+        if s.ok and x is not None:
+            from bodyslam.vision.scale_chain import step_signatures
+
+            self.signatures = step_signatures(m.pts1_px, m.pts2_px, x, self.camera)
         return self.to_body(s)
 
     def _textured(self, f) -> bool:
@@ -260,7 +273,8 @@ class VisualOdometry:
             return rotation_step(R, s.n_matches, s.sigma_rotation_rad)
         t = R_bc.apply(s.t_c1_c2_m) + t_bc - R.apply(t_bc)
         return replace(motion_from_transform(R, t, s.n_matches, s.sigma_distance_m, s.sigma_rotation_rad, s.status),
-                       beside_wall=s.beside_wall, ring_ratio=s.ring_ratio)
+                       beside_wall=s.beside_wall, ring_ratio=s.ring_ratio, scale_link=s.scale_link,
+                       scale_link_sd=s.scale_link_sd, chain_factor=s.chain_factor)
 
     def estimate_wall(self, f1, f2, ring: bool = False) -> StepMotion:
         """A step touching a frame that faces the wall. The dissertation drops it (its unrolling needs the lumen
@@ -292,9 +306,12 @@ class VisualOdometry:
         """Records and steps of the frames at positions ``first ..`` (module docstring). ``ring_every``: the
         fitted steps into positions divisible by it get their ``ring_ratio`` (the exam's lumen scale sample,
         :func:`bodyslam.vision.lumen_scale.ring_every`; 0: none)."""
+        from bodyslam.vision.scale_chain import scale_link
+
         cam = self.camera
         out = ChunkResult([], [], [])
         prev = None  # (features or None, class, frame status)
+        prev_points = None  # the previous step's points in its last frame (this step's first), None: no fit
         for fr in frames:
             if fr.end_of_video:  # a container's frame count is an estimate: every decodable frame was read
                 out.eof = fr.pos
@@ -315,6 +332,7 @@ class VisualOdometry:
                 out.frames.append([fr.index, fr.label, fr.t_s, cls, status])
             if fr.pos > first:
                 ring = ring_every > 0 and fr.pos % ring_every == 0
+                self.signatures = None
                 if prev is None or prev[0] is None or feats is None:
                     s = StepMotion.failed(StepStatus.BAD_FRAME)
                 elif self.classifier is not None and (prev[2] != "ok" or status != "ok"):
@@ -323,8 +341,15 @@ class VisualOdometry:
                     s = self.estimate_wall(prev[0], feats, ring=ring)
                 else:  # both frames face the tunnel where they were classified
                     s = self.estimate_pair(prev[0], feats, ahead=self.classifier is not None, ring=ring)
+                points = self.signatures if s.ok else None
+                if fr.pos == first + 1:
+                    out.seam_in = points[0] if points else None
+                elif points is not None and prev_points is not None:
+                    s = replace(s, **dict(zip(("scale_link", "scale_link_sd"), scale_link(prev_points, points[0]))))
+                prev_points = points[1] if points else None
                 out.steps.append((fr.pos, fr.index, fr.t_s, s))
             prev = (feats, cls, status)
+        out.seam_out = prev_points
         return out
 
     def bridge(self, img_a: np.ndarray | None, img_b: np.ndarray | None) -> StepMotion | None:
@@ -664,10 +689,16 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     every = sample_every(n) if measure else 0
     tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b, ring_every=every)
              for a, b in chunk_bounds(n, chunk_frames)]
+    from bodyslam.vision.scale_chain import chained, scale_link
+
     steps: list[StepMotion] = []
+    seam = None  # the previous chunk's last step's points in its last frame
     for res in imap_tasks(chunk_task, tasks, jobs):
-        for _, _, _, s in res.steps:
+        for j, (_, _, _, s) in enumerate(res.steps):
+            if j == 0 and seam is not None and res.seam_in is not None:  # the seam's link, as one chunk gives it
+                s = replace(s, **dict(zip(("scale_link", "scale_link_sd"), scale_link(seam, res.seam_in))))
             steps.append(s)
+        seam = res.seam_out
         for p in res.problems:
             log.warning("%s: %s", p[0], p[3])
             if problems is not None:
@@ -677,11 +708,16 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     for i, s in bridge_gaps(steps, settings, base, jobs).items():
         steps[i] = s
     if measure:
+        chain = None
+        if settings.scale_chain:
+            steps, chain = chained(steps, seq.radius_m)
+            log.info("scale chain: %d steps tied to their neighbours by %d links", chain["steps_chained"],
+                     chain["links"])
         factor, samples = exam_scale(s.ring_ratio for s in steps)
         log.info("lumen scale: %.3f from %d ring ratios (one step in %d)", factor, samples, every)
         steps = [rescaled(s, factor) for s in steps]
         if lumen_scale_used is not None:
-            lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m))
+            lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m, chain))
     elif lumen_scale_used is not None:
         lumen_scale_used.append(None)
     return with_lumen_uncertainty(steps, seq.radius_sd_rel, seq.shape_sd_rel)

@@ -21,7 +21,8 @@ def run(*args):
     return subprocess.run([sys.executable, "-m", "bodyslam.cli", *args], capture_output=True, text=True)
 
 
-def _with_wall_frames(dst: Path, dark: tuple[int, ...] = (), insert_dark_after: int | None = None) -> Path:
+def _with_wall_frames(dst: Path, dark: tuple[int, ...] = (), insert_dark_after: int | None = None,
+                      radius_sd_m: float | None = None) -> Path:
     """The demo sequence with frames blacked out (a capsule against the wall: classified FL), and optionally a
     dark frame inserted after frame ``insert_dark_after`` (the capsule looks at the wall for a moment and comes
     back to the view it left)."""
@@ -37,19 +38,24 @@ def _with_wall_frames(dst: Path, dark: tuple[int, ...] = (), insert_dark_after: 
         write_image(dst / "frames" / f"{k:06d}.png", np.zeros_like(img) if f is None or k in dark else img)
     meta = json.loads((dst / "meta.json").read_text())
     meta["n_frames"] = len(src)
+    if radius_sd_m is not None:  # the radius a prior, as on real exams: the steps' scales are chained
+        meta["tube_radius_sd_m"] = radius_sd_m
     (dst / "meta.json").write_text(json.dumps(meta))
     return dst
 
 
-@pytest.mark.parametrize("opts", [["--mode", "fast"],
-                                  ["--mode", "sift", "--estimator", "thesis", "--unroll-mode", "thesis"]])
-def test_motion_and_batch_write_identical_motion_csv(tmp_path, opts):
+@pytest.mark.parametrize("opts, radius_sd_m", [(["--mode", "fast"], None), (["--mode", "sift"], 0.0025),
+                                               (["--mode", "sift", "--estimator", "thesis", "--unroll-mode", "thesis"],
+                                                None)])
+def test_motion_and_batch_write_identical_motion_csv(tmp_path, opts, radius_sd_m):
     """Same frames, same settings: ``bodyslam motion`` and ``bodyslam batch`` write the same file, byte for
     byte -- gap bridging included (frames 30-31 face the wall, so steps 30-32 have no estimate of their own and
     are bridged by matching frame 29 with 32; a dark frame inserted after 13 makes a gap whose ends are consecutive
     frames of the sequence: bridged too, in fast mode) and the thesis estimator's unroll mode honoured (both were
-    lost in batch before the engine was shared; the thesis estimator gives no pose to bridge with)."""
-    seq = _with_wall_frames(tmp_path / "seq", dark=(30, 31), insert_dark_after=13)
+    lost in batch before the engine was shared; the thesis estimator gives no pose to bridge with). With the
+    radius a prior, the steps' scales are tied to their neighbours' (bodyslam.vision.scale_chain), across the
+    batch's chunk seams too."""
+    seq = _with_wall_frames(tmp_path / "seq", dark=(30, 31), insert_dark_after=13, radius_sd_m=radius_sd_m)
     p = run("motion", str(seq), "--out", str(tmp_path / "motion.csv"), "--jobs", "1", *opts)
     assert p.returncode == 0, p.stderr
     p = run("batch", str(seq), "--out", str(tmp_path / "batch"), "--jobs", "1", "--chunk-frames", "7", *opts)
@@ -59,6 +65,13 @@ def test_motion_and_batch_write_identical_motion_csv(tmp_path, opts):
     assert a == b
     rows = list(csv.DictReader(a.splitlines()))
     status = {int(r["frame"]): r["status"] for r in rows}
+    links = [float(r["scale_link"]) for r in rows]
+    chained = [float(r["chain_factor"]) for r in rows]
+    if radius_sd_m:  # links between the fitted steps, seams included (every 7th step starts a chunk in batch)
+        assert sum(map(np.isfinite, links)) > 20 and sum(map(np.isfinite, chained)) > 20
+        assert np.isfinite([links[k - 1] for k in (8, 22) if status[k] == "ok" and status[k - 1] == "ok"]).all()
+    else:  # a known radius is the scale: nothing chained
+        assert not any(map(np.isfinite, chained))
     if "--estimator" not in opts:
         assert [status[k] for k in (14, 15, 30, 31, 32)] == ["bridged"] * 5
     else:  # the thesis estimator gives no full pose to bridge with: the gaps stay gaps
