@@ -119,7 +119,9 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "motion": score_motion(d, d / "motion.csv"),
             "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
             # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured or too few)
-            "lumen_scale": dict(zip(("factor", "samples"), exam_scale(s.ring_ratio for s in steps))),
+            "lumen_scale": {**dict(zip(("factor", "samples"), exam_scale(s.ring_ratio for s in steps))),
+                            # and how many steps had their scale tied to their neighbours' (bodyslam.vision.scale_chain)
+                            "steps_chained": int(sum(math.isfinite(s.chain_factor) for s in steps))},
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": float(np.mean(loc.kappa_smoothed)), "whole_run": loc.channel.kappa,
                       "online_last_frame": float(loc.kappa_online[-1])}}
@@ -392,6 +394,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                                          for a, c in res["consistency"].items()},
                          "path_travelled": {k: round(v, 5) for k, v in res["path_travelled"].items()},
                          "lumen_scale": {"factor": round(lumen[-1]["factor"], 4), "samples": lumen[-1]["samples"],
+                                         "steps_chained": lumen[-1]["steps_chained"],
                                          "distance_scale_after": round(res["motion"]["all"].get("distance_scale",
                                                                                                 math.nan), 4)},
                          "orientation_error_deg": {a: {k: round(v, 2) for k, v in _orientation_stats(e).items()}
@@ -479,7 +482,9 @@ def _lumen_summary(lumen: list[dict]) -> dict:
     return {"runs": len(lumen), "runs_applied": int(len(f)),
             "factor_mean": float(f.mean()) if len(f) else None, "factor_min": float(f.min()) if len(f) else None,
             "factor_max": float(f.max()) if len(f) else None,
-            "samples_mean": float(np.mean([x["samples"] for x in lumen]))}
+            "samples_mean": float(np.mean([x["samples"] for x in lumen])),
+            # steps a run whose scale was tied to their neighbours' (bodyslam.vision.scale_chain)
+            "steps_chained_mean": float(np.mean([x.get("steps_chained", 0) for x in lumen]))}
 
 
 def _lumen_html(sc: dict | None, distance_scale: float | None) -> str:
@@ -493,6 +498,9 @@ def _lumen_html(sc: dict | None, distance_scale: float | None) -> str:
         text += (f", the steps x{sc['factor_mean']:.3f} on average ({sc['factor_min']:.3f} to "
                  f"{sc['factor_max']:.3f})")
     text += f", from {sc['samples_mean']:.0f} ratios a run on average"
+    if sc.get("steps_chained_mean"):
+        text += (f"; {sc['steps_chained_mean']:.0f} steps a run had their scale tied to their neighbours' "
+                 f"(bodyslam.vision.scale_chain)")
     if distance_scale is not None and math.isfinite(distance_scale):
         text += f"; the factor that would still fit the steps best to the truth: {distance_scale:.3f} (mean over runs)"
     return text + ".</p>"

@@ -30,8 +30,9 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     assert t41["mae_distance_scale_aligned_cm"] <= t41["mae_distance_cm"] and t41["distance_scale"] > 0
     # the demo tells its radius exactly: no lumen scale measured (bodyslam.vision.lumen_scale), said per run too
     assert rep["lumen_scale"] == {"runs": 1, "runs_applied": 0, "factor_mean": None, "factor_min": None,
-                                  "factor_max": None, "samples_mean": 0.0}
+                                  "factor_max": None, "samples_mean": 0.0, "steps_chained_mean": 0.0}
     assert rep["per_seed"][0]["lumen_scale"]["factor"] == 1.0
+    assert rep["per_seed"][0]["lumen_scale"]["steps_chained"] == 0  # nor a scale chain (bodyslam.vision.scale_chain)
     for alg in ("ekf_rss", "ekf_rss_causal", "ekf_rss_rts", "ekf_rss_bias", "ekf_rss_bias_rts"):  # per filter:
         # honest uncertainty and orientation
         c = rep["consistency"][alg]
@@ -94,12 +95,15 @@ def test_the_runs_lumen_scales_summed_and_said():
     where no run measured a ratio, no line."""
     from testbed.evaluate import _lumen_html, _lumen_summary
 
-    sc = _lumen_summary([{"factor": 0.9, "samples": 30}, {"factor": 0.8, "samples": 40},
-                         {"factor": 1.0, "samples": 20}])
+    sc = _lumen_summary([{"factor": 0.9, "samples": 30, "steps_chained": 100},
+                         {"factor": 0.8, "samples": 40, "steps_chained": 80}, {"factor": 1.0, "samples": 20}])
     assert sc["runs"] == 3 and sc["runs_applied"] == 2 and sc["samples_mean"] == pytest.approx(30.0)
     assert (sc["factor_mean"], sc["factor_min"], sc["factor_max"]) == (pytest.approx(0.85), 0.8, 0.9)
+    assert sc["steps_chained_mean"] == pytest.approx(60.0)  # a run without the figure (an older one) counts 0
     line = _lumen_html(sc, 1.04)
     assert "applied on 2 of 3 runs" in line and "x0.850 on average (0.800 to 0.900)" in line and "1.040" in line
+    assert "60 steps a run had their scale tied" in line
+    assert "tied" not in _lumen_html({**sc, "steps_chained_mean": 0.0}, 1.04)
     assert _lumen_html(_lumen_summary([{"factor": 1.0, "samples": 0}]), 1.0) == "" and _lumen_html(None, 1.0) == ""
 
 
