@@ -120,3 +120,33 @@ def test_motion_csv_keeps_a_steps_ring_ratio(tmp_path):
         (tmp_path / "bad.csv").write_text("\n".join(",".join(r) for r in rows[:2]) + "\n")
         with pytest.raises(InputError, match=rf"bad\.csv:2: ring_ratio '{cell}' is not a"):
             read_motion_steps(tmp_path / "bad.csv", [1])
+
+
+def test_motion_csv_keeps_a_steps_scale_link_and_chain_factor(tmp_path):
+    """``scale_link``, ``scale_link_sd`` and ``chain_factor`` (bodyslam.vision.scale_chain) go through motion.csv;
+    a step without them, or a file without the columns, reads as NaN; a link that is not a finite number, or a
+    1-sigma or factor that is not a positive one, is refused with its file and line."""
+    from dataclasses import replace
+
+    from bodyslam.io import MOTION_COLUMNS, read_motion_steps, write_motion_csv
+    from bodyslam.steps import motion_from_transform
+
+    s = motion_from_transform(Rotation.from_rotvec([0.0, 0.0, 0.1]), [0.0, 0.0, 0.002], 40, 1e-3, 0.01)
+    write_motion_csv(tmp_path / "m.csv", [1, 2], [0.5, 1.0],
+                     [replace(s, scale_link=-0.125, scale_link_sd=0.11, chain_factor=0.96), s])
+    a, b = read_motion_steps(tmp_path / "m.csv", [1, 2])
+    assert (a.scale_link, a.scale_link_sd, a.chain_factor) == (pytest.approx(-0.125), pytest.approx(0.11),
+                                                               pytest.approx(0.96))
+    assert all(math.isnan(v) for v in (b.scale_link, b.scale_link_sd, b.chain_factor))
+    rows = [ln.split(",") for ln in (tmp_path / "m.csv").read_text().splitlines()]
+    i = MOTION_COLUMNS.index("scale_link")
+    (tmp_path / "old.csv").write_text("\n".join(",".join(r[:i]) for r in rows) + "\n")
+    assert all(math.isnan(x.chain_factor) for x in read_motion_steps(tmp_path / "old.csv", [1, 2]))
+    for col, cell, what in (("scale_link", "abc", "not a number"), ("scale_link", "inf", "not a finite number"),
+                            ("scale_link_sd", "-0.1", "not a positive number"),
+                            ("chain_factor", "0", "not a positive number")):
+        bad = [list(r) for r in rows]
+        bad[1][MOTION_COLUMNS.index(col)] = cell
+        (tmp_path / "bad.csv").write_text("\n".join(",".join(r) for r in bad[:2]) + "\n")
+        with pytest.raises(InputError, match=rf"bad\.csv:2: {col} '{cell}' is {what}"):
+            read_motion_steps(tmp_path / "bad.csv", [1])
