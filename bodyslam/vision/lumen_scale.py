@@ -249,7 +249,7 @@ def lumen_scale_text(sc: dict | None) -> str:
     if not sc["applied"]:
         return (f"not applied ({sc['samples']} step(s) measured it, {sc['min_samples']} needed"
                 + ("; too few frames to sample" if not sc["every_nth_step"] else "")
-                + "): the steps keep the radius prior's scale")
+                + "): the steps keep the radius prior's scale" + _chain_text(sc.get("scale_chain")))
     return (f"steps x{sc['factor']:.3f}, the median over {sc['samples']} steps "
             f"(every {_ordinal(sc['every_nth_step'])}) of a tube with one contraction ring against the cylinder: "
             f"a cylinder of {sc['effective_radius_m'] * 100:.2f} cm" + _chain_text(sc.get("scale_chain")))

@@ -108,3 +108,14 @@ def test_chained_steps_keep_their_direction_rotation_and_1sigma():
     assert np.allclose(out[1].R_c1_c2, poor.R_c1_c2) and out[1].sigma_distance_m == poor.sigma_distance_m
     assert out[3] is steps[3] and math.isnan(out[3].chain_factor)  # a rotation step takes no part
     assert summary["links"] == 2 and summary["steps_chained"] == 3
+
+
+def test_the_lumen_scale_line_says_what_the_chain_did_whether_or_not_the_factor_was_applied():
+    from bodyslam.vision.lumen_scale import lumen_scale_summary, lumen_scale_text
+
+    ch = {"steps_chained": 81, "links": 71, "factor_p10": 0.98, "factor_p90": 1.36}
+    applied = lumen_scale_text(lumen_scale_summary(0.832, 31, 4, 0.0125, ch))
+    assert "x0.832" in applied and "81 steps' scales tied to their neighbours' by 71 links (factors 0.98-1.36" in applied
+    few = lumen_scale_text(lumen_scale_summary(1.0, 3, 2, 0.0125, {**ch, "steps_chained": 0}))
+    assert "not applied" in few and "no step's scale tied to its neighbours'" in few
+    assert "tied" not in lumen_scale_text(lumen_scale_summary(0.9, 30, 2, 0.0125))  # --no-scale-chain
