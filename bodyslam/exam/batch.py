@@ -877,52 +877,55 @@ def _ring_every(exam: Exam, settings: BatchSettings) -> int:
 
 def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
     """The exam's lumen scale from its chunks' ring ratios (``lumen_scale.json``: the summary of
-    :func:`bodyslam.vision.lumen_scale.lumen_scale_summary`, or None where it is not measured); every step with a
-    pose is rescaled by it as the outputs read them (:func:`_exam_rows`). Cheap: written again on every run."""
+    :func:`bodyslam.vision.lumen_scale.lumen_scale_summary`, or None where it is not measured), and before it each
+    step's scale tied to its neighbours' where the scale chain is on (``scale_chain.npz``: every step's link and
+    factor, :mod:`bodyslam.vision.scale_chain`); the outputs apply both as they read the steps (:func:`_exam_rows`).
+    Cheap: written again on every run."""
     from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary
     from bodyslam.vision.odometry import lumen_scale_measured
+    from bodyslam.vision.scale_chain import chain_factors, chain_summary
 
     every = _ring_every(exam, settings)
     res = None
     measured = lumen_scale_measured(settings.motion, exam.radius_sd_rel)
-    chain = _scale_chain_exam(exam, d, d / "scale_chain.npz", measured and settings.motion.scale_chain)
+    steps, ring = _scale_inputs(d)
+    apply = measured and settings.motion.scale_chain
+    factor = (chain_factors(steps[:, 0], steps[:, 1], steps[:, 2], steps[:, 3], steps[:, 4] > 0, exam.radius_m)
+              if apply else np.ones(len(steps)))
+    with atomic_path(d / "scale_chain.npz") as tmp:  # every step's link (the seams' too) and its factor
+        with open(tmp, "wb") as fh:
+            np.savez(fh, factor=factor, link=steps[:, 2], link_sd=steps[:, 3])
     if measured:
-        i = MOTION_COLUMNS.index("ring_ratio")
-        factor, samples = exam_scale(float(row[i]) for row in _step_rows(d) if len(row) > i)
-        res = lumen_scale_summary(factor, samples, every, exam.radius_m,
-                                  chain if settings.motion.scale_chain else None)
+        scale, samples = exam_scale(ring)
+        res = lumen_scale_summary(scale, samples, every, exam.radius_m,
+                                  chain_summary(factor, np.isfinite(steps[:, 2])) if apply else None)
     with atomic_path(d / "lumen_scale.json") as tmp:
         tmp.write_text(json.dumps({"lumen_scale": res}), encoding="utf-8")
 
 
-def _scale_chain_exam(exam: Exam, d: Path, f: Path, apply: bool) -> dict:
-    """The exam's steps' scale links, the seams' linked from the points the chunks handed on, and with ``apply``
-    (the radius a prior) the steps' scales tied to their neighbours' (:func:`bodyslam.vision.scale_chain.chain_factors`,
-    the rule ``bodyslam motion`` follows; else every factor 1): ``scale_chain.npz`` holds each step's factor and
-    link, which :func:`_exam_rows` applies. A few numbers a step."""
+def _scale_inputs(d: Path) -> tuple[np.ndarray, list[float]]:
+    """One pass over the exam's chunks for what its scales need: per step ``(distance, 1-sigma, scale link, its
+    1-sigma, measured 1/0)``, the seams' links made from the points the chunks handed on (the rule ``bodyslam
+    motion`` follows, :mod:`bodyslam.vision.scale_chain`), and the ring ratios (:mod:`bodyslam.vision.lumen_scale`).
+    A few numbers a step."""
     from bodyslam.steps import MEASURED
-    from bodyslam.vision.scale_chain import Signature, chain_factors, chain_summary, scale_link
+    from bodyslam.vision.scale_chain import Signature, scale_link
 
     cols = [MOTION_COLUMNS.index(c) for c in ("distance_m", "sigma_distance_m", "scale_link", "scale_link_sd")]
-    st = MOTION_COLUMNS.index("status")
-    vals, member, seam = [], [], None
+    st, rr = MOTION_COLUMNS.index("status"), MOTION_COLUMNS.index("ring_ratio")
+    vals, ring, seam = [], [], None
     for ch in _iter_chunks(d):
         for j, row in enumerate(ch["steps"]):
-            v = [float(row[c]) if len(row) > c else math.nan for c in cols]
+            v = [float(row[c]) if len(row) > c else math.nan for c in cols] + [float(row[st] in MEASURED)]
             if j == 0 and seam is not None and ch.get("seam_in") is not None:  # the seam's link
                 v[2:4] = scale_link(seam, Signature.from_json(ch["seam_in"]))
             vals.append(v)
-            member.append(row[st] in MEASURED)
+            if len(row) > rr:
+                ring.append(float(row[rr]))
         seam = Signature.from_json(ch.get("seam_out"))
         if ch["eof"] is not None:
             break
-    a = np.array(vals, float).reshape(-1, 4)
-    factor = (chain_factors(a[:, 0], a[:, 1], a[:, 2], a[:, 3], np.array(member, bool), exam.radius_m) if apply
-              else np.ones(len(a)))
-    with atomic_path(f) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, factor=factor, link=a[:, 2], link_sd=a[:, 3])
-    return chain_summary(factor, np.isfinite(a[:, 2]))
+    return np.array(vals, float).reshape(-1, 5), ring
 
 
 def _lumen_scale_of(d: Path) -> dict | None:

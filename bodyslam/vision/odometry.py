@@ -306,7 +306,7 @@ class VisualOdometry:
         """Records and steps of the frames at positions ``first ..`` (module docstring). ``ring_every``: the
         fitted steps into positions divisible by it get their ``ring_ratio`` (the exam's lumen scale sample,
         :func:`bodyslam.vision.lumen_scale.ring_every`; 0: none)."""
-        from bodyslam.vision.scale_chain import scale_link
+        from bodyslam.vision.scale_chain import linked
 
         cam = self.camera
         out = ChunkResult([], [], [])
@@ -345,7 +345,7 @@ class VisualOdometry:
                 if fr.pos == first + 1:
                     out.seam_in = points[0] if points else None
                 elif points is not None and prev_points is not None:
-                    s = replace(s, **dict(zip(("scale_link", "scale_link_sd"), scale_link(prev_points, points[0]))))
+                    s = linked(s, prev_points, points[0])
                 prev_points = points[1] if points else None
                 out.steps.append((fr.pos, fr.index, fr.t_s, s))
             prev = (feats, cls, status)
@@ -689,14 +689,14 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     every = sample_every(n) if measure else 0
     tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b, ring_every=every)
              for a, b in chunk_bounds(n, chunk_frames)]
-    from bodyslam.vision.scale_chain import chained, scale_link
+    from bodyslam.vision.scale_chain import chained, linked
 
     steps: list[StepMotion] = []
     seam = None  # the previous chunk's last step's points in its last frame
     for res in imap_tasks(chunk_task, tasks, jobs):
         for j, (_, _, _, s) in enumerate(res.steps):
             if j == 0 and seam is not None and res.seam_in is not None:  # the seam's link, as one chunk gives it
-                s = replace(s, **dict(zip(("scale_link", "scale_link_sd"), scale_link(seam, res.seam_in))))
+                s = linked(s, seam, res.seam_in)
             steps.append(s)
         seam = res.seam_out
         for p in res.problems:

@@ -49,7 +49,7 @@ from bodyslam.camera import CameraModel
 from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import MEASURED, StepMotion
 
-__all__ = ["Signature", "step_signatures", "scale_link", "chain_factors", "chained", "MIN_PARALLAX_RAD",
+__all__ = ["Signature", "step_signatures", "scale_link", "linked", "chain_factors", "chained", "chain_summary", "MIN_PARALLAX_RAD",
            "LINK_TOL_PX", "MIN_LINK_POINTS", "MAX_LINK_LOG", "MIN_STEP_RADII"]
 
 MIN_PARALLAX_RAD = 0.02  # a point's two rays must part by this (~1.1 deg) for its depth to count
@@ -128,6 +128,13 @@ def scale_link(a_frame2: Signature | None, b_frame1: Signature | None) -> tuple[
         return nan
     mad = 1.4826 * float(np.median(np.abs(lr - med)))
     return med, LINK_SD_MAD_FACTOR * max(mad, LINK_MAD_MIN) / math.sqrt(n) + LINK_SD_FLOOR
+
+
+def linked(s: StepMotion, a_frame2: Signature | None, b_frame1: Signature | None) -> StepMotion:
+    """Step ``s`` with its scale link to the previous step (:func:`scale_link` of the previous step's last-frame
+    points and this step's first-frame ones)."""
+    link, sd = scale_link(a_frame2, b_frame1)
+    return replace(s, scale_link=link, scale_link_sd=sd)
 
 
 def chain_factors(distance_m: np.ndarray, sigma_m: np.ndarray, link: np.ndarray, link_sd: np.ndarray,
