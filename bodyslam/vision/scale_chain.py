@@ -49,8 +49,8 @@ from bodyslam.camera import CameraModel
 from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import MEASURED, StepMotion
 
-__all__ = ["Signature", "step_signatures", "scale_link", "linked", "chain_factors", "chained", "chain_summary", "MIN_PARALLAX_RAD",
-           "LINK_TOL_PX", "MIN_LINK_POINTS", "MAX_LINK_LOG", "MIN_STEP_RADII"]
+__all__ = ["Signature", "step_signatures", "scale_link", "linked", "chain_factors", "chained", "chain_summary",
+           "MIN_PARALLAX_RAD", "LINK_TOL_PX", "MIN_LINK_POINTS", "MAX_LINK_LOG", "MIN_STEP_RADII"]
 
 MIN_PARALLAX_RAD = 0.02  # a point's two rays must part by this (~1.1 deg) for its depth to count
 LINK_TOL_PX = 1.0  # a point of step a's frame 2 and one of step b's frame 1 are the same within this (SIFT's
@@ -151,23 +151,20 @@ def chain_factors(distance_m: np.ndarray, sigma_m: np.ndarray, link: np.ndarray,
     out = np.ones(n)
     if not on.any():
         return out
-    with np.errstate(divide="ignore", invalid="ignore"):
-        psd = STEP_SD_FIT * sig / np.abs(d) + STEP_SD_FLOOR
-    # the link of step i joins i - 1 and i when both take part
-    joined = np.zeros(n, bool)
-    joined[1:] = on[1:] & on[:-1] & np.isfinite(lk[1:]) & np.isfinite(lsd[1:]) & (lsd[1:] > 0)
-    w = np.zeros(n)
-    w[joined] = 1.0 / lsd[joined] ** 2
-    diag = np.where(on, 1.0 / np.where(on, psd, 1.0) ** 2, 1.0)
-    rhs = np.zeros(n)
-    diag[joined] += w[joined]
-    diag[np.nonzero(joined)[0] - 1] += w[joined]
-    rhs[joined] += w[joined] * lk[joined]
-    np.subtract.at(rhs, np.nonzero(joined)[0] - 1, w[joined] * lk[joined])
+    # normal equations: each step's prior on the diagonal (1 where it takes no part: x = 0), each link of step i
+    # (joining i - 1 and i when both take part) on both diagonals and the upper band
+    diag, rhs, w = np.ones(n), np.zeros(n), np.zeros(n)
+    diag[on] = 1.0 / (STEP_SD_FIT * sig[on] / np.abs(d[on]) + STEP_SD_FLOOR) ** 2
+    j = np.nonzero(on[1:] & on[:-1] & np.isfinite(lk[1:]) & np.isfinite(lsd[1:]) & (lsd[1:] > 0))[0] + 1
+    w[j] = 1.0 / lsd[j] ** 2
+    diag[j] += w[j]
+    diag[j - 1] += w[j]  # j - 1 is unique per link: no two links share a left end
+    rhs[j] += w[j] * lk[j]
+    rhs[j - 1] -= w[j] * lk[j]
     ab = np.zeros((2, n))
     ab[0, 1:] = -w[1:]  # the upper band: element (i - 1, i)
     ab[1] = diag
-    x = solveh_banded(ab, rhs)
+    x = solveh_banded(ab, rhs) if n > 1 else rhs / diag  # (LAPACK's banded solver refuses a 1 x 1 system)
     out[on] = np.exp(-x[on])
     return out
 
@@ -176,8 +173,7 @@ def chained(steps: list[StepMotion], radius_m: float) -> tuple[list[StepMotion],
     """The steps with each measured one's length (translation, distance) multiplied by its chain factor
     (:func:`chain_factors`; the 1-sigma is kept), and a summary: steps that took part, links used, the factors'
     spread."""
-    n = len(steps)
-    d = np.array([s.distance_m for s in steps], float) if n else np.zeros(0)
+    d = np.array([s.distance_m for s in steps], float)
     member = np.array([s.status in MEASURED and s.has_estimate for s in steps], bool)
     f = chain_factors(d, np.array([s.sigma_distance_m for s in steps], float),
                       np.array([s.scale_link for s in steps], float),

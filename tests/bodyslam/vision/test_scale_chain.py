@@ -119,3 +119,10 @@ def test_the_lumen_scale_line_says_what_the_chain_did_whether_or_not_the_factor_
     few = lumen_scale_text(lumen_scale_summary(1.0, 3, 2, 0.0125, {**ch, "steps_chained": 0}))
     assert "not applied" in few and "no step's scale tied to its neighbours'" in few
     assert "tied" not in lumen_scale_text(lumen_scale_summary(0.9, 30, 2, 0.0125))  # --no-scale-chain
+
+
+def test_an_exam_of_one_step_keeps_it():
+    """Two frames: one step, no link; the banded solver is not asked a 1 x 1 system (it refuses one)."""
+    f = chain_factors(np.array([0.003]), np.array([3e-5]), np.array([np.nan]), np.array([np.nan]),
+                      np.array([True]), R_TUBE)
+    assert f.tolist() == [1.0]
