@@ -41,7 +41,7 @@ narrows". Where no ring is to be seen the fit still settles on some narrowing, a
 whatever the lumen: on the ideal `exam` tube (its first 1,000 frames, fast mode, the radius given only as a prior;
 its radius varies by +-8% along the gut) the median ratio was 0.94, on a plain synthetic cylinder with 0.6-mm
 steps and 1-px noise 0.76-0.85. So a ratio counts only where the ring is seen: where it lowers the fit's robust cost
-(:func:`bodyslam.vision.motion._lm_soft_l1`'s) from the cylinder's solution by more than
+(:func:`bodyslam.vision.motion._soft_l1_cost`) from the cylinder's solution by more than
 :data:`RING_MIN_COST_DROP` in units of the assumed ray noise (it moves the rays by more than the fits' noise: an
 effect, not a few percent of radius) and by more than :data:`RING_MIN_DROP_SIGNIFICANCE` times the step's own
 residual scale (a likelihood-ratio test for its two parameters on the matches as noisy as they are); elsewhere it is
@@ -60,7 +60,7 @@ import numpy as np
 from bodyslam.camera import CameraModel
 from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import StepMotion
-from bodyslam.vision.motion import _lm_soft_l1, _tube_c  # _tube_c: the compiled residuals (None: not built)
+from bodyslam.vision.motion import _lm_soft_l1, _soft_l1_cost, _tube_c  # _tube_c: compiled residuals (None: not built)
 
 __all__ = ["RING_EVERY_MIN", "RING_SAMPLES_MAX", "RING_MIN_SAMPLES", "RING_MIN_COST_DROP", "RING_MIN_DROP_SIGNIFICANCE",
            "ring_every", "ring_distance_ratio", "exam_scale", "rescaled", "lumen_scale_summary", "lumen_scale_text"]
@@ -195,8 +195,8 @@ def ring_distance_ratio(pts1_px: np.ndarray, pts2_px: np.ndarray, camera: Camera
     10-vector on the same matches, :func:`bodyslam.vision.motion.fit_tube`), NaN where there is none (a step of
     no length, a failed fit, or a ring the matches do not show: it lowers the robust cost by less than
     ``min_cost_drop``, or by less than ``min_significance`` times the step's own residual scale; module docstring;
-    None: :data:`RING_MIN_COST_DROP`, :data:`RING_MIN_DROP_SIGNIFICANCE`; -inf: every ratio). The rays are the cylinder fit's: unprojected, valid in both frames, at
-    most ``max_points`` evenly taken."""
+    None: :data:`RING_MIN_COST_DROP`, :data:`RING_MIN_DROP_SIGNIFICANCE`; -inf: every ratio). The rays are the
+    cylinder fit's: unprojected, valid in both frames, at most ``max_points`` evenly taken."""
     x_tube = np.asarray(x_tube, float)
     d_tube = float(np.linalg.norm(x_tube[3:6]))
     if not (np.all(np.isfinite(x_tube)) and d_tube > MIN_TUBE_STEP_M):
@@ -248,10 +248,8 @@ def _ring_ratio_rays(b1: np.ndarray, b2: np.ndarray, radius_m: float, x_tube: np
     q, cost, c0 = best
     # the cylinder's own solution in the same cost: no ring (depth 0) at the ring fit's start place (its prior 0)
     f_cyl = _ring_residuals(np.r_[x_tube, 0.0, c0][None], b1, b2, radius_m, max_depth_m, noise_rad, grid, c0)[0]
-    c2 = f_scale * f_scale
-    cost_cyl = float(c2 * np.sum(np.sqrt(1.0 + f_cyl * f_cyl / c2) - 1.0))  # _lm_soft_l1's cost
     dof = max(len(f_cyl) - len(q), 1)
-    return float(np.linalg.norm(q[3:6]) / d_tube), cost_cyl - cost, 2.0 * cost / dof
+    return float(np.linalg.norm(q[3:6]) / d_tube), _soft_l1_cost(f_cyl, f_scale) - cost, 2.0 * cost / dof
 
 
 def exam_scale(ratios) -> tuple[float, int]:

@@ -216,6 +216,12 @@ def essential_start(b1: np.ndarray, b2: np.ndarray, step_m: float,
     return p0
 
 
+def _soft_l1_cost(f: np.ndarray, f_scale: float) -> float:
+    """``0.5 sum rho(f^2)`` with scipy's ``soft_l1`` at ``f_scale``: the cost :func:`_lm_soft_l1` lowers."""
+    c2 = f_scale * f_scale
+    return float(c2 * np.sum(np.sqrt(1.0 + f * f / c2) - 1.0))  # rho = 2 c2 (sqrt(1 + z / c2) - 1)
+
+
 def _lm_soft_l1(p0: np.ndarray, fun_jac, fun, x_scale: np.ndarray, f_scale: float, max_iter: int = 100,
                 xtol: float = 1e-5, ftol: float = 1e-5):
     """Levenberg-Marquardt on the robust cost ``0.5 sum rho(f^2)``, ``rho`` scipy's ``soft_l1`` (iteratively
@@ -231,13 +237,9 @@ def _lm_soft_l1(p0: np.ndarray, fun_jac, fun, x_scale: np.ndarray, f_scale: floa
     ``(rho' + 2 rho'' f^2)^0.5 = (1 + f^2/c^2)^-0.75`` for soft-L1), so covariances are the same as before.
     """
     c2 = f_scale * f_scale
-
-    def cost_of(f):
-        return float(c2 * np.sum(np.sqrt(1.0 + f * f / c2) - 1.0))  # 0.5 * sum(rho), rho = 2 c2 (sqrt(1+z/c2) - 1)
-
     p = p0.copy()
     f, J = fun_jac(p)
-    cost = cost_of(f)
+    cost = _soft_l1_cost(f, f_scale)
     D = 1.0 / (x_scale * x_scale)
     lam = 1e-1  # conservative first steps: from 1e-3 one hard pair in 120 jumped to a worse minimum
 
@@ -258,7 +260,7 @@ def _lm_soft_l1(p0: np.ndarray, fun_jac, fun, x_scale: np.ndarray, f_scale: floa
                     return p, f, robust_jac(f, J), cost
                 continue
             f_new = fun(p + step)
-            cost_new = cost_of(f_new)
+            cost_new = _soft_l1_cost(f_new, f_scale)
             if np.isfinite(cost_new) and cost_new < cost:
                 break
             lam *= 10.0
