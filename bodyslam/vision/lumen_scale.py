@@ -77,8 +77,8 @@ RING_GRID = 32  # depths per ray for the first wall crossing (32 and 64 gave the
 # scatters by ~0.2 (robust sigma; 0.003 on the ideal tube), so the median of 24 is good to ~5%, against the ~10% it
 # corrects; 8 on the demo clip gave 0.99 forwards and 0.91 played backwards. An exam too short to reach it is not
 # sampled at all. Session 41: every step at most, ~128 an exam (every 2nd and 64 before), since a ratio without a
-# ring seen is dropped (RING_MIN_COST_DROP, RING_MIN_DROP_SIGNIFICANCE: ~20% of them on realistic tuning seeds,
-# nearly all on an ideal tube); a whole exam's 128 fits cost ~4-7 s of one core (29 ms a fit on `exam` steps, 55 on
+# ring seen is dropped (RING_MIN_COST_DROP, RING_MIN_DROP_SIGNIFICANCE: ~25% of them on realistic tuning seeds,
+# ~90% on the ideal `exam` tube); a whole exam's 128 fits cost ~4-7 s of one core (29 ms a fit on `exam` steps, 55 on
 # realistic ones, CPU time on this machine, session 41).
 RING_EVERY_MIN = 1
 RING_SAMPLES_MAX = 128
