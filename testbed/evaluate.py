@@ -35,7 +35,7 @@ from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
 from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION, lost_step_floor_m
 from bodyslam.fusion.rf import locate_nls
-from bodyslam.vision.lumen_scale import exam_scale
+from bodyslam.vision.lumen_scale import exam_scale, ring_every, ring_tried
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
 from testbed.score import CHI2_3_683, score_motion, score_path
 from testbed.simulate import prepare_output_dir, simulate
@@ -119,7 +119,8 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "motion": score_motion(d, d / "motion.csv"),
             "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
             # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured or too few)
-            "lumen_scale": {**dict(zip(("factor", "samples"), exam_scale(s.ring_ratio for s in steps))),
+            "lumen_scale": {**dict(zip(("factor", "samples"), exam_scale(
+                (s.ring_ratio for s in steps), ring_tried((s.status for s in steps), ring_every(len(steps) + 1))))),
                             # and how many steps had their scale tied to their neighbours' (bodyslam.vision.scale_chain)
                             "steps_chained": int(sum(math.isfinite(s.chain_factor) for s in steps))},
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)

@@ -881,14 +881,14 @@ def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
     step's scale tied to its neighbours' where the scale chain is on (``scale_chain.npz``: every step's link and
     factor, :mod:`bodyslam.vision.scale_chain`); the outputs apply both as they read the steps (:func:`_exam_rows`).
     Cheap: written again on every run."""
-    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary
+    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary, ring_tried
     from bodyslam.vision.odometry import lumen_scale_measured
     from bodyslam.vision.scale_chain import chain_factors, chain_summary
 
     every = _ring_every(exam, settings)
     res = None
     measured = lumen_scale_measured(settings.motion, exam.radius_sd_rel)
-    steps, ring = _scale_inputs(d)
+    steps, ring, statuses = _scale_inputs(d)
     apply = measured and settings.motion.scale_chain
     factor = (chain_factors(steps[:, 0], steps[:, 1], steps[:, 2], steps[:, 3], steps[:, 4] > 0, exam.radius_m)
               if apply else np.ones(len(steps)))
@@ -896,27 +896,29 @@ def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
         with open(tmp, "wb") as fh:
             np.savez(fh, factor=factor, link=steps[:, 2], link_sd=steps[:, 3])
     if measured:
-        scale, samples = exam_scale(ring)
+        tried = ring_tried(statuses, every)
+        scale, samples = exam_scale(ring, tried)
         res = lumen_scale_summary(scale, samples, every, exam.radius_m,
-                                  chain_summary(factor, np.isfinite(steps[:, 2])) if apply else None)
+                                  chain_summary(factor, np.isfinite(steps[:, 2])) if apply else None, tried)
     with atomic_path(d / "lumen_scale.json") as tmp:
         tmp.write_text(json.dumps({"lumen_scale": res}), encoding="utf-8")
 
 
-def _scale_inputs(d: Path) -> tuple[np.ndarray, list[float]]:
+def _scale_inputs(d: Path) -> tuple[np.ndarray, list[float], list[str]]:
     """One pass over the exam's chunks for what its scales need: per step ``(distance, 1-sigma, scale link, its
     1-sigma, measured 1/0)``, the seams' links made from the points the chunks handed on (the rule ``bodyslam
-    motion`` follows, :mod:`bodyslam.vision.scale_chain`), and the ring ratios (:mod:`bodyslam.vision.lumen_scale`).
-    A few numbers a step."""
+    motion`` follows, :mod:`bodyslam.vision.scale_chain`), the ring ratios (:mod:`bodyslam.vision.lumen_scale`) and
+    the steps' statuses (which steps had the ring fitted). A few numbers a step."""
     from bodyslam.steps import MEASURED
     from bodyslam.vision.scale_chain import Signature, scale_link
 
     cols = [MOTION_COLUMNS.index(c) for c in ("distance_m", "sigma_distance_m", "scale_link", "scale_link_sd")]
     st, rr = MOTION_COLUMNS.index("status"), MOTION_COLUMNS.index("ring_ratio")
-    vals, ring, seam = [], [], None
+    vals, ring, statuses, seam = [], [], [], None
     for ch in _iter_chunks(d):
         for j, row in enumerate(ch["steps"]):
             v = [float(row[c]) if len(row) > c else math.nan for c in cols] + [float(row[st] in MEASURED)]
+            statuses.append(row[st])
             if j == 0 and seam is not None and ch.get("seam_in") is not None:  # the seam's link
                 v[2:4] = scale_link(seam, Signature.from_json(ch["seam_in"]))
             vals.append(v)
@@ -925,7 +927,7 @@ def _scale_inputs(d: Path) -> tuple[np.ndarray, list[float]]:
         seam = Signature.from_json(ch.get("seam_out"))
         if ch["eof"] is not None:
             break
-    return np.array(vals, float).reshape(-1, 5), ring
+    return np.array(vals, float).reshape(-1, 5), ring, statuses
 
 
 def _lumen_scale_of(d: Path) -> dict | None:

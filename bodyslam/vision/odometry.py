@@ -674,7 +674,7 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     writes it); ``lumen_scale_used``: one that receives the scale's summary
     (:func:`~bodyslam.vision.lumen_scale.lumen_scale_summary`), or None where it was not measured."""
     from bodyslam.parallel import imap_tasks
-    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary, rescaled
+    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary, rescaled, ring_tried
     from bodyslam.vision.lumen_scale import ring_every as sample_every
 
     seq = Sequence.open(seq_dir, radius_m, camera)
@@ -713,11 +713,13 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             steps, chain = chained(steps, seq.radius_m)
             log.info("scale chain: %d steps tied to their neighbours by %d links", chain["steps_chained"],
                      chain["links"])
-        factor, samples = exam_scale(s.ring_ratio for s in steps)
-        log.info("lumen scale: %.3f from %d ring ratios (one step in %d)", factor, samples, every)
+        tried = ring_tried((s.status for s in steps), every)
+        factor, samples = exam_scale((s.ring_ratio for s in steps), tried)
+        log.info("lumen scale: %.3f from %d ring ratios of %d steps fitted (one step in %d)", factor, samples, tried,
+                 every)
         steps = [rescaled(s, factor) for s in steps]
         if lumen_scale_used is not None:
-            lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m, chain))
+            lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m, chain, tried))
     elif lumen_scale_used is not None:
         lumen_scale_used.append(None)
     return with_lumen_uncertainty(steps, seq.radius_sd_rel, seq.shape_sd_rel)

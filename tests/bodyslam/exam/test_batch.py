@@ -440,6 +440,7 @@ def test_the_lumen_scale_rescales_every_step_with_a_pose(tmp_path, monkeypatch):
 
     monkeypatch.setattr(lumen_scale, "ring_distance_ratio", lambda *a, **k: 0.9)
     monkeypatch.setattr(lumen_scale, "RING_MIN_SAMPLES", 2)
+    monkeypatch.setattr(lumen_scale, "RING_SAMPLE_MIN_STEPS", 2)
     folder = _plain_folder(tmp_path / "exam", 12)
     # the chain off too, so that the factor is all that differs (bodyslam.vision.scale_chain: tested there)
     run_batch(open_exams([str(folder)]), tmp_path / "on", replace(FAST, motion=replace(FAST.motion, scale_chain=False)),
@@ -463,6 +464,7 @@ def test_the_lumen_scale_rescales_every_step_with_a_pose(tmp_path, monkeypatch):
     assert n_pose > 5
     sc = json.loads((tmp_path / "on" / "exam" / "summary.json").read_text())["lumen_scale"]
     assert sc["factor"] == pytest.approx(0.9) and sc["samples"] == len(sampled) and sc["applied"]
+    assert sc["steps_tried"] == len(sampled)  # every fit gave its ratio here
     assert sc["effective_radius_m"] == pytest.approx(0.9 * json.loads(
         (tmp_path / "on" / "exam" / "summary.json").read_text())["radius_m"])
     assert json.loads((tmp_path / "off" / "exam" / "summary.json").read_text())["lumen_scale"] is None
