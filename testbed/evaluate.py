@@ -118,14 +118,23 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "orientation_error_deg": {k: orientation_errors_deg(r.rotations_w_c, grot) for k, r in with_cov.items()},
             "motion": score_motion(d, d / "motion.csv"),
             "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
-            # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured or too few)
-            "lumen_scale": {**dict(zip(("factor", "samples"), exam_scale(
-                (s.ring_ratio for s in steps), ring_tried((s.status for s in steps), ring_every(len(steps) + 1))))),
-                            # and how many steps had their scale tied to their neighbours' (bodyslam.vision.scale_chain)
-                            "steps_chained": int(sum(math.isfinite(s.chain_factor) for s in steps))},
+            # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured, too few rings,
+            # or no more of them than a lumen without rings shows), the rings seen and the sampled steps fitted
+            "lumen_scale": _lumen_scale_of(steps, rel > 0),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": float(np.mean(loc.kappa_smoothed)), "whole_run": loc.channel.kappa,
                       "online_last_frame": float(loc.kappa_online[-1])}}
+
+
+def _lumen_scale_of(steps: list, measured: bool) -> dict:
+    """A run's lumen scale from its motion.csv steps (:func:`bodyslam.vision.lumen_scale.exam_scale`): ``factor``,
+    ``samples`` (rings seen), ``steps_tried`` (the sampled steps the ring was fitted to; 0 where the scale is not
+    ``measured``: the radius told exactly, as ``bodyslam motion`` decides) and ``steps_chained`` (steps whose scale
+    was tied to their neighbours', :mod:`bodyslam.vision.scale_chain`)."""
+    tried = ring_tried((s.status for s in steps), ring_every(len(steps) + 1)) if measured else 0
+    factor, samples = exam_scale((s.ring_ratio for s in steps), tried)
+    return {"factor": factor, "samples": samples, "steps_tried": tried,
+            "steps_chained": int(sum(math.isfinite(s.chain_factor) for s in steps))}
 
 
 def _write_trajectories(out: Path, stamps_s: np.ndarray, est: dict, with_cov: dict) -> None:
@@ -395,6 +404,7 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                                          for a, c in res["consistency"].items()},
                          "path_travelled": {k: round(v, 5) for k, v in res["path_travelled"].items()},
                          "lumen_scale": {"factor": round(lumen[-1]["factor"], 4), "samples": lumen[-1]["samples"],
+                                         "steps_tried": lumen[-1]["steps_tried"],
                                          "steps_chained": lumen[-1]["steps_chained"],
                                          "distance_scale_after": round(res["motion"]["all"].get("distance_scale",
                                                                                                 math.nan), 4)},

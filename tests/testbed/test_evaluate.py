@@ -32,6 +32,7 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     assert rep["lumen_scale"] == {"runs": 1, "runs_applied": 0, "factor_mean": None, "factor_min": None,
                                   "factor_max": None, "samples_mean": 0.0, "steps_chained_mean": 0.0}
     assert rep["per_seed"][0]["lumen_scale"]["factor"] == 1.0
+    assert rep["per_seed"][0]["lumen_scale"]["steps_tried"] == 0  # no ring fitted where the radius is told
     assert rep["per_seed"][0]["lumen_scale"]["steps_chained"] == 0  # nor a scale chain (bodyslam.vision.scale_chain)
     for alg in ("ekf_rss", "ekf_rss_causal", "ekf_rss_rts", "ekf_rss_bias", "ekf_rss_bias_rts"):  # per filter:
         # honest uncertainty and orientation
