@@ -354,7 +354,8 @@ def lumen_scale_text(sc: dict | None) -> str:
         return (f"not applied ({sc['samples']}{sampled} step(s) showed a ring{why}): the steps keep the radius "
                 "prior's scale" + _chain_text(sc.get("scale_chain")))
     return (f"steps x{sc['factor']:.3f}, the median over the {sc['samples']}{sampled} steps that showed a ring "
-            f"(every {_ordinal(sc['every_nth_step'])} step sampled) of a tube with one contraction ring against the "
+            f"({'every' if sc['every_nth_step'] == 1 else 'every ' + _ordinal(sc['every_nth_step'])} step sampled) "
+            "of a tube with one contraction ring against the "
             f"cylinder: a cylinder of {sc['effective_radius_m'] * 100:.2f} cm" + _chain_text(sc.get("scale_chain")))
 
 

@@ -183,6 +183,7 @@ def test_what_a_run_says_of_its_lumen_scale():
     assert ("steps x0.880, the median over the 30 of 70 sampled steps that showed a ring (every 4th step sampled)"
             in lumen_scale_text(done))
     assert "1.10 cm" in lumen_scale_text(done)
+    assert "(every step sampled)" in lumen_scale_text(lumen_scale_summary(0.9, 30, 1, 0.0125))
     said = [lumen_scale_text(lumen_scale_summary(0.9, 30, n, 0.0125)) for n in (2, 3, 11, 21, 22, 112)]
     assert [t.split("(every ")[1].split(" step")[0] for t in said] == ["2nd", "3rd", "11th", "21st", "22nd", "112th"]
 
