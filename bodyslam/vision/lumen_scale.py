@@ -56,7 +56,7 @@ lumen without rings lets a few steps through: 8-10.5% of the sampled fitted step
 (reporting seed 709: 23). The factor now applies where the exam shows rings: at least :data:`RING_MIN_SAMPLES`
 ratios, and more of them among the fitted steps sampled than a lumen without rings lets through -- a one-sided
 binomial test against a share of :data:`RING_NULL_SHARE` at level :data:`RING_SHARE_ALPHA` (:func:`exam_scale`; the
-steps the ring was fitted to are counted by :func:`ring_tried`). Realistic tuning runs show rings on 45-71% of them.
+steps the ring was fitted to are counted by :func:`ring_tried`). Realistic tuning runs show rings on 40-75% of them.
 """
 
 from __future__ import annotations
