@@ -36,6 +36,7 @@ from bodyslam.plots import Figure
 from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION, lost_step_floor_m
 from bodyslam.fusion.rf import locate_nls
 from bodyslam.vision.lumen_scale import exam_scale, ring_every, ring_tried
+from bodyslam.vision.odometry import MotionSettings, lumen_scale_measured
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
 from testbed.score import CHI2_3_683, score_motion, score_path
 from testbed.simulate import prepare_output_dir, simulate
@@ -120,7 +121,7 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
             # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured, too few rings,
             # or no more of them than a lumen without rings shows), the rings seen and the sampled steps fitted
-            "lumen_scale": _lumen_scale_of(steps, rel > 0),
+            "lumen_scale": _lumen_scale_of(steps, lumen_scale_measured(MotionSettings(), rel)),
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": float(np.mean(loc.kappa_smoothed)), "whole_run": loc.channel.kappa,
                       "online_last_frame": float(loc.kappa_online[-1])}}
@@ -129,7 +130,8 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
 def _lumen_scale_of(steps: list, measured: bool) -> dict:
     """A run's lumen scale from its motion.csv steps (:func:`bodyslam.vision.lumen_scale.exam_scale`): ``factor``,
     ``samples`` (rings seen), ``steps_tried`` (the sampled steps the ring was fitted to; 0 where the scale is not
-    ``measured``: the radius told exactly, as ``bodyslam motion`` decides) and ``steps_chained`` (steps whose scale
+    ``measured``: :func:`bodyslam.vision.odometry.lumen_scale_measured` for ``bodyslam motion``'s defaults, which
+    :func:`_run_seed` runs) and ``steps_chained`` (steps whose scale
     was tied to their neighbours', :mod:`bodyslam.vision.scale_chain`)."""
     tried = ring_tried((s.status for s in steps), ring_every(len(steps) + 1)) if measured else 0
     factor, samples = exam_scale((s.ring_ratio for s in steps), tried)
