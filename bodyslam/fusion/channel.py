@@ -54,6 +54,8 @@ MAX_LAG_FRAMES = 30
 # a lag counts once it has this many reading pairs (a few frames of a sensor array): with 16 pairs white noise
 # passes the significance test 2.5% of the time at a correlation of 0.5 and more (measured: kappa 2.1 at frame 1)
 MIN_PAIRS = 100
+# frames per block of :func:`normalised_residuals` (~1 MB per intermediate at 32 sensors)
+RESIDUAL_BLOCK_FRAMES = 4096
 
 
 @dataclass(frozen=True)
@@ -73,11 +75,20 @@ class ResidualCorrelation:
 
 def normalised_residuals(rss_dbm: np.ndarray, positions_w_m: np.ndarray, sensors_w_m: np.ndarray,
                          normals_w: np.ndarray, pl: PathLossModel) -> np.ndarray:
-    """``(RSS - mean(p)) / sigma`` per frame and sensor ``(n, m)`` at the estimated positions (NaN: no reading)."""
-    diff = sensors_w_m[None] - positions_w_m[:, None, :]
-    d = np.linalg.norm(diff, axis=2)
-    depth = np.maximum(np.einsum("kji,ji->kj", diff, normals_w), 0.0)
-    return (rss_dbm - pl.mean_rss_dbm(d, depth)) / pl.params(depth)[2]
+    """``(RSS - mean(p)) / sigma`` per frame and sensor ``(n, m)`` at the estimated positions (NaN: no reading).
+    Computed in blocks of :data:`RESIDUAL_BLOCK_FRAMES` frames (each frame's own arithmetic, so the same numbers
+    as at once): the intermediates stay a few MB whatever the exam's length, where at once they took ~3 kB a frame
+    (161 MiB at 55,000 frames, the fusion's peak; issue 17, docs/RESULTS.md)."""
+    rss_dbm = np.asarray(rss_dbm, float)
+    positions_w_m = np.asarray(positions_w_m, float)
+    out = np.empty(rss_dbm.shape)
+    for a in range(0, len(out), RESIDUAL_BLOCK_FRAMES):
+        b = a + RESIDUAL_BLOCK_FRAMES
+        diff = sensors_w_m[None] - positions_w_m[a:b, None, :]
+        d = np.linalg.norm(diff, axis=2)
+        depth = np.maximum(np.einsum("kji,ji->kj", diff, normals_w), 0.0)
+        out[a:b] = (rss_dbm[a:b] - pl.mean_rss_dbm(d, depth)) / pl.params(depth)[2]
+    return out
 
 
 def _lag_sums(z: np.ndarray, max_lag: int):
@@ -121,11 +132,16 @@ def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.nd
     significant). ``memory (n,)``: the filter's per-frame memory ``a_k`` (:func:`filter_memory`), lag ``l``
     weighted by ``a_k^l`` (module docstring); None: every lag in full, as for an average over the whole run."""
     prod, cnt, sq, n_sq = _lag_sums(np.asarray(z, float), max_lag)
-    rho, first, kappa = _kappa(np.cumsum(prod, 0), np.cumsum(cnt, 0), np.cumsum(sq), np.cumsum(n_sq))
-    if memory is None:
-        return kappa
-    lags = np.arange(1, rho.shape[1] + 1)
-    return _weighted_kappa(rho, first, np.asarray(memory, float)[:, None] ** lags[None])
+    prod, cnt, sq, n_sq = np.cumsum(prod, 0), np.cumsum(cnt, 0), np.cumsum(sq), np.cumsum(n_sq)
+    lags = np.arange(1, prod.shape[1] + 1)
+    mem = None if memory is None else np.asarray(memory, float)
+    kappa = np.empty(len(prod))
+    for a in range(0, len(kappa), RESIDUAL_BLOCK_FRAMES):  # each frame's own (blocks: ~8 arrays of (n, L) less)
+        b = a + RESIDUAL_BLOCK_FRAMES
+        rho, first, kappa[a:b] = _kappa(prod[a:b], cnt[a:b], sq[a:b], n_sq[a:b])
+        if mem is not None:
+            kappa[a:b] = _weighted_kappa(rho, first, mem[a:b, None] ** lags[None])
+    return kappa
 
 
 def _weighted_kappa(rho: np.ndarray, n_lags, w: np.ndarray) -> np.ndarray:

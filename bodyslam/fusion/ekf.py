@@ -65,6 +65,8 @@ __all__ = ["process_model", "step_pose", "process_noise", "ErrorStateEkf", "Filt
 
 CHI2_3_999 = 16.27
 Z_GATE_999 = 3.29  # per-reading two-sided 99.9% gate on a normalised RSS innovation
+# frames per call of the compiled filter (_ekf_rss.c): its per-frame record (~1.4 kB) is stored block by block
+COMPILED_BLOCK_FRAMES = 4096
 # divergence guard's covariance inflation: position (fixes: 4x their covariance; RSS: 5 cm), orientation 10 deg
 GUARD_FIX_COV_SCALE, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD = 4.0, 0.05, np.radians(10.0)
 # process-noise floors of an estimated step (the fit's own 1-sigma can be optimistic) and the rule for a step
@@ -516,9 +518,12 @@ class ErrorStateEkf:
         state = np.concatenate([self.p[0], self.R[0].ravel(), self.P[0].ravel(), self.b[0, :ns],
                                 [self.nll[0], self.streak[0], self.n_rejected[0], self.n_updates[0]]]).astype(float)
         W = 49 + (12 + 3 * D * D + 2 * ns if keep else 0)
-        rec = np.empty((b - a, W))
-        _ekf_c.run(state, self._c_steps, self._c_rss, self._c_pos, self._c_nrm, self._c_params, rec, a, b,
-                   int(a > k0), ns, int(keep))
+        for a1 in range(a, b, COMPILED_BLOCK_FRAMES):  # in blocks: the record stays ~5 MB, not ~1.4 kB a frame
+            b1 = min(a1 + COMPILED_BLOCK_FRAMES, b)  # (the state carries everything from one block to the next)
+            rec = np.empty((b1 - a1, W))
+            _ekf_c.run(state, self._c_steps, self._c_rss, self._c_pos, self._c_nrm, self._c_params, rec, a1, b1,
+                       int(a1 > k0), ns, int(keep))
+            self._store_compiled(rec, a1, b1, k0, keep, out)
         e = 12 + D * D
         self.p, self.R, self.P = state[None, :3].copy(), state[3:12].reshape(1, 3, 3).copy(), \
             state[12:e].reshape(1, D, D).copy()
@@ -526,6 +531,10 @@ class ErrorStateEkf:
             self.b = state[None, e:e + 1].copy()
         self.nll = state[e + ns:e + ns + 1].copy()
         self.streak, self.n_rejected, self.n_updates = (state[e + ns + j:e + ns + j + 1].astype(int) for j in (1, 2, 3))
+
+    def _store_compiled(self, rec: np.ndarray, a: int, b: int, k0: int, keep: bool, out: dict) -> None:
+        """The compiled frames ``a .. b-1``'s record ``rec`` into :meth:`run`'s outputs ``out``."""
+        D, ns = 6 + self.n_scale, self.n_scale
         i0, i1 = a - k0, b - k0
         out["pos"][0, i0:i1], out["rot"][0, i0:i1] = rec[:, :3], rec[:, 3:12].reshape(-1, 3, 3)
         out["covs"][0, i0:i1], out["nll_k"][0, i0:i1] = rec[:, 12:48].reshape(-1, 6, 6), rec[:, 48]

@@ -109,9 +109,11 @@ class MapProblem:
         z = (self.rss[rows] - self.pl.mean_rss_dbm(d, depth)) / sigma
         return z, diff, d, alpha, sigma
 
-    def _chunks(self):
-        """Frame blocks of the readings' terms: memory bounded whatever the exam's length."""
-        return (slice(a, min(a + CHUNK_FRAMES, self.n)) for a in range(0, self.n, CHUNK_FRAMES))
+    def _chunks(self, n: int | None = None):
+        """Blocks of ``n`` frames (default: all of them; the readings' terms, the steps' Jacobians): memory bounded
+        whatever the exam's length."""
+        n = self.n if n is None else n
+        return (slice(a, min(a + CHUNK_FRAMES, n)) for a in range(0, n, CHUNK_FRAMES))
 
     def _per_chunk(self, fn) -> list:
         """``fn(rows)`` for every block of :meth:`_chunks`, in order; the blocks on threads where there are several
@@ -125,11 +127,13 @@ class MapProblem:
         with ThreadPoolExecutor(workers) as ex:
             return list(ex.map(fn, rows))
 
-    def _steps(self, p, R):
-        """The step factors' whitened residuals ``(rp, rr)`` (each ``(n-1, 3)``)."""
-        rp = (p[1:] - p[:-1] - np.einsum("kij,kj->ki", R[:-1], self.t)) / self.sig_t[:, None]
-        E = np.swapaxes(self.R_steps, 1, 2) @ np.swapaxes(R[:-1], 1, 2) @ R[1:]  # R_s^T R_k^T R_{k+1}
-        return rp, matrix_to_rotvec(E) / self.sig_r[:, None]
+    def _steps(self, p, R, rows=slice(None)):
+        """The step factors' whitened residuals ``(rp, rr)`` (each ``(n-1, 3)``; of the steps ``rows`` only)."""
+        a, b, _ = rows.indices(self.n - 1)
+        p0, p1, R0, R1 = p[a:b], p[a + 1:b + 1], R[a:b], R[a + 1:b + 1]
+        rp = (p1 - p0 - np.einsum("kij,kj->ki", R0, self.t[a:b])) / self.sig_t[a:b, None]
+        E = np.swapaxes(self.R_steps[a:b], 1, 2) @ np.swapaxes(R0, 1, 2) @ R1  # R_s^T R_k^T R_{k+1}
+        return rp, matrix_to_rotvec(E) / self.sig_r[a:b, None]
 
     def residuals(self, p, R):
         """Whitened residuals ``(step position (n-1, 3), step rotation (n-1, 3), readings (n, m))``."""
@@ -148,18 +152,20 @@ class MapProblem:
             total += part
         return 0.5 * total
 
-    def _step_blocks(self, p, R):
+    def _step_blocks(self, p, R, rows=slice(None)):
         """Each step's six whitened residual rows (position, rotation) and their Jacobians against the poses ``k``
-        and ``k+1``: ``(Ja, Jb (n-1, 6, 6), r (n-1, 6))``. Position rows ``[-I/s_t, R_k [t_k]x / s_t | I/s_t, 0]``;
-        rotation rows ``[0, -(R_{k+1}^T R_k) / s_r | 0, I / s_r]`` (the log's Jacobian taken as the identity)."""
-        K = self.n - 1
-        rp, rr = self._steps(p, R)
-        it, ir = 1.0 / self.sig_t[:, None, None], 1.0 / self.sig_r[:, None, None]
+        and ``k+1``: ``(Ja, Jb (n-1, 6, 6), r (n-1, 6))`` (of the steps ``rows`` only). Position rows
+        ``[-I/s_t, R_k [t_k]x / s_t | I/s_t, 0]``; rotation rows ``[0, -(R_{k+1}^T R_k) / s_r | 0, I / s_r]`` (the
+        log's Jacobian taken as the identity)."""
+        a, b, _ = rows.indices(self.n - 1)
+        K = b - a
+        rp, rr = self._steps(p, R, rows)
+        it, ir = 1.0 / self.sig_t[a:b, None, None], 1.0 / self.sig_r[a:b, None, None]
         Ja = np.zeros((K, 6, 6))
         Jb = np.zeros((K, 6, 6))
         Ja[:, :3, :3] = -np.eye(3) * it
-        Ja[:, :3, 3:] = R[:-1] @ _skew(self.t) * it
-        Ja[:, 3:, 3:] = -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) * ir
+        Ja[:, :3, 3:] = R[a:b] @ _skew(self.t[a:b]) * it
+        Ja[:, 3:, 3:] = -(np.swapaxes(R[a + 1:b + 1], 1, 2) @ R[a:b]) * ir
         Jb[:, :3, :3] = np.eye(3) * it
         Jb[:, 3:, 3:] = np.eye(3) * ir
         return Ja, Jb, np.concatenate([rp, rr], axis=1)
@@ -182,15 +188,19 @@ class MapProblem:
         blocks, ``O (n-1, 6, 6)`` the blocks ``(k, k+1)``, ``g (n, 6)`` the gradient ``J^T r`` -- without forming
         ``J`` (:meth:`linearise`, the same system as a sparse matrix, is the reference the tests hold it to).
         ``extra_var``: variance added to the readings' (:meth:`_reading_rows`; the covariance's system only)."""
-        Ja, Jb, r = self._step_blocks(p, R)
-        JaT, JbT = np.swapaxes(Ja, 1, 2), np.swapaxes(Jb, 1, 2)
         D = np.zeros((self.n, 6, 6))
         g = np.zeros((self.n, 6))
-        D[:-1] += JaT @ Ja
-        D[1:] += JbT @ Jb
-        O = JaT @ Jb
-        g[:-1] += np.einsum("kij,kj->ki", JaT, r)
-        g[1:] += np.einsum("kij,kj->ki", JbT, r)
+        O = np.empty((self.n - 1, 6, 6))
+        for rows in self._chunks(self.n - 1):  # the steps' Jacobians a block at a time (~3 kB a frame at once)
+            Ja, Jb, r = self._step_blocks(p, R, rows)
+            JaT, JbT = np.swapaxes(Ja, 1, 2), np.swapaxes(Jb, 1, 2)
+            a, b = rows.start, rows.stop  # (D starts at zero and each block adds two terms: x + y = y + x,
+            D[a:b] += JaT @ Ja  # so the sums do not depend on the blocks)
+            D[a + 1:b + 1] += JbT @ Jb
+            O[rows] = JaT @ Jb
+            g[a:b] += np.einsum("kij,kj->ki", JaT, r)
+            g[a + 1:b + 1] += np.einsum("kij,kj->ki", JbT, r)
+
         def block(rows):  # the readings: position rows of their own frame only (blocks write their own rows)
             z, Jz, _ = self._reading_rows(p, rows, extra_var)
             D[rows, :3, :3] += np.einsum("kmi,kmj->kij", Jz, Jz)
@@ -239,6 +249,7 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
     R = res.rotations_w_c.as_matrix()
     f = f_start = prob.cost(p, R)
     lam, it = 1e-3, 0
+    D = O = g = None
     for it in range(1, max_iter + 1):
         f_before = f
         D, O, g = prob.normal_equations(p, R)
@@ -258,6 +269,7 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
             break
     log.info("whole-exam refinement: cost %.1f -> %.1f in %d iterations", f_start, f, it)
     cov = None
+    del D, O, g  # (the loop's system: not held while the covariance's is built, 0.6 kB a frame)
     if own_cov:
         D, O, _ = prob.normal_equations(p, R, reading_var_db2)
         cov = marginal_covariances(D, O)
@@ -312,13 +324,18 @@ def _solve_damped(D: np.ndarray, O: np.ndarray, g: np.ndarray, lam: float) -> np
     where the damped system is not positive definite (the caller damps more)."""
     n = len(D)
     N = 6 * n
-    ab = np.zeros((12, N))  # lower form: ab[i - j, j] = H[i, j]
-    i, j = np.tril_indices(6)
-    ab[i - j, 6 * np.arange(n)[:, None] + j] = D[:, i, j]
+    # lower form ab[i - j, j] = H[i, j], column-major as LAPACK takes it (a row-major one is copied on the way:
+    # 576 bytes a frame more), filled entry by entry (no index arrays per frame): abk[k, j, r] = ab[r, 6k + j]
+    abk = np.zeros((n, 6, 12))
+    ab = abk.reshape(N, 12).T
+    for i in range(6):
+        for j in range(i + 1):
+            abk[:, j, i - j] = D[:, i, j]
     ab[0] += lam * (ab[0] + 1e-9)
-    ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")  # H[6(k+1) + ii, 6k + jj] = O[k, jj, ii]
-    ab[6 + ii - jj, 6 * np.arange(n - 1)[:, None, None] + jj] = np.swapaxes(O, 1, 2)
-    try:
-        return -solveh_banded(ab, g.ravel(), lower=True).reshape(n, 6)
+    for i in range(6):  # H[6(k+1) + i, 6k + j] = O[k, j, i]
+        for j in range(6):
+            abk[:n - 1, j, 6 + i - j] = O[:, j, i]
+    try:  # (ab is built for this one solve: LAPACK overwrites it instead of a copy)
+        return -solveh_banded(ab, g.ravel(), overwrite_ab=True, lower=True).reshape(n, 6)
     except np.linalg.LinAlgError:
         return None

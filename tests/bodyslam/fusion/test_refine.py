@@ -60,8 +60,10 @@ def test_the_jacobian_matches_finite_differences():
 
 
 def test_the_block_normal_equations_are_the_sparse_jacobians(monkeypatch):
-    # normal_equations builds J^T J and J^T r block by block, the readings in chunks of frames, without J: they
-    # must equal the sparse reference (linearise) to rounding, with chunks smaller than the run (3 frames) too.
+    # normal_equations builds J^T J and J^T r block by block, the steps and the readings in chunks of frames,
+    # without J: they must equal the sparse reference (linearise) to rounding, with chunks smaller than the run (3
+    # frames) too, and the chunks must not change a bit (each frame's blocks are its own; D's two step terms are
+    # added to zero in either order).
     import bodyslam.fusion.refine as refine
 
     steps, fixes, rss, pos, nrm, pl, gt = synthetic_run(2, n=25)
@@ -75,9 +77,12 @@ def test_the_block_normal_equations_are_the_sparse_jacobians(monkeypatch):
     prob = MapProblem(steps, rss, pos, nrm, pl)
     J, r = prob.linearise(p, R)
     H, gref = (J.T @ J).toarray(), J.T @ r
+    first = None
     for chunk in (4096, 3):
         monkeypatch.setattr(refine, "CHUNK_FRAMES", chunk)
         D, O, g = prob.normal_equations(p, R)
+        first = first or (D, O, g)
+        assert all(np.array_equal(a, b) for a, b in zip(first, (D, O, g)))
         Hb = np.zeros_like(H)
         for k in range(len(p)):
             Hb[6 * k:6 * k + 6, 6 * k:6 * k + 6] = D[k]

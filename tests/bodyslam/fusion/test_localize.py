@@ -1,0 +1,69 @@
+"""bodyslam.fusion.localize as a whole: what it gives does not depend on how its stages split the frames."""
+
+import numpy as np
+import pytest
+
+from tests.bodyslam.fusion import test_fusion
+from tests.bodyslam.fusion.test_fusion import DEMO
+
+demo = test_fusion.demo  # the demo's true steps with noise, and its RF (a fixture of test_fusion)
+
+
+def _localize(demo, radius_sd_rel):
+    from bodyslam.fusion.localize import RfInput, localize
+    from bodyslam.io import read_json
+
+    steps, *_ = demo
+    rf = RfInput.read(DEMO / "rf.csv", DEMO / "sensors.csv", read_json(DEMO / "meta.json")["rf"]["pathloss"])
+    return localize(steps, np.arange(len(steps) + 1) / 2.0, rf, 2.0, radius_sd_rel=radius_sd_rel)
+
+
+@pytest.mark.parametrize("radius_sd_rel", [0.0, 0.1])  # 0.1: with the scale state (a 7-state filter)
+def test_the_output_is_the_same_whatever_the_block_sizes(demo, monkeypatch, radius_sd_rel):
+    # The stages whose memory would grow with the exam work in blocks of frames (issue 17: memory flat in exam
+    # length): the compiled filter's record, the RTS gains, the readings' normalised residuals and the online
+    # correlation factor. Each frame's numbers are its own, so blocks of 7 frames over the demo's 41 (the last
+    # block short, a block boundary inside the start's search window) must give the bytes of one block.
+    # (The whole-exam solve's blocks are held to the same in test_refine.py: its cost sums blocks in block order.)
+    import bodyslam.fusion.body_slam as body_slam
+    import bodyslam.fusion.channel as channel
+    import bodyslam.fusion.ekf as ekf
+
+    whole = _localize(demo, radius_sd_rel)
+    for mod, name in ((ekf, "COMPILED_BLOCK_FRAMES"), (body_slam, "GAIN_BLOCK_FRAMES"),
+                      (channel, "RESIDUAL_BLOCK_FRAMES")):
+        monkeypatch.setattr(mod, name, 7)
+    blocks = _localize(demo, radius_sd_rel)
+    for run in ("filtered", "rts", "smoothed"):
+        a, b = getattr(whole, run), getattr(blocks, run)
+        assert np.array_equal(a.positions_w_m, b.positions_w_m), run
+        assert np.array_equal(a.rotations_w_c.as_quat(), b.rotations_w_c.as_quat()), run
+        assert np.array_equal(a.cov, b.cov), run
+    assert np.array_equal(whole.kappa_online, blocks.kappa_online)
+    assert np.array_equal(whole.kappa_smoothed, blocks.kappa_smoothed)
+    assert np.array_equal(whole.channel.rho, blocks.channel.rho) and whole.channel.kappa == blocks.channel.kappa
+    # (the demo's channel is ideal, its factor 1 throughout: the test below holds the blocks to a correlated one)
+
+
+def test_the_correlation_factors_are_the_same_in_blocks(monkeypatch):
+    # normalised_residuals and causal_inflation frame by frame in blocks against at once, on residuals that are
+    # correlated (so the factor is above 1 and varies from frame to frame) with missing readings.
+    import bodyslam.fusion.channel as channel
+    from bodyslam.fusion.rf import PathLossModel
+    from testbed.rf import SensorLayout
+
+    rng = np.random.default_rng(3)
+    n, layout, pl = 500, SensorLayout.thesis_grids(), PathLossModel()
+    m = len(layout.names)
+    p = np.cumsum(rng.normal(0, 0.002, (n, 3)), axis=0)
+    rss = -60.0 + np.cumsum(rng.normal(0, 1.0, (n, m)), axis=0) * 0.3 + rng.normal(0, 3, (n, m))
+    rss[rng.random((n, m)) < 0.05] = np.nan
+    memory = rng.uniform(0.5, 0.99, n)
+    z = channel.normalised_residuals(rss, p, layout.positions_w_m, layout.normals_w, pl)
+    k_mem, k_all = channel.causal_inflation(z, memory=memory), channel.causal_inflation(z)
+    assert k_mem.max() > 1.5 and np.ptp(k_all) > 0.5  # a factor that varies: the blocks have something to get wrong
+    monkeypatch.setattr(channel, "RESIDUAL_BLOCK_FRAMES", 37)
+    z37 = channel.normalised_residuals(rss, p, layout.positions_w_m, layout.normals_w, pl)
+    assert np.array_equal(z, z37, equal_nan=True)
+    assert np.array_equal(k_mem, channel.causal_inflation(z, memory=memory))
+    assert np.array_equal(k_all, channel.causal_inflation(z))
