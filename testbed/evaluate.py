@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from bodyslam.fusion.body_slam import fuse, kf_thesis, step_pose
+from bodyslam.errors import InputError
 from bodyslam.io import read_motion_steps, read_tum, write_image, write_json, write_tum
 from bodyslam.fusion.channel import inflate
 from bodyslam.fusion.localize import RfInput, localize, online_inflation
@@ -320,7 +321,7 @@ def _run_seed(args) -> dict:
     scenario, seed, d, n_frames, render_jobs, motion_jobs, keep, reuse = args
     d = Path(d)
     t0 = time.perf_counter()
-    reused = reuse and (d / "meta.json").is_file() and (d / "motion.csv").is_file()
+    reused = reuse and _reusable(d)
     if not reused:
         with threadpool_limits(1 if render_jobs == 1 else None):  # a worker among others: one BLAS/OpenMP thread
             simulate(scenario, seed, d, n_frames=n_frames, jobs=render_jobs, force=True)
@@ -347,18 +348,46 @@ def _run_seed(args) -> dict:
     return res
 
 
+def _seed_list(seeds: list[int], most: int = 8) -> str:
+    """Seeds as a person reads them: ``"700, 701, 702"``, or the first few and how many more."""
+    head = ", ".join(map(str, seeds[:most]))
+    return head if len(seeds) <= most else f"{head} and {len(seeds) - most} more"
+
+
+def _reusable(d: Path) -> bool:
+    """A seed's directory holds an earlier run ``--reuse`` can score again: its sequence and motion.csv."""
+    return (d / "meta.json").is_file() and (d / "motion.csv").is_file()
+
+
 def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_frames: int | None = None,
              force: bool = False, keep: bool = False, progress: Callable[[str], None] | None = None,
              jobs: int | None = 1, reuse: bool = False) -> dict:
     """Evaluate every algorithm over ``seeds`` (module docstring). ``jobs``: seeds run in parallel worker
     processes (each renders and estimates with one core); ``1``: seeds one after another, each using every
     core for rendering and motion. ``reuse``: a seed whose directory in ``out_dir`` already holds a sequence
-    and its ``motion.csv`` is scored again without rendering or motion."""
+    and its ``motion.csv`` is scored again without rendering or motion; the others are rendered and run (listed
+    through ``progress``).
+
+    Raises
+    ------
+    InputError
+        ``reuse`` where no seed's directory holds an earlier run (checked before any work: rendering every seed
+        is not what was asked).
+    """
     import time
 
     from bodyslam.parallel import available_cores, imap_tasks
 
     out = Path(out_dir)
+    if reuse:
+        missing = [s for s in seeds if not _reusable(out / "sequences" / f"seed_{s}")]
+        if len(missing) == len(seeds):
+            raise InputError(f"--reuse: {out / 'sequences'} holds no earlier run of seed(s) {_seed_list(seeds)} "
+                             f"(each needs seed_N/meta.json and seed_N/motion.csv); run without --reuse to render "
+                             f"and run them")
+        if missing and progress:
+            progress(f"--reuse: no earlier run of seed(s) {_seed_list(missing)} in {out / 'sequences'}: "
+                     f"rendered and run")
     prepare_output_dir(out, force)
     jobs = available_cores() if jobs is None else max(1, int(jobs))
     jobs = min(jobs, len(seeds))

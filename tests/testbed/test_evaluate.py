@@ -284,3 +284,20 @@ def test_seeds_as_a_count_a_range_or_a_list_and_a_count_said(capsys):
     _seeds_said("700-709", parse_seeds("700-709"))
     _seeds_said("1", parse_seeds("1"))
     assert capsys.readouterr().out == ""  # a range, or a count of one, says nothing more
+
+
+def test_reuse_with_no_earlier_run_is_refused_before_any_work(tmp_path):
+    """``--reuse`` scores the seeds of an earlier run again; where ``--out`` holds none of them it says so and
+    renders nothing (rendering every seed is not what was asked), exit 1."""
+    out = tmp_path / "eval"
+    out.mkdir()
+    (out / "notes.txt").write_text("not a run")
+    p = subprocess.run([sys.executable, "-m", "testbed.cli", "evaluate", "demo", "--seeds", "700-702", "--frames",
+                        "20", "--out", str(out), "--reuse"], capture_output=True, text=True)
+    assert p.returncode == 1
+    assert "--reuse" in p.stderr and "seed(s) 700, 701, 702" in p.stderr and "without --reuse" in p.stderr
+    assert sorted(x.name for x in out.iterdir()) == ["notes.txt"]  # nothing rendered, nothing written
+
+    from testbed.evaluate import _seed_list
+
+    assert _seed_list(list(range(700, 720))) == "700, 701, 702, 703, 704, 705, 706, 707 and 12 more"
