@@ -286,6 +286,8 @@ def fuse(steps: list[StepMotion], fixes: list[Fix], rss: np.ndarray | None = Non
                          f"{0 if fixes is None else len(fixes)}")
     ekf = ErrorStateEkf(steps, fixes, rss, sensors_w_m, normals_w, pl, cfg.mode, cfg.max_rejections,
                         cfg.bias_corr_m, cfg.bias_sd_db, cfg.scale_sd_rel, cfg.scale_corr_m, cfg.lost_floor_m)
+    if cfg.mode == "rss" and not ekf.m_bias:
+        ekf.compiled_inputs()  # (made before the copy: the two share them)
     searcher = copy.copy(ekf)  # the same inputs, its own state: searches run while the committed run is open
     # dead reckoning in the first camera frame (steps without an estimate: no motion), for the initial alignment
     dr = np.zeros((n, 3))

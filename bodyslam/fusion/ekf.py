@@ -500,21 +500,7 @@ class ErrorStateEkf:
         """Frames ``a .. b-1`` of :meth:`run` (one candidate, ``rss`` mode, no bias states) in ``_ekf_rss.c``:
         no reset or decision among them; frame ``a`` predicted unless it is the run's first."""
         D, ns = 6 + self.n_scale, self.n_scale
-        if getattr(self, "_c_steps", None) is None:  # per step: translation, rotation, 1-sigmas, scale's rho
-            n1 = len(self.t_applied)
-            tab = np.zeros((n1, 15))
-            tab[:, :3], tab[:, 3:12] = self.t_applied, self.R_steps.reshape(n1, 9)
-            tab[:, 12], tab[:, 13] = self.sig_t, self.sig_r
-            if ns:
-                tab[:, 14] = self.rho_s
-            pl = self.pl
-            self._c_steps = tab
-            self._c_params = np.array([pl.pt_dbm, pl.d0_m, pl.near_surface_depth_m, *pl.near, *pl.deep,
-                                       self.max_rejections, Z_GATE_999, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD,
-                                       self.scale_sd_rel**2], float)
-            self._c_rss = np.ascontiguousarray(self.rss, np.float64)
-            self._c_pos = np.ascontiguousarray(self.pos, np.float64)
-            self._c_nrm = np.ascontiguousarray(self.nrm, np.float64)
+        self.compiled_inputs()
         state = np.concatenate([self.p[0], self.R[0].ravel(), self.P[0].ravel(), self.b[0, :ns],
                                 [self.nll[0], self.streak[0], self.n_rejected[0], self.n_updates[0]]]).astype(float)
         W = 49 + (12 + 3 * D * D + 2 * ns if keep else 0)
@@ -531,6 +517,27 @@ class ErrorStateEkf:
             self.b = state[None, e:e + 1].copy()
         self.nll = state[e + ns:e + ns + 1].copy()
         self.streak, self.n_rejected, self.n_updates = (state[e + ns + j:e + ns + j + 1].astype(int) for j in (1, 2, 3))
+
+    def compiled_inputs(self) -> None:
+        """The compiled filter's inputs, made once: per step its translation, rotation, 1-sigmas and the scale's
+        rho (``(n - 1, 15)``, 120 bytes a frame), the parameters, contiguous readings and sensors. Made before a
+        ``copy.copy`` of the filter (:func:`bodyslam.fusion.body_slam.fuse`'s searcher), the copies share them."""
+        if getattr(self, "_c_steps", None) is not None:
+            return
+        n1, ns = len(self.t_applied), self.n_scale
+        tab = np.zeros((n1, 15))
+        tab[:, :3], tab[:, 3:12] = self.t_applied, self.R_steps.reshape(n1, 9)
+        tab[:, 12], tab[:, 13] = self.sig_t, self.sig_r
+        if ns:
+            tab[:, 14] = self.rho_s
+        pl = self.pl
+        self._c_steps = tab
+        self._c_params = np.array([pl.pt_dbm, pl.d0_m, pl.near_surface_depth_m, *pl.near, *pl.deep,
+                                   self.max_rejections, Z_GATE_999, GUARD_RSS_SIGMA_M, GUARD_THETA_RAD,
+                                   self.scale_sd_rel**2], float)
+        self._c_rss = np.ascontiguousarray(self.rss, np.float64)
+        self._c_pos = np.ascontiguousarray(self.pos, np.float64)
+        self._c_nrm = np.ascontiguousarray(self.nrm, np.float64)
 
     def _store_compiled(self, rec: np.ndarray, a: int, b: int, k0: int, keep: bool, out: dict) -> None:
         """The compiled frames ``a .. b-1``'s record ``rec`` into :meth:`run`'s outputs ``out``."""
