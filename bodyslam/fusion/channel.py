@@ -166,7 +166,12 @@ def smoother_inflation(corr: ResidualCorrelation, memory: np.ndarray | None) -> 
     ``corr.kappa`` (every lag in full) without it."""
     if memory is None or not len(corr.rho):
         return corr.kappa
-    return _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory, len(corr.rho)))
+    memory = np.asarray(memory, float)
+    kappa = np.empty(len(memory))
+    for a in range(0, len(kappa), RESIDUAL_BLOCK_FRAMES):  # each frame's own: the (n, L) weights a block at a time
+        b = a + RESIDUAL_BLOCK_FRAMES
+        kappa[a:b] = _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory[a:b], len(corr.rho)))
+    return kappa
 
 
 def filter_memory(res: FusionResult) -> np.ndarray | None:

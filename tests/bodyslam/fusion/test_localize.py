@@ -67,3 +67,8 @@ def test_the_correlation_factors_are_the_same_in_blocks(monkeypatch):
     assert np.array_equal(z, z37, equal_nan=True)
     assert np.array_equal(k_mem, channel.causal_inflation(z, memory=memory))
     assert np.array_equal(k_all, channel.causal_inflation(z))
+    corr = channel.residual_correlation(z)
+    k_37 = channel.smoother_inflation(corr, memory)
+    monkeypatch.setattr(channel, "RESIDUAL_BLOCK_FRAMES", 10**9)  # one block
+    k_one = channel.smoother_inflation(corr, memory)
+    assert np.array_equal(k_37, k_one) and k_one.max() > 1.5
