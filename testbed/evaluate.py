@@ -348,12 +348,6 @@ def _run_seed(args) -> dict:
     return res
 
 
-def _seed_list(seeds: list[int], most: int = 8) -> str:
-    """Seeds as a person reads them: ``"700, 701, 702"``, or the first few and how many more."""
-    head = ", ".join(map(str, seeds[:most]))
-    return head if len(seeds) <= most else f"{head} and {len(seeds) - most} more"
-
-
 def _reusable(d: Path) -> bool:
     """A seed's directory holds an earlier run ``--reuse`` can score again: its sequence and motion.csv."""
     return (d / "meta.json").is_file() and (d / "motion.csv").is_file()
@@ -382,11 +376,11 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
     if reuse:
         missing = [s for s in seeds if not _reusable(out / "sequences" / f"seed_{s}")]
         if len(missing) == len(seeds):
-            raise InputError(f"--reuse: {out / 'sequences'} holds no earlier run of seed(s) {_seed_list(seeds)} "
+            raise InputError(f"--reuse: {out / 'sequences'} holds no earlier run of seed(s) {_seed_text(seeds)} "
                              f"(each needs seed_N/meta.json and seed_N/motion.csv); run without --reuse to render "
                              f"and run them")
         if missing and progress:
-            progress(f"--reuse: no earlier run of seed(s) {_seed_list(missing)} in {out / 'sequences'}: "
+            progress(f"--reuse: no earlier run of seed(s) {_seed_text(missing)} in {out / 'sequences'}: "
                      f"rendered and run")
     prepare_output_dir(out, force)
     jobs = available_cores() if jobs is None else max(1, int(jobs))

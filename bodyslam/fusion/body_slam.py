@@ -456,10 +456,10 @@ def rts_smooth(res: FusionResult) -> FusionResult:
     xs[-1], Rs[-1], Ps[-1] = ps_.post_p[-1], ps_.post_R[-1], ps_.post_P[-1]
     if m:
         bs[-1] = ps_.post_b[-1]
-    # the gains C_k = P_k F_k^T (P_{k+1}^-)^-1 do not depend on the smoothed values: all at once (the loop below
-    # then costs a few small products a frame; 10,000 frames 0.7-1.2 -> 0.4 s, bit-identical)
-    # (in blocks of frames: the products' temporaries stay ~1 MB, where at once they took 2 arrays of the gains'
-    # size, 32 MB at 55,000 frames; each gain its own products, so the same numbers)
+    # the gains C_k = P_k F_k^T (P_{k+1}^-)^-1 do not depend on the smoothed values: all before the loop (which
+    # then costs a few small products a frame; 10,000 frames 0.7-1.2 -> 0.4 s, bit-identical), in blocks of frames
+    # (at once the products' temporaries took 2 arrays of the gains' size, 32 MB at 55,000 frames; each gain its
+    # own products, so the same numbers)
     G = np.empty_like(ps_.post_P[:-1])
     for a in range(0, n - 1, GAIN_BLOCK_FRAMES):
         b = min(a + GAIN_BLOCK_FRAMES, n - 1)

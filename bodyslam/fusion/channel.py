@@ -58,6 +58,12 @@ MIN_PAIRS = 100
 RESIDUAL_BLOCK_FRAMES = 4096
 
 
+def _frame_blocks(n: int):
+    """Slices of :data:`RESIDUAL_BLOCK_FRAMES` frames over ``n``: the stages below work on each frame's own numbers,
+    a block at a time, so their temporaries stay a few MB whatever the exam's length (issue 17)."""
+    return (slice(a, a + RESIDUAL_BLOCK_FRAMES) for a in range(0, n, RESIDUAL_BLOCK_FRAMES))
+
+
 @dataclass(frozen=True)
 class ResidualCorrelation:
     """Pooled autocorrelation ``rho (L,)`` of the normalised RSS residuals at lags ``1 .. L`` frames, the pairs
@@ -76,18 +82,16 @@ class ResidualCorrelation:
 def normalised_residuals(rss_dbm: np.ndarray, positions_w_m: np.ndarray, sensors_w_m: np.ndarray,
                          normals_w: np.ndarray, pl: PathLossModel) -> np.ndarray:
     """``(RSS - mean(p)) / sigma`` per frame and sensor ``(n, m)`` at the estimated positions (NaN: no reading).
-    Computed in blocks of :data:`RESIDUAL_BLOCK_FRAMES` frames (each frame's own arithmetic, so the same numbers
-    as at once): the intermediates stay a few MB whatever the exam's length, where at once they took ~3 kB a frame
-    (161 MiB at 55,000 frames, the fusion's peak; issue 17, docs/RESULTS.md)."""
+    In blocks of frames (:func:`_frame_blocks`): at once its intermediates took ~3 kB a frame (161 MiB at 55,000
+    frames, the fusion's peak; docs/RESULTS.md)."""
     rss_dbm = np.asarray(rss_dbm, float)
     positions_w_m = np.asarray(positions_w_m, float)
     out = np.empty(rss_dbm.shape)
-    for a in range(0, len(out), RESIDUAL_BLOCK_FRAMES):
-        b = a + RESIDUAL_BLOCK_FRAMES
-        diff = sensors_w_m[None] - positions_w_m[a:b, None, :]
+    for rows in _frame_blocks(len(out)):
+        diff = sensors_w_m[None] - positions_w_m[rows, None, :]
         d = np.linalg.norm(diff, axis=2)
         depth = np.maximum(np.einsum("kji,ji->kj", diff, normals_w), 0.0)
-        out[a:b] = (rss_dbm[a:b] - pl.mean_rss_dbm(d, depth)) / pl.params(depth)[2]
+        out[rows] = (rss_dbm[rows] - pl.mean_rss_dbm(d, depth)) / pl.params(depth)[2]
     return out
 
 
@@ -136,11 +140,10 @@ def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.nd
     lags = np.arange(1, prod.shape[1] + 1)
     mem = None if memory is None else np.asarray(memory, float)
     kappa = np.empty(len(prod))
-    for a in range(0, len(kappa), RESIDUAL_BLOCK_FRAMES):  # each frame's own (blocks: ~8 arrays of (n, L) less)
-        b = a + RESIDUAL_BLOCK_FRAMES
-        rho, first, kappa[a:b] = _kappa(prod[a:b], cnt[a:b], sq[a:b], n_sq[a:b])
+    for rows in _frame_blocks(len(kappa)):  # (at once: ~8 more arrays of (n, L))
+        rho, first, kappa[rows] = _kappa(prod[rows], cnt[rows], sq[rows], n_sq[rows])
         if mem is not None:
-            kappa[a:b] = _weighted_kappa(rho, first, mem[a:b, None] ** lags[None])
+            kappa[rows] = _weighted_kappa(rho, first, mem[rows, None] ** lags[None])
     return kappa
 
 
@@ -168,9 +171,8 @@ def smoother_inflation(corr: ResidualCorrelation, memory: np.ndarray | None) -> 
         return corr.kappa
     memory = np.asarray(memory, float)
     kappa = np.empty(len(memory))
-    for a in range(0, len(kappa), RESIDUAL_BLOCK_FRAMES):  # each frame's own: the (n, L) weights a block at a time
-        b = a + RESIDUAL_BLOCK_FRAMES
-        kappa[a:b] = _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory[a:b], len(corr.rho)))
+    for rows in _frame_blocks(len(kappa)):  # (the (n, L) lag weights a block at a time)
+        kappa[rows] = _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory[rows], len(corr.rho)))
     return kappa
 
 
