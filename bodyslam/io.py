@@ -18,7 +18,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -224,8 +224,9 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Rotation]
     return a[:, 0], a[:, 1:4], Rotation.from_quat(a[:, 4:8])
 
 
-def write_csv(path: str | os.PathLike, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
-    """Write a CSV with a header row, atomically. Floats are written with full precision."""
+def write_csv(path: str | os.PathLike, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
+    """Write a CSV with a header row, atomically. Floats are written with full precision. ``rows`` may be a
+    generator (a whole exam's rows need not be held as lists)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(header)

@@ -193,9 +193,9 @@ def write_uncertainty(path: str | os.PathLike, frames, stamps_s, cov_position_m2
     def cell(x):
         return "" if not math.isfinite(x) else float(x)
 
-    write_csv(path, UNCERTAINTY_COLUMNS,
-              [[int(frames[k]), float(stamps_s[k]), *map(float, sd[k]), float(np.sqrt(np.sum(sd[k] ** 2))),
-                cell(head[k]), cell(pm[k]), cell(psd[k])] for k in range(n)])
+    write_csv(path, UNCERTAINTY_COLUMNS,  # (rows made as written: a whole exam's as lists took ~350 bytes a frame)
+              ([int(frames[k]), float(stamps_s[k]), *map(float, sd[k]), float(np.sqrt(np.sum(sd[k] ** 2))),
+                cell(head[k]), cell(pm[k]), cell(psd[k])] for k in range(n)))
 
 
 def write_rss_bias(path: str | os.PathLike, loc: Localization) -> bool:
