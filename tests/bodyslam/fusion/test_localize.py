@@ -18,12 +18,13 @@ def _localize(demo, radius_sd_rel):
     return localize(steps, np.arange(len(steps) + 1) / 2.0, rf, 2.0, radius_sd_rel=radius_sd_rel)
 
 
-@pytest.mark.parametrize("radius_sd_rel", [0.0, 0.1])  # 0.1: with the scale state (a 7-state filter)
-def test_the_output_is_the_same_whatever_the_block_sizes(demo, monkeypatch, radius_sd_rel):
+@pytest.mark.parametrize("radius_sd_rel, block", [(0.0, 7), (0.1, 7), (0.0, 10)])  # 0.1: the scale state
+def test_the_output_is_the_same_whatever_the_block_sizes(demo, monkeypatch, radius_sd_rel, block):
     # The stages whose memory would grow with the exam work in blocks of frames (issue 17: memory flat in exam
     # length): the compiled filter's record, the RTS gains, the readings' normalised residuals and the online
     # correlation factor. Each frame's numbers are its own, so blocks of 7 frames over the demo's 41 (the last
-    # block short, a block boundary inside the start's search window) must give the bytes of one block.
+    # block short, a block boundary inside the start's search window), or of 10 (the last block one frame; the
+    # 40 gains exactly four blocks) must give the bytes of one block.
     # (The whole-exam solve's blocks are held to the same in test_refine.py: its cost sums blocks in block order.)
     import bodyslam.fusion.body_slam as body_slam
     import bodyslam.fusion.channel as channel
@@ -32,7 +33,7 @@ def test_the_output_is_the_same_whatever_the_block_sizes(demo, monkeypatch, radi
     whole = _localize(demo, radius_sd_rel)
     for mod, name in ((ekf, "COMPILED_BLOCK_FRAMES"), (body_slam, "GAIN_BLOCK_FRAMES"),
                       (channel, "RESIDUAL_BLOCK_FRAMES")):
-        monkeypatch.setattr(mod, name, 7)
+        monkeypatch.setattr(mod, name, block)
     blocks = _localize(demo, radius_sd_rel)
     for run in ("filtered", "rts", "smoothed"):
         a, b = getattr(whole, run), getattr(blocks, run)
