@@ -58,7 +58,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--force", action="store_true")
     ev.add_argument("--reuse", action="store_true",
                     help="score again the sequences of an earlier run in --out (their motion.csv, RF and truth): no "
-                         "rendering, no motion; for re-scoring after a change to the filters")
+                         "rendering, no motion; for re-scoring after a change to the filters (a seed without an "
+                         "earlier run is rendered and run, and said; no earlier run of any seed is an error)")
     ev.add_argument("--jobs", type=int, default=None,
                     help="seeds run in parallel, one per core by default (1: one seed at a time on every core)")
 
