@@ -113,7 +113,10 @@ def main() -> None:
     for n in lengths:
         cmd = [sys.executable, __file__, "--child", str(n), "--seed", str(args.seed),
                *(["--trace"] if args.trace else []), *(["--rss-bias-states"] if args.rss_bias_states else [])]
-        r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise SystemExit(f"the {n}-frame run failed (exit {proc.returncode}):\n{proc.stderr.strip()[-2000:]}")
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
         rows.append(r)
         grow = (r["rss_peak_mib"] - r["rss_before_mib"]) * 2**20 / n
         print(f"{n:8d} {r['seconds']:9.1f} {r['rss_before_mib']:9.0f} MiB {r['rss_peak_mib']:5.0f} MiB {grow:8.0f} B"
