@@ -447,6 +447,8 @@ def rts_smooth(res: FusionResult) -> FusionResult:
     right; the scale state is smoothed too, the RSS bias states are marginalised in the stored passes). Memory: the
     run's stored passes; time linear in the frames."""
     ps_ = res.passes
+    if ps_ is None or ps_.is_released:
+        raise ValueError("rts_smooth needs the filter run's stored passes (fuse keeps them; released() drops them)")
     n = len(ps_.post_p)
     m = 0 if ps_.post_b is None else ps_.post_b.shape[1]
     xs = np.zeros((n, 3))
@@ -456,17 +458,17 @@ def rts_smooth(res: FusionResult) -> FusionResult:
     xs[-1], Rs[-1], Ps[-1] = ps_.post_p[-1], ps_.post_R[-1], ps_.post_P[-1]
     if m:
         bs[-1] = ps_.post_b[-1]
-    # the gains C_k = P_k F_k^T (P_{k+1}^-)^-1 do not depend on the smoothed values: all before the loop (which
-    # then costs a few small products a frame; 10,000 frames 0.7-1.2 -> 0.4 s, bit-identical), in blocks of frames
-    # (at once the products' temporaries took 2 arrays of the gains' size, 32 MB at 55,000 frames; each gain its
-    # own products, so the same numbers)
-    G = np.empty_like(ps_.post_P[:-1])
-    for a in range(0, n - 1, GAIN_BLOCK_FRAMES):
-        b = min(a + GAIN_BLOCK_FRAMES, n - 1)
-        G[a:b] = ps_.post_P[a:b] @ np.swapaxes(ps_.F[a:b], 1, 2) @ np.linalg.inv(ps_.prior_P[a + 1:b + 1])
+    # the gains C_k = P_k F_k^T (P_{k+1}^-)^-1 do not depend on the smoothed values: a block of frames' at once
+    # (the loop then costs a few small products a frame; 10,000 frames 0.7-1.2 -> 0.4 s, bit-identical), made as
+    # the loop reaches the block (all of them first took 288 bytes a frame, 27 MiB at 100,000 frames; each gain its
+    # own products, so the same numbers whatever the blocks)
+    G, g0 = None, n
     dx = np.zeros(6 + m)
     for k in range(n - 2, -1, -1):
-        C = G[k]
+        if k < g0:  # the block of frames g0 .. k (blocks start at multiples of GAIN_BLOCK_FRAMES)
+            g0, b = k - k % GAIN_BLOCK_FRAMES, k + 1
+            G = ps_.post_P[g0:b] @ np.swapaxes(ps_.F[g0:b], 1, 2) @ np.linalg.inv(ps_.prior_P[g0 + 1:b + 1])
+        C = G[k - g0]
         dx[:3] = xs[k + 1] - ps_.prior_p[k + 1]
         dx[3:6] = matrix_to_rotvec(ps_.prior_R[k + 1].T @ Rs[k + 1])
         if m:
@@ -482,6 +484,15 @@ def rts_smooth(res: FusionResult) -> FusionResult:
                        res.committed_positions_w_m)
     if res.scale is not None:  # the scale state is the first after the pose
         out.scale, out.scale_sd = bs[:, 0].copy(), np.sqrt(Ps[:, 6, 6])
+    return out
+
+
+def released(res: FusionResult) -> FusionResult:
+    """A copy of the filter or smoother run ``res`` whose stored passes are :meth:`FilterPasses.released`: for after
+    :func:`rts_smooth` (and :func:`bodyslam.fusion.channel.filter_memory`), so that a whole exam's priors and
+    posteriors are not held while the rest of its fusion runs and its outputs are written (issue 17)."""
+    out = copy.copy(res)
+    out.passes = None if res.passes is None else res.passes.released()
     return out
 
 

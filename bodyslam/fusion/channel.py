@@ -95,19 +95,31 @@ def normalised_residuals(rss_dbm: np.ndarray, positions_w_m: np.ndarray, sensors
     return out
 
 
-def _lag_sums(z: np.ndarray, max_lag: int):
-    """Per frame ``k``: the sum of ``z_k,j z_(k-l),j`` over sensors and its count, for each lag ``(n, L)``, and
-    the frame's sum of squares and count ``(n,)``. NaN readings count as missing."""
-    ok = np.isfinite(z)
-    z0 = np.where(ok, z, 0.0)
-    n = len(z)
-    prod, cnt = np.zeros((n, max_lag)), np.zeros((n, max_lag))
+def _lag_sums(z: np.ndarray, max_lag: int, rows: slice = slice(None)):
+    """Per frame ``k`` of ``rows`` (a slice of frames): the sum of ``z_k,j z_(k-l),j`` over sensors and its count, for
+    each lag ``(f, L)`` (the lags reach back before the slice), and the frame's sum of squares and count ``(f,)``.
+    NaN readings count as missing. Each frame's sums are its own: the same numbers whatever the slice."""
+    a, b, _ = rows.indices(len(z))
+    lo = max(a - max_lag, 0)  # the frames the block's lags reach back to
+    ok = np.isfinite(z[lo:b])
+    z0 = np.where(ok, z[lo:b], 0.0)
+    off, w = a - lo, b - lo
+    prod, cnt = np.zeros((b - a, max_lag)), np.zeros((b - a, max_lag))
     for l in range(1, max_lag + 1):
-        if l >= n:
+        if l >= len(z):
             break
-        prod[l:, l - 1] = np.sum(z0[l:] * z0[:-l], axis=1)
-        cnt[l:, l - 1] = np.sum(ok[l:] & ok[:-l], axis=1)
-    return prod, cnt, np.sum(z0 * z0, axis=1), ok.sum(axis=1)
+        s = max(off, l - lo)  # the block's first frame that has one l frames before it
+        if s < w:
+            prod[s - off:, l - 1] = np.sum(z0[s:] * z0[s - l:w - l], axis=1)
+            cnt[s - off:, l - 1] = np.sum(ok[s:] & ok[s - l:w - l], axis=1)
+    return prod, cnt, np.sum(z0[off:] * z0[off:], axis=1), ok[off:].sum(axis=1)
+
+
+def _running(total: np.ndarray | None, x: np.ndarray) -> np.ndarray:
+    """The cumulative sums of ``x`` along its first axis continued from ``total`` (the sums of the blocks before;
+    None: the first block): the numbers of one cumulative sum over all the blocks at once (each is the one before
+    plus this frame's)."""
+    return np.cumsum(x, 0) if total is None else np.cumsum(np.concatenate([total[None], x]), 0)[1:]
 
 
 def _kappa(prod: np.ndarray, cnt: np.ndarray, sq: np.ndarray, n_sq: np.ndarray):
@@ -125,25 +137,38 @@ def _kappa(prod: np.ndarray, cnt: np.ndarray, sq: np.ndarray, n_sq: np.ndarray):
 
 
 def residual_correlation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES) -> ResidualCorrelation:
-    """The correlation of a whole run's normalised residuals ``z (n, m)`` (module docstring)."""
-    prod, cnt, sq, n_sq = _lag_sums(np.asarray(z, float), max_lag)
-    rho, first, kappa = _kappa(prod.sum(0), cnt.sum(0), sq.sum(), n_sq.sum())
-    return ResidualCorrelation(rho, cnt.sum(0).astype(int), int(first), float(kappa))
+    """The correlation of a whole run's normalised residuals ``z (n, m)`` (module docstring). The lag sums in blocks
+    of frames (:func:`_frame_blocks`), added frame after frame as one sum over the frames adds them: at once their
+    ``(n, L)`` arrays took ~1 kB a frame (issue 17)."""
+    z = np.asarray(z, float)
+    prod = cnt = None
+    sq, n_sq = np.empty(len(z)), np.empty(len(z))
+    for rows in _frame_blocks(len(z)):
+        p, c, sq[rows], n_sq[rows] = _lag_sums(z, max_lag, rows)
+        prod, cnt = _running(prod, p)[-1], _running(cnt, c)[-1]
+    if prod is None:
+        prod, cnt = np.zeros(max_lag), np.zeros(max_lag)
+    rho, first, kappa = _kappa(prod, cnt, sq.sum(), n_sq.sum())
+    return ResidualCorrelation(rho, cnt.astype(int), int(first), float(kappa))
 
 
 def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.ndarray | None = None) -> np.ndarray:
     """``kappa (n,)``: frame ``k``'s from the residuals of frames ``0 .. k`` only (1 until any lag is
     significant). ``memory (n,)``: the filter's per-frame memory ``a_k`` (:func:`filter_memory`), lag ``l``
-    weighted by ``a_k^l`` (module docstring); None: every lag in full, as for an average over the whole run."""
-    prod, cnt, sq, n_sq = _lag_sums(np.asarray(z, float), max_lag)
-    prod, cnt, sq, n_sq = np.cumsum(prod, 0), np.cumsum(cnt, 0), np.cumsum(sq), np.cumsum(n_sq)
-    lags = np.arange(1, prod.shape[1] + 1)
+    weighted by ``a_k^l`` (module docstring); None: every lag in full, as for an average over the whole run.
+    A block of frames at a time, the running sums carried from block to block (at once: ~10 arrays of ``(n, L)``)."""
+    z = np.asarray(z, float)
+    lags = np.arange(1, max_lag + 1)
     mem = None if memory is None else np.asarray(memory, float)
-    kappa = np.empty(len(prod))
-    for rows in _frame_blocks(len(kappa)):  # (at once: ~8 more arrays of (n, L))
-        rho, first, kappa[rows] = _kappa(prod[rows], cnt[rows], sq[rows], n_sq[rows])
+    kappa = np.empty(len(z))
+    prod = cnt = sq = n_sq = None
+    for rows in _frame_blocks(len(kappa)):
+        p, c, s, ns = _lag_sums(z, max_lag, rows)
+        prod, cnt, sq, n_sq = _running(prod, p), _running(cnt, c), _running(sq, s), _running(n_sq, ns)
+        rho, first, kappa[rows] = _kappa(prod, cnt, sq, n_sq)
         if mem is not None:
             kappa[rows] = _weighted_kappa(rho, first, mem[rows, None] ** lags[None])
+        prod, cnt, sq, n_sq = prod[-1], cnt[-1], sq[-1], n_sq[-1]
     return kappa
 
 
@@ -183,6 +208,8 @@ def filter_memory(res: FusionResult) -> np.ndarray | None:
     ps = res.passes
     if ps is None:
         return None
+    if ps.is_released:
+        raise ValueError("filter_memory needs the run's priors and posteriors: take it before the passes are released")
     j_post = np.trace(np.linalg.inv(ps.post_P[:, :3, :3]), axis1=1, axis2=2)
     j_prior = np.trace(np.linalg.inv(ps.prior_P[:, :3, :3]), axis1=1, axis2=2)
     return np.clip(j_prior / j_post, 0.0, 1.0)

@@ -183,21 +183,33 @@ def with_orientation_sigma(P: np.ndarray, sig_rad: float) -> np.ndarray:
 class FilterPasses:
     """Every frame's prior and posterior of a one-candidate run (what the RTS smoother needs):
     ``p (n, 3)``, ``R (n, 3, 3)``, ``P (n, 6, 6)``; ``F[k]`` takes the posterior of frame ``k`` to the prior of
-    ``k + 1`` (``(n - 1, 6, 6)``)."""
+    ``k + 1`` (``(n - 1, 6, 6)``). After the smoother has run they may be :meth:`released` (None)."""
 
-    prior_p: np.ndarray
-    prior_R: np.ndarray
-    prior_P: np.ndarray  # (n, D, D): D = 6, or 7 with the scale state (the RSS bias states marginalised)
-    F: np.ndarray
-    post_p: np.ndarray
-    post_R: np.ndarray
-    post_P: np.ndarray
+    prior_p: np.ndarray | None
+    prior_R: np.ndarray | None
+    prior_P: np.ndarray | None  # (n, D, D): D = 6, or 7 with the scale state (the RSS bias states marginalised)
+    F: np.ndarray | None
+    post_p: np.ndarray | None
+    post_R: np.ndarray | None
+    post_P: np.ndarray | None
     prior_b: np.ndarray | None = None  # (n, e) the states kept after the pose: the scale state (e = 0 without it)
     post_b: np.ndarray | None = None
     # (n, m) the RSS bias states after each update (dB; None without them). They are not in the stored P, F and
     # prior/post_b: the passes keep the pose and scale block, the biases marginalised (ErrorStateEkf.run)
     post_bias_db: np.ndarray | None = None
     post_bias_var_db2: np.ndarray | None = None  # (n, m) their variances (the diagonal of their covariance block)
+
+    def released(self) -> FilterPasses:
+        """These passes without what only the RTS smoother reads: every frame's priors, posteriors and ``F`` (~1 kB
+        a frame, 100 MB over a 100,000-frame exam), held until the exam's outputs are written unless released
+        (issue 17); the RSS bias states' rows, which the whole-exam solve and the readings' correlation read after
+        the smoother, kept."""
+        return FilterPasses(None, None, None, None, None, None, None, post_bias_db=self.post_bias_db,
+                            post_bias_var_db2=self.post_bias_var_db2)
+
+    @property
+    def is_released(self) -> bool:
+        return self.post_P is None
 
 
 class ErrorStateEkf:

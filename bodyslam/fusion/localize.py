@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from bodyslam.errors import InputError
-from bodyslam.fusion.body_slam import RSS_BIAS_STATES, FusionResult, fuse, rts_smooth
+from bodyslam.fusion.body_slam import RSS_BIAS_STATES, FusionResult, fuse, released, rts_smooth
 from bodyslam.fusion.refine import refine_map
 from bodyslam.fusion.channel import (ResidualCorrelation, causal_inflation, filter_memory, inflate,
                                      normalised_residuals, residual_correlation, smoother_inflation)
@@ -135,7 +135,11 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     floor = lost_step_floor_m(radius_m)
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel,
                lost_floor_m=floor, **(RSS_BIAS_STATES if bias_states else {}))
-    rts = smoothed = rts_smooth(ekf)
+    # the online factor's taper and the smoother's two-sided one, from the filter's priors and posteriors; they and
+    # F are not needed once the smoother has run: released then, not held through the rest (~1 kB a frame)
+    memory = filter_memory(ekf) if honest_cov else None
+    ekf, rts = released(ekf), released(rts_smooth(ekf))
+    smoothed = rts
     rss_net = net_of_bias(ekf, rss)  # the readings less the filter's RSS bias states (step 4)
     if refine and mode == "rss":
         bias_var = None if ekf.passes is None else ekf.passes.post_bias_var_db2
@@ -143,7 +147,6 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
                               reading_var_db2=bias_var)
     channel = kappa_online = kappa_smoothed = None
     if honest_cov:
-        memory = filter_memory(ekf)  # the online factor's taper, and the smoother's two-sided one
         kappa_online = online_inflation(ekf, rss, rf, memory)
         channel = residual_correlation(normalised_residuals(rss_net, smoothed.positions_w_m, rf.sensors_w_m,
                                                             rf.normals_w, rf.pathloss))

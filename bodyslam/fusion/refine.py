@@ -81,6 +81,10 @@ log = logging.getLogger(__name__)
 __all__ = ["refine_map", "MapProblem", "marginal_covariances"]
 
 CHUNK_FRAMES = 4096  # frames per block of the readings' terms (~3 MB per array at 32 sensors)
+# frames per block of the readings' rows in the normal equations: ~8 arrays of (f, m, 3) at once on each thread
+# (~50 MB at 4,096 frames, 32 sensors and 2 threads: the whole-exam solve's peak); each frame writes its own rows,
+# so the system is the same whatever the blocks (the cost sums its blocks in order: CHUNK_FRAMES stays its own)
+NORMAL_CHUNK_FRAMES = 1024
 
 
 class MapProblem:
@@ -109,18 +113,19 @@ class MapProblem:
         z = (self.rss[rows] - self.pl.mean_rss_dbm(d, depth)) / sigma
         return z, diff, d, alpha, sigma
 
-    def _chunks(self, n: int | None = None):
-        """Blocks of ``n`` frames (default: all of them; the readings' terms, the steps' Jacobians): memory bounded
-        whatever the exam's length."""
+    def _chunks(self, n: int | None = None, size: int | None = None):
+        """Blocks of ``size`` frames (default :data:`CHUNK_FRAMES`) over ``n`` frames (default: all of them; the
+        readings' terms, the steps' Jacobians): memory bounded whatever the exam's length."""
         n = self.n if n is None else n
-        return (slice(a, min(a + CHUNK_FRAMES, n)) for a in range(0, n, CHUNK_FRAMES))
+        size = CHUNK_FRAMES if size is None else size
+        return (slice(a, min(a + size, n)) for a in range(0, n, size))
 
-    def _per_chunk(self, fn) -> list:
-        """``fn(rows)`` for every block of :meth:`_chunks`, in order; the blocks on threads where there are several
-        and more than one core (numpy leaves the interpreter lock in these array loops: 3 blocks of a 10,000-frame
-        exam's readings ~2x faster on 2 cores). What each block gives is combined in block order by the caller,
-        so results do not depend on the threads."""
-        rows = list(self._chunks())
+    def _per_chunk(self, fn, size: int | None = None) -> list:
+        """``fn(rows)`` for every block of :meth:`_chunks` (of ``size`` frames), in order; the blocks on threads
+        where there are several and more than one core (numpy leaves the interpreter lock in these array loops: 3
+        blocks of a 10,000-frame exam's readings ~2x faster on 2 cores). What each block gives is combined in block
+        order by the caller, so results do not depend on the threads."""
+        rows = list(self._chunks(size=size))
         workers = min(len(rows), available_cores())
         if workers < 2:
             return [fn(r) for r in rows]
@@ -206,7 +211,7 @@ class MapProblem:
             D[rows, :3, :3] += np.einsum("kmi,kmj->kij", Jz, Jz)
             g[rows, :3] += np.einsum("kmi,km->ki", Jz, z)
 
-        self._per_chunk(block)
+        self._per_chunk(block, NORMAL_CHUNK_FRAMES)
         return D, O, g
 
     def linearise(self, p, R):

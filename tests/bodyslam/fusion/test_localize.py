@@ -73,3 +73,30 @@ def test_the_correlation_factors_are_the_same_in_blocks(monkeypatch):
     monkeypatch.setattr(channel, "RESIDUAL_BLOCK_FRAMES", 10**9)  # one block
     k_one = channel.smoother_inflation(corr, memory)
     assert np.array_equal(k_37, k_one) and k_one.max() > 1.5
+    # the whole run's lag sums are carried from block to block: the same sums as over the frames at once
+    one = channel.residual_correlation(z)
+    assert np.array_equal(corr.rho, one.rho) and np.array_equal(corr.n_pairs, one.n_pairs)
+    assert corr.kappa == one.kappa > 1.5 and corr.n_lags == one.n_lags
+    ok, z0 = np.isfinite(z), np.nan_to_num(z)  # and they are the pairs at each lag, reaching across the blocks
+    for lag in (1, 30):
+        pairs = ok[lag:] & ok[:-lag]
+        assert corr.n_pairs[lag - 1] == pairs.sum()
+        rho = np.sum(z0[lag:] * z0[:-lag] * pairs) / pairs.sum() / (np.sum(z0**2) / ok.sum())
+        assert np.isclose(corr.rho[lag - 1], rho, rtol=1e-12)
+    assert np.array_equal(k_mem, channel.causal_inflation(z, memory=memory))
+
+
+def test_the_filters_passes_are_released_after_the_smoother(demo):
+    # The filter's per-frame priors, posteriors and F (~1 kB a frame) serve the smoother and the factors' memory
+    # only: localize releases them once those have run, instead of holding them through the whole-exam solve and
+    # the outputs (issue 17). A released run says so where the passes are asked for again.
+    from bodyslam.fusion.body_slam import rts_smooth
+    from bodyslam.fusion.channel import filter_memory
+
+    loc = _localize(demo, 0.0)
+    for run in (loc.filtered, loc.rts, loc.smoothed):
+        assert run.passes.is_released and run.passes.prior_P is None and run.passes.F is None
+    with pytest.raises(ValueError, match="released"):
+        rts_smooth(loc.filtered)
+    with pytest.raises(ValueError, match="released"):
+        filter_memory(loc.filtered)

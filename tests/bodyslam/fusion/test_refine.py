@@ -78,8 +78,9 @@ def test_the_block_normal_equations_are_the_sparse_jacobians(monkeypatch):
     J, r = prob.linearise(p, R)
     H, gref = (J.T @ J).toarray(), J.T @ r
     first = None
-    for chunk in (4096, 3):
+    for chunk, readings in ((4096, 1024), (3, 5), (5, 3)):  # (the readings' rows have their own block size)
         monkeypatch.setattr(refine, "CHUNK_FRAMES", chunk)
+        monkeypatch.setattr(refine, "NORMAL_CHUNK_FRAMES", readings)
         D, O, g = prob.normal_equations(p, R)
         first = first or (D, O, g)
         assert all(np.array_equal(a, b) for a, b in zip(first, (D, O, g)))
