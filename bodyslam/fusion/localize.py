@@ -76,7 +76,7 @@ class RfInput:
 class Localization:
     frames: np.ndarray  # (n,) frame numbers
     stamps_s: np.ndarray  # (n,)
-    filtered: FusionResult  # the online (causal after its start window) filter
+    filtered: FusionResult  # the online (causal after its start window) filter; its passes released (bias rows only)
     smoothed: FusionResult  # the RTS smoother refined over the whole exam (refine_map; RTS alone where not refined)
     fixes: Sequence[Fix]  # ML fixes per frame (FixesOnDemand: solved when read)
     rss_dbm: np.ndarray  # (n, m) the readings of each frame (NaN: none)
