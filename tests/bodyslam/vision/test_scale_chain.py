@@ -1,6 +1,7 @@
 """Each step's scale tied to its neighbours' (bodyslam.vision.scale_chain)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -98,8 +99,8 @@ def test_chained_steps_keep_their_direction_rotation_and_1sigma():
     R = Rotation.from_rotvec([0.01, 0.02, 0.1])
     good = [motion_from_transform(R, np.array([0.0, 0.0, 0.003]), 200, 3e-5, 0.001) for _ in range(2)]
     poor = motion_from_transform(R, np.array([0.0001, 0.0, 0.0045]), 40, 9e-4, 0.01)
-    steps = [good[0], StepMotion(**{**poor.__dict__, "scale_link": math.log(1.5), "scale_link_sd": 0.12}),
-             StepMotion(**{**good[1].__dict__, "scale_link": -math.log(1.5), "scale_link_sd": 0.12}),
+    steps = [good[0], replace(poor, scale_link=math.log(1.5), scale_link_sd=0.12),
+             replace(good[1], scale_link=-math.log(1.5), scale_link_sd=0.12),
              rotation_step(R, 90, 0.05)]
     out, summary = chained(steps, R_TUBE)
     f = out[1].chain_factor

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -165,7 +166,7 @@ def test_gaps_are_found_between_estimated_steps_and_split_exactly():
     assert find_gaps(steps, 15) == [(2, 4), (6, 9)]
     assert find_gaps(steps, 2) == [(2, 4)]
     total = motion_from_transform(Rotation.from_rotvec([0.3, -0.2, 0.6]), np.array([0.002, -0.001, 0.012]), 40)
-    total = StepMotion(**{**total.__dict__, "sigma_distance_m": 4e-4, "sigma_rotation_rad": 0.02})
+    total = replace(total, sigma_distance_m=4e-4, sigma_rotation_rad=0.02)
     parts = split_motion(total, 4)
     assert [p.status for p in parts] == ["bridged"] * 4 and all(p.has_estimate for p in parts)
     pos, rot = dead_reckon(parts)
