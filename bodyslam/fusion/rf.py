@@ -30,6 +30,7 @@ Missing sensors (NaN readings) are dropped; outliers are damped by the robust lo
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import warnings
@@ -161,9 +162,12 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
     index = {n: j for j, n in enumerate(sensor_names)}
     with csv_table(path, ("t", "sensor", *columns)) as (header, lines):
         it, js, jc = header.index("t"), header.index("sensor"), [header.index(c) for c in columns]
-        fast = _rf_numbers(path, it, js, jc, index)
+        fast = _rf_blocks(path, it, js, jc, index, len(sensor_names), columns)
+        if fast is None:  # (lines out of time order: the whole file's numbers at once)
+            fast = _rf_numbers(path, it, js, jc, index)
+            fast = None if fast is None else _rf_table(*fast, len(sensor_names), columns)
         if fast is not None:  # every line plain and good: no problem to name
-            return (*_rf_table(*fast, len(sensor_names), columns), [])
+            return (*fast, [])
         recs = [(lineno, row) for lineno, row in lines if row]  # a blank line is skipped (as csv.DictReader does)
     problems: list[tuple[int, str]] = []  # (line, message), reported in line order
     tv_l, linenos_l, names = [], [], []
@@ -192,11 +196,53 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
             [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])])
 
 
-def _rf_numbers(path, it: int, js: int, jc: list[int], index: dict[str, int]):
+# lines of rf.csv parsed at once (:func:`_rf_blocks`): ~40 MB of temporaries; the whole of a 100,000-frame exam's 3.2
+# million lines at once took ~250 MiB more than its table (numpy's parser, the names, their sort)
+RF_BLOCK_LINES = 1 << 18
+
+
+def _rf_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int], n_sensors: int,
+               columns: tuple[str, ...]):
+    """``(stamps (T,), {column: (T, n)})`` (:func:`_rf_table`'s) of an rf.csv whose every line is plain and good
+    (:func:`_rf_numbers`) and in time order, read :data:`RF_BLOCK_LINES` lines at a time: each block's table, the
+    rows of a time that two blocks share merged (the later line wins, as in one table). None for any other file:
+    the caller reads an out-of-order one at once, and one with a problem line by line."""
+    parts: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []
+    try:
+        with open(path, encoding="utf-8", newline="") as f:
+            f.readline()  # the header (read and checked by the caller)
+            while lines := list(itertools.islice(f, RF_BLOCK_LINES)):
+                if not any(line.strip() for line in lines):  # blank lines only (no rows, here as at once)
+                    continue
+                got = _rf_numbers(lines, it, js, jc, index, skip_header=False)
+                if got is None:
+                    return None
+                tv, sensor = got
+                if np.any(np.diff(tv[:, 0]) < 0) or (parts and tv[0, 0] < parts[-1][0][-1]):
+                    return None
+                stamps, table = _rf_table(tv, sensor, n_sensors, columns)
+                del tv, sensor, got
+                if parts and stamps[0] == parts[-1][0][-1]:  # a time whose lines run into this block
+                    for c in columns:
+                        row, new = parts[-1][1][c][-1], table[c][0]
+                        row[np.isfinite(new)] = new[np.isfinite(new)]
+                    stamps, table = stamps[1:], {c: v[1:] for c, v in table.items()}
+                if len(stamps):
+                    parts.append((stamps, table))
+    except (UnicodeDecodeError, OSError):
+        return None
+    if not parts:
+        return None
+    return (np.concatenate([p[0] for p in parts]),
+            {c: np.concatenate([p[1][c] for p in parts]) for c in columns})
+
+
+def _rf_numbers(path, it: int, js: int, jc: list[int], index: dict[str, int], skip_header: bool = True):
     """``(t and the columns (N, 1 + c), sensor index (N,))`` of an rf.csv whose every line is plain (no quotes, no
     comment) and good (numbers, finite, a known sensor), read by numpy's C parser (~20x Python's csv module); None
-    for any other file, which the caller reads line by line to name its problems."""
-    opts = dict(delimiter=",", skiprows=1, comments=None, encoding="utf-8", quotechar=None)
+    for any other file, which the caller reads line by line to name its problems. ``path``: the file, or its lines
+    (``skip_header`` False: without the header)."""
+    opts = dict(delimiter=",", skiprows=1 if skip_header else 0, comments=None, encoding="utf-8", quotechar=None)
     try:
         with warnings.catch_warnings():  # numpy's note that blank lines are not rows: they are not, here either
             warnings.simplefilter("ignore", UserWarning)

@@ -104,6 +104,40 @@ def test_rf_csv_read_whole_equals_line_by_line(tmp_path):
     assert c1["rss_dbm"][np.searchsorted(s1, t0), j0] == -55.25  # the later of the two lines
 
 
+@pytest.mark.parametrize("block", [1, 2, 5])
+def test_rf_csv_read_in_blocks_equals_at_once(tmp_path, monkeypatch, block):
+    """A plain rf.csv in time order is read RF_BLOCK_LINES lines at a time (a 100,000-frame exam's 3.2 million lines
+    at once took ~250 MiB): blocks of 1, 2 and 5 lines -- a time's lines split between blocks, a sensor read again at
+    one time in a later block (the later line wins) -- give the table of one block. Lines out of time order are
+    not read in blocks, and give the same table as the same lines in order."""
+    import bodyslam.fusion.rf as rf
+
+    rng = np.random.default_rng(4)
+    names = ("F00", "F01", "B00")
+    body = [f"{k * 0.5:g},{n},{rng.normal(-90, 8)!r}" for k in range(20) for n in names if rng.random() < 0.8]
+    dup = [line for line in body if line.startswith("2,")][0]
+    lines = body[:body.index(dup) + 1] + ["", f"2,{dup.split(',')[1]},-55.25"] + body[body.index(dup) + 1:]
+    plain, shuffled = tmp_path / "plain.csv", tmp_path / "shuffled.csv"
+    plain.write_text("t,sensor,rss_dbm\n" + "\n".join(lines) + "\n")
+    shuffled.write_text("t,sensor,rss_dbm\n" + "\n".join(rng.permutation(body)) + "\n")
+    monkeypatch.setattr(rf, "RF_BLOCK_LINES", 10**9)
+    s1, c1, p1 = rf.read_rf_columns(plain, names, ("rss_dbm",))
+    s0, c0, _ = rf.read_rf_columns(shuffled, names, ("rss_dbm",))
+    monkeypatch.setattr(rf, "RF_BLOCK_LINES", block)
+    index = {n: j for j, n in enumerate(names)}
+    assert rf._rf_blocks(plain, 0, 1, [2], index, 3, ("rss_dbm",)) is not None  # the two files take the two paths
+    assert rf._rf_blocks(shuffled, 0, 1, [2], index, 3, ("rss_dbm",)) is None
+    s2, c2, p2 = rf.read_rf_columns(plain, names, ("rss_dbm",))
+    assert p1 == p2 == [] and np.array_equal(s1, s2) and len(s1) == 20
+    assert np.array_equal(c1["rss_dbm"], c2["rss_dbm"], equal_nan=True)
+    assert c2["rss_dbm"][4, names.index(dup.split(",")[1])] == -55.25  # time 2 s: the later of the two lines
+    s3, c3, _ = rf.read_rf_columns(shuffled, names, ("rss_dbm",))
+    assert np.array_equal(s3, s0) and np.array_equal(c3["rss_dbm"], c0["rss_dbm"], equal_nan=True)
+    one = c1["rss_dbm"].copy()
+    one[4, names.index(dup.split(",")[1])] = float(dup.split(",")[2])  # in order, without the later duplicate
+    assert np.array_equal(c3["rss_dbm"], one, equal_nan=True)
+
+
 def test_rf_csv_short_line_with_the_sensor_column_last(tmp_path):
     """A line cut short before its sensor (the sensor column last) is named and skipped; the lines after it keep
     their own sensors (a line's numbers and sensor are taken together or not at all)."""
