@@ -157,21 +157,35 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
     where a sensor has no reading. Lines with a non-number, a non-finite value (nan, inf) or an unknown sensor are
     skipped and reported (``file:line: reason``), never fatal; a sensor read twice at one time keeps the later line.
 
-    The numbers of a whole file are converted at once (a 55,000-frame exam's 1.8 million lines); only a file with
-    a line that does not convert is read line by line, to name it."""
+    Read :data:`RF_BLOCK_LINES` lines at a time (a 100,000-frame exam has 3.2 million), each block's numbers
+    converted at once by numpy's parser (:func:`_rf_blocks`); only a file with a line that does not convert is read
+    line by line (still a block at a time), to name it."""
     index = {n: j for j, n in enumerate(sensor_names)}
     with csv_table(path, ("t", "sensor", *columns)) as (header, lines):
         it, js, jc = header.index("t"), header.index("sensor"), [header.index(c) for c in columns]
         fast = _rf_blocks(path, it, js, jc, index, len(sensor_names), columns)
-        if fast is None:  # (lines out of time order: the whole file's numbers at once)
-            fast = _rf_numbers(path, it, js, jc, index)
-            fast = None if fast is None else _rf_table(*fast, len(sensor_names), columns)
         if fast is not None:  # every line plain and good: no problem to name
             return (*fast, [])
-        recs = [(lineno, row) for lineno, row in lines if row]  # a blank line is skipped (as csv.DictReader does)
-    problems: list[tuple[int, str]] = []  # (line, message), reported in line order
+        problems: list[tuple[int, str]] = []  # (line, message), reported in line order
+        tvs, sensors = [], []
+        while block := list(itertools.islice(lines, RF_BLOCK_LINES)):
+            tv, sensor = _rf_rows(block, header, it, js, jc, index, columns, problems)
+            tvs.append(tv)
+            sensors.append(sensor)
+    tv = np.concatenate(tvs) if tvs else np.zeros((0, 1 + len(jc)))
+    sensor = np.concatenate(sensors) if sensors else np.zeros(0, np.int64)
+    return (*_rf_table(tv, sensor, len(sensor_names), columns),
+            [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])])
+
+
+def _rf_rows(block: list, header: list[str], it: int, js: int, jc: list[int], index: dict[str, int],
+             columns: tuple[str, ...], problems: list) -> tuple[np.ndarray, np.ndarray]:
+    """The good lines of a block of the CSV reader's ``(line number, cells)``, read one by one: ``(t and the
+    columns (N, 1 + c), sensor index (N,))``; each bad line's ``(line, reason)`` appended to ``problems``."""
     tv_l, linenos_l, names = [], [], []
-    for lineno, row in recs:
+    for lineno, row in block:
+        if not row:  # a blank line is skipped (as csv.DictReader does)
+            continue
         try:
             values, name = [float(row[it]), *(float(row[j]) for j in jc)], row[js]
         except (IndexError, ValueError):
@@ -192,8 +206,7 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
                 [] if finite[i, 0] else [f"t={tv[i, 0]}"])
             problems.append((int(linenos[i]), f"not a finite reading ({', '.join(bad)})"))
     good = (sensor >= 0) & finite.all(axis=1)
-    return (*_rf_table(tv[good], sensor[good], len(sensor_names), columns),
-            [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])])
+    return tv[good], sensor[good]
 
 
 # lines of rf.csv parsed at once (:func:`_rf_blocks`): ~40 MB of temporaries; the whole of a 100,000-frame exam's 3.2
@@ -204,10 +217,12 @@ RF_BLOCK_LINES = 1 << 18
 def _rf_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int], n_sensors: int,
                columns: tuple[str, ...]):
     """``(stamps (T,), {column: (T, n)})`` (:func:`_rf_table`'s) of an rf.csv whose every line is plain and good
-    (:func:`_rf_numbers`) and in time order, read :data:`RF_BLOCK_LINES` lines at a time: each block's table, the
-    rows of a time that two blocks share merged (the later line wins, as in one table). None for any other file:
-    the caller reads an out-of-order one at once, and one with a problem line by line."""
+    (:func:`_rf_numbers`), read :data:`RF_BLOCK_LINES` lines at a time. In time order: each block's table, the rows
+    of a time that two blocks share merged (the later line wins, as in one table). Once a block is out of time
+    order, every block's numbers (24 bytes a line; the tables so far back as lines), then one table. None for a
+    file with a line that is not plain and good: the caller reads it line by line to name it."""
     parts: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []
+    rows: list[tuple[np.ndarray, np.ndarray]] | None = None  # (out of time order)
     try:
         with open(path, encoding="utf-8", newline="") as f:
             f.readline()  # the header (read and checked by the caller)
@@ -218,8 +233,11 @@ def _rf_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int], n_s
                 if got is None:
                     return None
                 tv, sensor = got
-                if np.any(np.diff(tv[:, 0]) < 0) or (parts and tv[0, 0] < parts[-1][0][-1]):
-                    return None
+                if rows is None and (np.any(np.diff(tv[:, 0]) < 0) or (parts and tv[0, 0] < parts[-1][0][-1])):
+                    rows, parts = [_table_lines(p, columns) for p in parts], []
+                if rows is not None:
+                    rows.append((tv, sensor))
+                    continue
                 stamps, table = _rf_table(tv, sensor, n_sensors, columns)
                 del tv, sensor, got
                 if parts and stamps[0] == parts[-1][0][-1]:  # a time whose lines run into this block
@@ -231,10 +249,21 @@ def _rf_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int], n_s
                     parts.append((stamps, table))
     except (UnicodeDecodeError, OSError):
         return None
+    if rows is not None:
+        return _rf_table(np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows]), n_sensors,
+                         columns)
     if not parts:
         return None
     return (np.concatenate([p[0] for p in parts]),
             {c: np.concatenate([p[1][c] for p in parts]) for c in columns})
+
+
+def _table_lines(part: tuple[np.ndarray, dict[str, np.ndarray]], columns: tuple[str, ...]):
+    """A block's table back as lines ``(t and the columns (N, 1 + c), sensor index (N,))``, one per reading it
+    kept (the later of two for one time and sensor: the same table again, whatever comes after it)."""
+    stamps, table = part
+    k, j = np.nonzero(np.isfinite(table[columns[0]]))
+    return np.column_stack([stamps[k], *(table[c][k, j] for c in columns)]), j.astype(np.int64)
 
 
 def _rf_numbers(path, it: int, js: int, jc: list[int], index: dict[str, int], skip_header: bool = True):

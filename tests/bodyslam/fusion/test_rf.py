@@ -106,36 +106,36 @@ def test_rf_csv_read_whole_equals_line_by_line(tmp_path):
 
 @pytest.mark.parametrize("block", [1, 2, 5])
 def test_rf_csv_read_in_blocks_equals_at_once(tmp_path, monkeypatch, block):
-    """A plain rf.csv in time order is read RF_BLOCK_LINES lines at a time (a 100,000-frame exam's 3.2 million lines
-    at once took ~250 MiB): blocks of 1, 2 and 5 lines -- a time's lines split between blocks, a sensor read again at
-    one time in a later block (the later line wins) -- give the table of one block. Lines out of time order are
-    not read in blocks, and give the same table as the same lines in order."""
+    """rf.csv is read RF_BLOCK_LINES lines at a time (a 100,000-frame exam's 3.2 million lines at once took ~250
+    MiB): blocks of 1, 2 and 5 lines -- a time's lines split between blocks, a sensor read again at one time in a
+    later block (the later line wins) -- give the table of one block, for lines in time order, out of it (the
+    blocks read so far turned back into lines), and with bad lines (read line by line, each named)."""
     import bodyslam.fusion.rf as rf
 
     rng = np.random.default_rng(4)
     names = ("F00", "F01", "B00")
     body = [f"{k * 0.5:g},{n},{rng.normal(-90, 8)!r}" for k in range(20) for n in names if rng.random() < 0.8]
     dup = [line for line in body if line.startswith("2,")][0]
-    lines = body[:body.index(dup) + 1] + ["", f"2,{dup.split(',')[1]},-55.25"] + body[body.index(dup) + 1:]
-    plain, shuffled = tmp_path / "plain.csv", tmp_path / "shuffled.csv"
-    plain.write_text("t,sensor,rss_dbm\n" + "\n".join(lines) + "\n")
-    shuffled.write_text("t,sensor,rss_dbm\n" + "\n".join(rng.permutation(body)) + "\n")
+    again = f"2,{dup.split(',')[1]},-55.25"
+    files = {"plain": body[:body.index(dup) + 1] + ["", again] + body[body.index(dup) + 1:],
+             "shuffled": [*body[:7], *rng.permutation(body[7:]), again],  # in order for 7 lines, then not
+             "bad": [*body[:9], "3.0,XX,-80", *body[9:30], "4.5,F00,oops", *body[30:], again]}
+    for name, lines in files.items():
+        (tmp_path / f"{name}.csv").write_text("t,sensor,rss_dbm\n" + "\n".join(lines) + "\n")
     monkeypatch.setattr(rf, "RF_BLOCK_LINES", 10**9)
-    s1, c1, p1 = rf.read_rf_columns(plain, names, ("rss_dbm",))
-    s0, c0, _ = rf.read_rf_columns(shuffled, names, ("rss_dbm",))
+    once = {name: rf.read_rf_columns(tmp_path / f"{name}.csv", names, ("rss_dbm",)) for name in files}
     monkeypatch.setattr(rf, "RF_BLOCK_LINES", block)
-    index = {n: j for j, n in enumerate(names)}
-    assert rf._rf_blocks(plain, 0, 1, [2], index, 3, ("rss_dbm",)) is not None  # the two files take the two paths
-    assert rf._rf_blocks(shuffled, 0, 1, [2], index, 3, ("rss_dbm",)) is None
-    s2, c2, p2 = rf.read_rf_columns(plain, names, ("rss_dbm",))
-    assert p1 == p2 == [] and np.array_equal(s1, s2) and len(s1) == 20
-    assert np.array_equal(c1["rss_dbm"], c2["rss_dbm"], equal_nan=True)
-    assert c2["rss_dbm"][4, names.index(dup.split(",")[1])] == -55.25  # time 2 s: the later of the two lines
-    s3, c3, _ = rf.read_rf_columns(shuffled, names, ("rss_dbm",))
-    assert np.array_equal(s3, s0) and np.array_equal(c3["rss_dbm"], c0["rss_dbm"], equal_nan=True)
-    one = c1["rss_dbm"].copy()
-    one[4, names.index(dup.split(",")[1])] = float(dup.split(",")[2])  # in order, without the later duplicate
-    assert np.array_equal(c3["rss_dbm"], one, equal_nan=True)
+    s1, c1, p1 = once["plain"]
+    assert p1 == [] and len(s1) == 20 and c1["rss_dbm"][4, names.index(dup.split(",")[1])] == -55.25
+    for name in files:
+        s2, c2, p2 = rf.read_rf_columns(tmp_path / f"{name}.csv", names, ("rss_dbm",))
+        assert p2 == once[name][2] and np.array_equal(s2, s1), name
+        assert np.array_equal(c2["rss_dbm"], c1["rss_dbm"], equal_nan=True), name  # the same readings each time
+    assert [p.split(":", 1)[1] for p in once["bad"][2]] == [
+        "11: unknown sensor 'XX'", f"33: not a number ({{'t': '4.5', 'sensor': 'F00', 'rss_dbm': 'oops'}})"]
+    index = {n: j for j, n in enumerate(names)}  # the bad file takes the line-by-line path, the others do not
+    assert rf._rf_blocks(tmp_path / "bad.csv", 0, 1, [2], index, 3, ("rss_dbm",)) is None
+    assert rf._rf_blocks(tmp_path / "shuffled.csv", 0, 1, [2], index, 3, ("rss_dbm",)) is not None
 
 
 def test_rf_csv_short_line_with_the_sensor_column_last(tmp_path):
