@@ -158,24 +158,20 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
     skipped and reported (``file:line: reason``), never fatal; a sensor read twice at one time keeps the later line.
 
     Read :data:`RF_BLOCK_LINES` lines at a time (a 100,000-frame exam has 3.2 million), each block's numbers
-    converted at once by numpy's parser (:func:`_rf_blocks`); only a file with a line that does not convert is read
-    line by line (still a block at a time), to name it."""
+    converted at once by numpy's parser (:func:`_plain_blocks`); only a file with a line that does not convert is
+    read line by line (still a block at a time), to name it. The blocks make the table (:func:`_rf_assemble`)."""
     index = {n: j for j, n in enumerate(sensor_names)}
     with csv_table(path, ("t", "sensor", *columns)) as (header, lines):
         it, js, jc = header.index("t"), header.index("sensor"), [header.index(c) for c in columns]
-        fast = _rf_blocks(path, it, js, jc, index, len(sensor_names), columns)
-        if fast is not None:  # every line plain and good: no problem to name
-            return (*fast, [])
+        try:  # every line plain and good: no problem to name
+            return (*_rf_assemble(_plain_blocks(path, it, js, jc, index), len(sensor_names), columns), [])
+        except (_NotPlain, UnicodeDecodeError, OSError):
+            pass
         problems: list[tuple[int, str]] = []  # (line, message), reported in line order
-        tvs, sensors = [], []
-        while block := list(itertools.islice(lines, RF_BLOCK_LINES)):
-            tv, sensor = _rf_rows(block, header, it, js, jc, index, columns, problems)
-            tvs.append(tv)
-            sensors.append(sensor)
-    tv = np.concatenate(tvs) if tvs else np.zeros((0, 1 + len(jc)))
-    sensor = np.concatenate(sensors) if sensors else np.zeros(0, np.int64)
-    return (*_rf_table(tv, sensor, len(sensor_names), columns),
-            [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])])
+        blocks = iter(lambda: list(itertools.islice(lines, RF_BLOCK_LINES)), [])
+        stamps, cols = _rf_assemble((_rf_rows(b, header, it, js, jc, index, columns, problems) for b in blocks),
+                                    len(sensor_names), columns)
+    return stamps, cols, [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])]
 
 
 def _rf_rows(block: list, header: list[str], it: int, js: int, jc: list[int], index: dict[str, int],
@@ -209,51 +205,58 @@ def _rf_rows(block: list, header: list[str], it: int, js: int, jc: list[int], in
     return tv[good], sensor[good]
 
 
-# lines of rf.csv parsed at once (:func:`_rf_blocks`): ~40 MB of temporaries; the whole of a 100,000-frame exam's 3.2
+# lines of rf.csv parsed at once (:func:`_plain_blocks`, :func:`_rf_rows`): ~40 MB of temporaries; the whole of a 100,000-frame exam's 3.2
 # million lines at once took ~250 MiB more than its table (numpy's parser, the names, their sort)
 RF_BLOCK_LINES = 1 << 18
 
 
-def _rf_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int], n_sensors: int,
-               columns: tuple[str, ...]):
-    """``(stamps (T,), {column: (T, n)})`` (:func:`_rf_table`'s) of an rf.csv whose every line is plain and good
-    (:func:`_rf_numbers`), read :data:`RF_BLOCK_LINES` lines at a time. In time order: each block's table, the rows
+class _NotPlain(Exception):
+    """A block of rf.csv that numpy's parser does not take whole (the file is then read line by line)."""
+
+
+def _plain_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int]):
+    """Each block of :data:`RF_BLOCK_LINES` lines of an rf.csv as ``(t and the columns (N, 1 + c), sensor index
+    (N,))`` by numpy's parser (:func:`_rf_numbers`); :class:`_NotPlain` at the first block with a line that is not
+    plain and good."""
+    with open(path, encoding="utf-8", newline="") as f:
+        f.readline()  # the header (read and checked by the caller)
+        while lines := list(itertools.islice(f, RF_BLOCK_LINES)):
+            if not any(line.strip() for line in lines):  # blank lines only (no rows, here as at once)
+                continue
+            got = _rf_numbers(lines, it, js, jc, index, skip_header=False)
+            if got is None:
+                raise _NotPlain
+            yield got
+
+
+def _rf_assemble(blocks, n_sensors: int, columns: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``(stamps (T,), {column: (T, n)})`` (:func:`_rf_table`'s) from an rf.csv's good lines, a block at a time
+    ``(t and the columns (N, 1 + c), sensor index (N,))`` in file order. In time order: each block's table, the rows
     of a time that two blocks share merged (the later line wins, as in one table). Once a block is out of time
-    order, every block's numbers (24 bytes a line; the tables so far back as lines), then one table. None for a
-    file with a line that is not plain and good: the caller reads it line by line to name it."""
+    order, every block's numbers (24 bytes a line; the tables so far back as lines), then one table."""
     parts: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []
     rows: list[tuple[np.ndarray, np.ndarray]] | None = None  # (out of time order)
-    try:
-        with open(path, encoding="utf-8", newline="") as f:
-            f.readline()  # the header (read and checked by the caller)
-            while lines := list(itertools.islice(f, RF_BLOCK_LINES)):
-                if not any(line.strip() for line in lines):  # blank lines only (no rows, here as at once)
-                    continue
-                got = _rf_numbers(lines, it, js, jc, index, skip_header=False)
-                if got is None:
-                    return None
-                tv, sensor = got
-                if rows is None and (np.any(np.diff(tv[:, 0]) < 0) or (parts and tv[0, 0] < parts[-1][0][-1])):
-                    rows, parts = [_table_lines(p, columns) for p in parts], []
-                if rows is not None:
-                    rows.append((tv, sensor))
-                    continue
-                stamps, table = _rf_table(tv, sensor, n_sensors, columns)
-                del tv, sensor, got
-                if parts and stamps[0] == parts[-1][0][-1]:  # a time whose lines run into this block
-                    for c in columns:
-                        row, new = parts[-1][1][c][-1], table[c][0]
-                        row[np.isfinite(new)] = new[np.isfinite(new)]
-                    stamps, table = stamps[1:], {c: v[1:] for c, v in table.items()}
-                if len(stamps):
-                    parts.append((stamps, table))
-    except (UnicodeDecodeError, OSError):
-        return None
-    if rows is not None:
+    for tv, sensor in blocks:
+        if not len(tv):
+            continue
+        if rows is None and (np.any(np.diff(tv[:, 0]) < 0) or (parts and tv[0, 0] < parts[-1][0][-1])):
+            rows, parts = [_table_lines(p, columns) for p in parts], []
+        if rows is not None:
+            rows.append((tv, sensor))
+            continue
+        stamps, table = _rf_table(tv, sensor, n_sensors, columns)
+        del tv, sensor
+        if parts and stamps[0] == parts[-1][0][-1]:  # a time whose lines run into this block
+            for c in columns:
+                row, new = parts[-1][1][c][-1], table[c][0]
+                row[np.isfinite(new)] = new[np.isfinite(new)]
+            stamps, table = stamps[1:], {c: v[1:] for c, v in table.items()}
+        if len(stamps):
+            parts.append((stamps, table))
+    if rows is not None or not parts:
+        rows = rows or [(np.zeros((0, 1 + len(columns))), np.zeros(0, np.int64))]
         return _rf_table(np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows]), n_sensors,
                          columns)
-    if not parts:
-        return None
     return (np.concatenate([p[0] for p in parts]),
             {c: np.concatenate([p[1][c] for p in parts]) for c in columns})
 

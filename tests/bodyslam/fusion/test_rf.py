@@ -134,8 +134,9 @@ def test_rf_csv_read_in_blocks_equals_at_once(tmp_path, monkeypatch, block):
     assert [p.split(":", 1)[1] for p in once["bad"][2]] == [
         "11: unknown sensor 'XX'", f"33: not a number ({{'t': '4.5', 'sensor': 'F00', 'rss_dbm': 'oops'}})"]
     index = {n: j for j, n in enumerate(names)}  # the bad file takes the line-by-line path, the others do not
-    assert rf._rf_blocks(tmp_path / "bad.csv", 0, 1, [2], index, 3, ("rss_dbm",)) is None
-    assert rf._rf_blocks(tmp_path / "shuffled.csv", 0, 1, [2], index, 3, ("rss_dbm",)) is not None
+    with pytest.raises(rf._NotPlain):
+        list(rf._plain_blocks(tmp_path / "bad.csv", 0, 1, [2], index))
+    assert len(list(rf._plain_blocks(tmp_path / "shuffled.csv", 0, 1, [2], index))) > 1
 
 
 def test_rf_csv_short_line_with_the_sensor_column_last(tmp_path):
