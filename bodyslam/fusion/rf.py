@@ -205,8 +205,9 @@ def _rf_rows(block: list, header: list[str], it: int, js: int, jc: list[int], in
     return tv[good], sensor[good]
 
 
-# lines of rf.csv parsed at once (:func:`_plain_blocks`, :func:`_rf_rows`): ~40 MB of temporaries; the whole of a 100,000-frame exam's 3.2
-# million lines at once took ~250 MiB more than its table (numpy's parser, the names, their sort)
+# lines of rf.csv parsed at once (:func:`_plain_blocks`, :func:`_rf_rows`): a 100,000-frame exam's 3.2 million lines
+# at once took ~250 MiB more than its table (numpy's parser, the names, their sort); in blocks its read peaks at 63
+# MiB traced (benchmarks/bench_rf_read.py)
 RF_BLOCK_LINES = 1 << 18
 
 
@@ -221,12 +222,11 @@ def _plain_blocks(path, it: int, js: int, jc: list[int], index: dict[str, int]):
     with open(path, encoding="utf-8", newline="") as f:
         f.readline()  # the header (read and checked by the caller)
         while lines := list(itertools.islice(f, RF_BLOCK_LINES)):
-            if not any(line.strip() for line in lines):  # blank lines only (no rows, here as at once)
-                continue
             got = _rf_numbers(lines, it, js, jc, index, skip_header=False)
-            if got is None:
+            if got is not None:
+                yield got
+            elif any(line.strip() for line in lines):  # (a block of blank lines only has no rows, as at once)
                 raise _NotPlain
-            yield got
 
 
 def _rf_assemble(blocks, n_sensors: int, columns: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
