@@ -28,14 +28,28 @@ from pathlib import Path
 import numpy as np
 
 
-def batch(clip: Path, out: Path) -> tuple[int, dict, list[dict]]:
-    p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "batch", str(clip), "--out", str(out), "--force"],
-                       capture_output=True, text=True)
+def batch(clip: Path, out: Path, extra: list[str] | None = None) -> tuple[int, dict, list[dict]]:
+    p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "batch", str(clip), "--out", str(out), "--force",
+                        *(extra or [])], capture_output=True, text=True)
     ex = out / clip.name
     if not (ex / "summary.json").exists():
         raise SystemExit(f"bodyslam batch failed on {clip} (exit {p.returncode}): {p.stderr.strip()[-500:]}")
     rows = list(csv.DictReader(open(ex / "motion.csv", newline="")))
     return p.returncode, json.loads((ex / "summary.json").read_text()), rows
+
+
+def both_ways(frames: list[Path], d: Path, extra: list[str] | None = None) -> tuple[tuple, tuple]:
+    """A clip's frames copied as plain folders ``d/forward`` and ``d/reversed`` (named 000, 001, ... in each
+    order) and each run through :func:`batch` (into ``d/out_forward``, ``d/out_reversed``)."""
+    n = len(frames)
+    for kind in ("forward", "reversed"):
+        c = d / kind
+        if c.exists():
+            shutil.rmtree(c)
+        c.mkdir(parents=True)
+        for i, f in enumerate(frames):
+            shutil.copy(f, c / f"{(i if kind == 'forward' else n - 1 - i):03d}{f.suffix}")
+    return batch(d / "forward", d / "out_forward", extra), batch(d / "reversed", d / "out_reversed", extra)
 
 
 def full_and_forward(rows: list[dict]) -> tuple[float, float]:
@@ -64,16 +78,7 @@ def main() -> None:
             if a + L > len(frames):
                 continue
             d = args.out / f"{seq.name}_{a}"
-            for kind in ("forward", "reversed"):
-                c = d / kind
-                if c.exists():
-                    shutil.rmtree(c)
-                c.mkdir(parents=True)
-                for i in range(L):
-                    dst = i if kind == "forward" else L - 1 - i
-                    shutil.copy(frames[a + i], c / f"{dst:03d}{frames[a + i].suffix}")
-            rc_f, sf, mf = batch(d / "forward", d / "out_forward")
-            rc_r, sr, mr = batch(d / "reversed", d / "out_reversed")
+            (rc_f, sf, mf), (rc_r, sr, mr) = both_ways(frames[a:a + L], d)
             true_m = sum(abs(float(truth[a + i]["distance_m"])) for i in range(L - 1))
             pf, pr = sf["path_travelled_m"], sr["path_travelled_m"]
             full_f, fwd_f = full_and_forward(mf)

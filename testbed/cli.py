@@ -5,6 +5,8 @@ Subcommands
 simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--force]
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
 centerline MESH --out centerline.csv [--voxel-size X Y Z] [--pitch-mm P] [--reference CSV]
+real-clip FRAME --out DIR [--frames K] [--step-mm S] [--roll-deg R] [--radius-cm C] [--lobes N --lobe-depth A]
+          [--offset-frac F] [--light capsule|baked]   a clip of known motion made from one real frame
 score-motion SEQDIR motion.csv [--json report.json]   Table 4.1 and the path travelled against the truth
 evaluate SCENARIO --seeds N|A-B|a,b --out DIR [--frames K] [--jobs J]   every algorithm on the same runs: report.json + report.html
 scenarios      list the shipped scenarios
@@ -13,6 +15,7 @@ scenarios      list the shipped scenarios
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from bodyslam.cliutil import Progress, run_cli
@@ -42,6 +45,33 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True)
     c.add_argument("--count", type=int, default=24, help="frames shown, evenly spaced (default 24)")
     c.add_argument("--cols", type=int, default=6)
+
+    rc = sub.add_parser("real-clip", help="a clip of known motion made from one real capsule frame (testbed.real_clip)")
+    rc.add_argument("frame", help="a real capsule frame (PNG/JPEG)")
+    rc.add_argument("--out", required=True, help="output sequence directory (must be empty unless --force)")
+    rc.add_argument("--frames", type=int, default=18, help="frames in the clip (default 18)")
+    rc.add_argument("--step-mm", type=float, default=1.0, help="advance along the lumen per frame, mm (default 1)")
+    rc.add_argument("--roll-deg", type=float, default=0.0, help="roll per frame about the optical axis, deg")
+    rc.add_argument("--radius-cm", type=float, default=1.25,
+                    help="the lumen's true (mean) radius, cm (default 1.25, the prior meta.json states)")
+    rc.add_argument("--lobes", type=int, default=0, help="folds of the cross-section (default 0: a circle)")
+    rc.add_argument("--lobe-depth", type=float, default=0.0, help="r(phi) = R (1 + depth cos(lobes phi))")
+    rc.add_argument("--offset-frac", type=float, default=0.0, help="the camera's distance from the axis, in radii")
+    rc.add_argument("--light", choices=("capsule", "baked"), default="capsule",
+                    help="capsule: the light moves with the camera (default); baked: the frame's shading moves "
+                         "with the wall")
+    rc.add_argument("--axis", choices=("dark", "centre"), default="dark",
+                    help="the lumen's axis toward the frame's darkest area (default) or along the optical axis")
+    rc.add_argument("--noise", type=float, default=2.0, help="sensor noise, grey levels (default 2)")
+    rc.add_argument("--jpeg", type=int, default=85, help="JPEG quality of each frame's round trip (0: none)")
+    rc.add_argument("--frame-rate", type=float, default=2.0, help="frames per second (default 2)")
+    rc.add_argument("--label", choices=("FT", "FL", ""), default="",
+                    help="the frame's class, written into the truth (default: none)")
+    rc.add_argument("--seed", type=int, default=0, help="the noise's seed")
+    rc.add_argument("--max-magnification", type=float, default=None,
+                    help="end the clip before the first frame that enlarges the real frame more than this (e.g. 2: "
+                         "past it the texture is the real pixels interpolated); default: every frame, with a warning")
+    rc.add_argument("--force", action="store_true", help="write into a non-empty directory")
 
     sm = sub.add_parser("score-motion", help="score a motion.csv against the sequence's truth (Table 4.1)")
     sm.add_argument("seqdir")
@@ -118,6 +148,29 @@ def _simulate(args) -> int:
     print(f"{args.out}: {truth['n_frames']} frames; mean step {truth['mean_step_cm']:.3f} cm, "
           f"roll {truth['mean_roll_deg']:.2f} deg, tilt {truth['mean_tilt_deg']:.2f} deg per step; "
           f"advances {100 * truth['advance_m']:.1f} cm along the centre line; {truth['n_ft']} FT / {truth['n_fl']} FL")
+    return 0
+
+
+def _real_clip(args) -> int:
+    from testbed.real_clip import make_clip
+
+    tr = make_clip(args.frame, args.out, n_frames=args.frames, step_m=args.step_mm / 1000.0,
+                   roll_rad=math.radians(args.roll_deg), radius_m=args.radius_cm / 100.0, lobes=args.lobes,
+                   lobe_depth=args.lobe_depth, offset_frac=args.offset_frac, light=args.light, axis=args.axis,
+                   noise=args.noise, jpeg_quality=args.jpeg, seed=args.seed, frame_rate_hz=args.frame_rate,
+                   label=args.label, max_magnification=args.max_magnification, force=args.force,
+                   progress=Progress("real-clip"))
+    if tr["n_frames"] < args.frames:
+        print(f"note: the clip ends at {tr['n_frames']} frames: the next would enlarge the real frame more than "
+              f"{args.max_magnification:g}x")
+    print(f"{args.out}: {tr['n_frames']} frames from {args.frame}; advances {100 * tr['advance_m']:.2f} cm along a "
+          f"lumen of {100 * tr['radius_m']:g} cm whose axis is {tr['axis_deg_off_optical']:.0f} deg off the optical "
+          f"axis (a step reads {1000 * tr['step_in_prior_radius_m']:.3f} mm in the prior's radius)")
+    if tr["frames_past_2x"]:
+        first = next(i for i, x in enumerate(tr["magnification"]) if x > 2.0)
+        print(f"warning: {tr['frames_past_2x']} frame(s) from frame {first} on enlarge the real frame more than 2x "
+              f"(up to {max(tr['magnification']):.1f}x): their texture is its pixels interpolated, not real texture; "
+              "use a shorter advance (--frames x --step-mm) for figures about real frames")
     return 0
 
 
@@ -235,7 +288,7 @@ def _scenarios(args) -> int:
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     return {"evaluate": _evaluate, "score-motion": _score_motion, "simulate": _simulate, "contact-sheet": _contact,
-            "centerline": _centerline, "scenarios": _scenarios}[args.cmd](args)
+            "real-clip": _real_clip, "centerline": _centerline, "scenarios": _scenarios}[args.cmd](args)
 
 
 def main(argv: list[str] | None = None) -> int:

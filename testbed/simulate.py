@@ -143,6 +143,23 @@ def _render_one(k: int) -> int:
     return k
 
 
+SEQUENCE_FILES = ("meta.json", "groundtruth.tum", "motion_truth.csv", "labels.csv", "centerline.csv", "truth.json",
+                  "rf.csv", "sensors.csv")
+SEQUENCE_FRAME_DIRS = ("frames", "depth", "frames_rear")
+
+
+def clear_earlier_sequence(out: Path) -> None:
+    """Remove what an earlier sequence written into ``out`` left (a run with ``force``): its meta.json first (a run
+    killed from here on is visibly incomplete), its truth and RF files, and its frames' PNGs -- a shorter or
+    different sequence must not keep the earlier one's frames past its own. Other files are left alone."""
+    for name in SEQUENCE_FILES:
+        (out / name).unlink(missing_ok=True)
+    for sub in SEQUENCE_FRAME_DIRS:
+        if (out / sub).is_dir():
+            for f in (out / sub).glob("*.png"):
+                f.unlink()
+
+
 def simulate(
     scenario: dict,
     seed: int,
@@ -156,6 +173,7 @@ def simulate(
     out = Path(out_dir)
     world = build_world(scenario, seed, n_frames)
     prepare_output_dir(out, force)
+    clear_earlier_sequence(out)
     traj = generate_motion(world.tube, world.n_frames, world.motion, world.rngs["motion"])
     mesh = world.tube.mesh()
     labeller = RaycastRenderer(world.tube, world.texture, world.camera, world.lighting, mesh=mesh)

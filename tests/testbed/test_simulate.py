@@ -35,6 +35,21 @@ def test_simulate_writes_a_complete_sequence(tmp_path, capsys):
     assert depth.dtype == np.uint16 and depth.max() > 0
 
 
+def test_a_sequence_written_over_a_longer_one_keeps_none_of_its_frames(tmp_path):
+    """--force over an earlier sequence: a shorter one must not keep the earlier frames past its own (a frame
+    folder read as it is, as `bodyslam batch` reads one, would take them for its own), nor an earlier RF file; a
+    file of the user's stays."""
+    out = tmp_path / "seq"
+    assert main(["simulate", "demo", "--seed", "1", "--frames", "6", "--out", str(out), *SMALL]) == 0
+    (out / "rf.csv").write_text("t,sensor,rss_dbm\n")
+    (out / "notes.txt").write_text("mine")
+    assert main(["simulate", "demo", "--seed", "1", "--frames", "3", "--out", str(out), "--force", *SMALL]) == 0
+    assert sorted(f.name for f in (out / "frames").iterdir()) == [f"{k:06d}.png" for k in range(3)]
+    assert len(list((out / "depth").iterdir())) == 3
+    rf = out / "rf.csv"  # the demo has RF: written again, not the stale one
+    assert (not rf.exists() or rf.read_text() != "t,sensor,rss_dbm\n") and (out / "notes.txt").read_text() == "mine"
+
+
 def test_same_seed_gives_identical_frames_for_any_job_count(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["simulate", "demo", "--seed", "2", "--frames", "4", "--out", str(a), "--jobs", "1", *SMALL]) == 0
