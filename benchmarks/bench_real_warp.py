@@ -17,7 +17,8 @@ monocular step can measure at best), and Table 4.1 of the forward clip (`testbed
 
     .venv/bin/python benchmarks/bench_real_warp.py FRAME.png [FRAME.png ...] --out DIR [--step-mm 0.5,1,2]
         [--roll-deg 0,5] [--radius-cm R] [--lobes K --lobe-depth A] [--offset-frac F] [--light capsule|baked]
-        [--axis dark|centre] [--frames-per-clip 18] [--mode fast] [--json FILE]
+        [--axis dark|centre] [--fov-deg 156] [--frames-per-clip 18] [--max-magnification 2] [--mode fast]
+        [--json FILE]
 
 The five real frames in ../shared/data/real are for seeing how the pipeline behaves, not for tuning (their
 README): report what this prints; do not choose parameters by it.
@@ -60,6 +61,9 @@ def main() -> None:
     ap.add_argument("--light", choices=("capsule", "baked"), default="capsule",
                     help="capsule: the light moves with the camera (default); baked: the frame's shading moves "
                          "with the wall")
+    ap.add_argument("--fov-deg", type=float, default=156.0,
+                    help="the lens the clips are made with (batch assumes 156 for a plain folder: another value "
+                         "shows a wrong lens assumption)")
     ap.add_argument("--frames-per-clip", type=int, default=18, help="at most (default 18, a real clip's length)")
     ap.add_argument("--max-magnification", type=float, default=2.0,
                     help="a clip ends before the first frame that enlarges the real frame more than this (default 2: "
@@ -88,7 +92,8 @@ def main() -> None:
                                    roll_rad=math.radians(roll_deg), radius_m=args.radius_cm / 100.0,
                                    lobes=args.lobes, lobe_depth=args.lobe_depth, offset_frac=args.offset_frac,
                                    light=args.light, axis=args.axis, noise=args.noise, jpeg_quality=args.jpeg,
-                                   seed=args.seed, max_magnification=args.max_magnification, force=True)
+                                   seed=args.seed, fov_deg=args.fov_deg, max_magnification=args.max_magnification,
+                                   force=True)
                 except InputError as exc:
                     raise SystemExit(f"{fpath}: {exc}") from None
                 frames = sorted((d / "seq" / "frames").iterdir())

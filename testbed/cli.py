@@ -65,6 +65,9 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument("--noise", type=float, default=2.0, help="sensor noise, grey levels (default 2)")
     rc.add_argument("--jpeg", type=int, default=85, help="JPEG quality of each frame's round trip (0: none)")
     rc.add_argument("--frame-rate", type=float, default=2.0, help="frames per second (default 2)")
+    rc.add_argument("--fov-deg", type=float, default=156.0,
+                    help="the lens the clip is made with, equidistant, degrees across the shorter side (default 156: "
+                         "what bodyslam batch assumes for a plain folder)")
     rc.add_argument("--label", choices=("FT", "FL", ""), default="",
                     help="the frame's class, written into the truth (default: none)")
     rc.add_argument("--seed", type=int, default=0, help="the noise's seed")
@@ -158,6 +161,7 @@ def _real_clip(args) -> int:
                    roll_rad=math.radians(args.roll_deg), radius_m=args.radius_cm / 100.0, lobes=args.lobes,
                    lobe_depth=args.lobe_depth, offset_frac=args.offset_frac, light=args.light, axis=args.axis,
                    noise=args.noise, jpeg_quality=args.jpeg, seed=args.seed, frame_rate_hz=args.frame_rate,
+                   fov_deg=args.fov_deg,
                    label=args.label, max_magnification=args.max_magnification, force=args.force,
                    progress=Progress("real-clip"))
     if tr["n_frames"] < args.frames:

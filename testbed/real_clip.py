@@ -15,9 +15,10 @@ first frame's shading travels with the wall. The field stop, the black corners a
 they are, as on a capsule (:func:`field_mask`: the largest lit area's convex hull, found here without the
 pipeline's own field-of-view detection); each frame gets its own sensor noise and JPEG round trip.
 
-The lens is the one `bodyslam batch` assumes without a calibration (equidistant, 156 deg across the shorter side),
-so a clip's geometry is exactly what the pipeline's camera model says; the field stop's corners lie past that
-lens's stated field, and the equidistant model is carried on there.
+The lens is by default the one `bodyslam batch` assumes without a calibration (equidistant, 156 deg across the
+shorter side), so a clip's geometry is exactly what the pipeline's camera model says; another field of view
+(``fov_deg``) made into a plain folder shows what a wrong lens assumption does. The field stop's corners lie past
+the lens's stated field, and the equidistant model is carried on there.
 
 Written like ``testbed simulate``'s sequences (SPEC.md "Files"): ``frames/NNNNNN.png``, ``meta.json`` (the
 assumed lens and the population's lumen-radius prior: the true radius is hidden), and for scoring only
@@ -275,12 +276,15 @@ def make_clip(frame_path: str | os.PathLike, out_dir: str | os.PathLike, n_frame
               roll_rad: float = 0.0, radius_m: float = PRIOR_RADIUS_M, lobes: int = 0, lobe_depth: float = 0.0,
               offset_frac: float = 0.0, light: str = "capsule", axis: str = "dark", noise: float = 2.0,
               jpeg_quality: int = 85, seed: int = 0, frame_rate_hz: float = 2.0, label: str = "",
+              fov_deg: float = FOV_DEG,
               max_magnification: float | None = None, force: bool = False,
               progress: Callable[[int, int], None] | None = None) -> dict:
     """Write a clip of ``n_frames`` made from the real frame ``frame_path`` into the sequence directory ``out_dir``
-    (see the module docstring); returns ``truth.json``'s content. ``max_magnification``: end the clip before the
-    first frame that enlarges the real frame more than that (:func:`magnification`; None: every frame, and
-    ``truth.json`` counts those past :data:`MAX_MAGNIFICATION`).
+    (see the module docstring); returns ``truth.json``'s content. ``fov_deg``: the lens the clip is made with
+    (equidistant, across the shorter side; meta.json states it): 156 is what `bodyslam batch` assumes for a plain
+    folder, so another value made into a plain folder shows what a wrong lens assumption does.
+    ``max_magnification``: end the clip before the first frame that enlarges the real frame more than that
+    (:func:`magnification`; None: every frame, and ``truth.json`` counts those past :data:`MAX_MAGNIFICATION`).
 
     Raises
     ------
@@ -300,12 +304,14 @@ def make_clip(frame_path: str | os.PathLike, out_dir: str | os.PathLike, n_frame
                          f"got {offset_frac}")
     if light not in ("capsule", "baked") or axis not in ("dark", "centre"):
         raise InputError(f"light must be capsule or baked, axis dark or centre; got {light!r}, {axis!r}")
+    if not (60.0 <= fov_deg < 360.0):
+        raise InputError(f"fov_deg must lie in [60, 360), got {fov_deg}")
     if label not in ("", "FT", "FL"):
         raise InputError(f"label must be FT, FL or empty, got {label!r}")
     out = prepare_output_dir(out_dir, force, create=False)
     rgb = read_image(frame_path)
     h, w = rgb.shape[:2]
-    cam = FisheyeCamera.equidistant(w, h, FOV_DEG)
+    cam = FisheyeCamera.equidistant(w, h, fov_deg)
     mask = field_mask(rgb)
     lumen = Lumen(axis=axis_direction(rgb, mask, cam, axis), radius_m=radius_m, lobes=lobes,
                   lobe_depth=lobe_depth, offset_m=offset_frac * radius_m)
@@ -343,7 +349,8 @@ def make_clip(frame_path: str | os.PathLike, out_dir: str | os.PathLike, n_frame
     truth = {"source_frame": str(frame_path), "n_frames": n_frames, "step_m": step_m, "roll_rad": roll_rad,
              "radius_m": radius_m, "lobes": lobes, "lobe_depth": lobe_depth, "offset_m": lumen.offset_m,
              "axis_c0": lumen.axis.tolist(), "axis_deg_off_optical": math.degrees(math.acos(min(1.0, lumen.axis[2]))),
-             "light": light, "noise": noise, "jpeg_quality": jpeg_quality, "seed": seed, "label": label,
+             "fov_deg": fov_deg, "light": light, "noise": noise, "jpeg_quality": jpeg_quality, "seed": seed,
+             "label": label,
              "advance_m": (n_frames - 1) * step_m,
              # how many times each frame enlarges the real one (median over the field): past ~2 its texture is
              # interpolation, no longer the camera's, and what matching does there says little about real frames

@@ -133,7 +133,7 @@ def test_a_clip_keeps_its_field_stop_and_text_and_states_its_truth(tmp_path):
     write_image(src, rgb)
     out = tmp_path / "clip"
     truth = make_clip(src, out, n_frames=5, step_m=0.0015, roll_rad=0.05, radius_m=0.01, lobes=4, lobe_depth=0.25,
-                      jpeg_quality=0, label="FT")
+                      jpeg_quality=0, label="FT", fov_deg=170.0)
     mask = field_mask(rgb)
     frames = sorted((out / "frames").iterdir())
     assert [f.name for f in frames] == [f"{i:06d}.png" for i in range(5)]
@@ -148,6 +148,7 @@ def test_a_clip_keeps_its_field_stop_and_text_and_states_its_truth(tmp_path):
         assert float(r["roll_rad"]) == pytest.approx(0.05, rel=1e-9)
         assert abs(float(r["tilt_rad"])) < 1e-9 and r["label"] == "FT"
     meta = read_meta(out)
+    assert meta.camera["fov_deg"] == pytest.approx(170.0)  # the lens the clip was made with
     assert meta.tube_radius_m == pytest.approx(0.0125)  # the prior, not the clip's 1 cm: the truth is hidden
     assert json.loads((out / "truth.json").read_text())["radius_m"] == pytest.approx(0.01)
     assert truth["step_in_prior_radius_m"] == pytest.approx(0.0015 * 1.25)
@@ -161,6 +162,7 @@ def test_a_clip_keeps_its_field_stop_and_text_and_states_its_truth(tmp_path):
     ({"offset_frac": 0.8, "lobe_depth": 0.3}, "inside the lumen"),
     ({"label": "XX"}, "label"),
     ({"light": "sun"}, "light"),
+    ({"fov_deg": 30.0}, "fov_deg"),
 ])
 def test_a_clip_with_bad_parameters_is_refused_before_anything_is_written(tmp_path, kw, what):
     src = tmp_path / "real.png"
