@@ -306,6 +306,12 @@ def make_clip(frame_path: str | os.PathLike, out_dir: str | os.PathLike, n_frame
         raise InputError(f"light must be capsule or baked, axis dark or centre; got {light!r}, {axis!r}")
     if not (60.0 <= fov_deg < 360.0):
         raise InputError(f"fov_deg must lie in [60, 360), got {fov_deg}")
+    if not (noise >= 0.0 and 0 <= jpeg_quality <= 100):
+        raise InputError(f"noise must be >= 0 grey levels and jpeg_quality in 0-100 (0: none), got {noise} and "
+                         f"{jpeg_quality}")
+    if max_magnification is not None and not max_magnification >= 1.0:
+        raise InputError(f"max_magnification must be at least 1 (the first frame is the frame itself), got "
+                         f"{max_magnification}")
     if label not in ("", "FT", "FL"):
         raise InputError(f"label must be FT, FL or empty, got {label!r}")
     out = prepare_output_dir(out_dir, force, create=False)

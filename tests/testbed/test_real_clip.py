@@ -163,6 +163,9 @@ def test_a_clip_keeps_its_field_stop_and_text_and_states_its_truth(tmp_path):
     ({"label": "XX"}, "label"),
     ({"light": "sun"}, "light"),
     ({"fov_deg": 30.0}, "fov_deg"),
+    ({"max_magnification": 0.5}, "at least 1"),
+    ({"noise": -1.0}, "noise"),
+    ({"jpeg_quality": 101}, "jpeg_quality"),
 ])
 def test_a_clip_with_bad_parameters_is_refused_before_anything_is_written(tmp_path, kw, what):
     src = tmp_path / "real.png"
