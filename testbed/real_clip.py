@@ -338,6 +338,8 @@ def make_clip(frame_path: str | os.PathLike, out_dir: str | os.PathLike, n_frame
         if max_magnification is not None and enlarged[-1] > max_magnification:
             enlarged.pop()
             n_frames = i  # the clip ends before the first frame past it
+            if progress is not None:
+                progress(n_frames, n_frames)
             break
         view = _compose(rgb, mask, filled, src, gain, ok, light)
         write_image(out / "frames" / frame_name(i), camera_noise(view, mask, rng, noise, jpeg_quality))
