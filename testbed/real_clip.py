@@ -43,6 +43,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam import __version__
 from bodyslam.camera import FisheyeCamera
 from bodyslam.errors import InputError
+from bodyslam.exam.batch import DEFAULT_FOV_DEG, DEFAULT_RADIUS_M, DEFAULT_RADIUS_SD_M, DEFAULT_SHAPE_SD_REL
 from bodyslam.geometry import relative_motion
 from bodyslam.io import frame_name, prepare_output_dir, read_image, write_csv, write_image, write_json, write_tum
 from bodyslam.meta import write_meta
@@ -51,10 +52,10 @@ from testbed.simulate import clear_earlier_sequence
 __all__ = ["Lumen", "field_mask", "axis_direction", "fill_outside", "source_map", "magnification", "tube_view",
            "make_clip"]
 
-FOV_DEG = 156.0  # the lens `bodyslam batch` assumes without a calibration (bodyslam.exam.batch.DEFAULT_FOV_DEG)
-PRIOR_RADIUS_M = 0.0125  # the population prior meta.json states (batch's DEFAULT_RADIUS_M)
-PRIOR_RADIUS_SD_M = 0.0025
-PRIOR_SHAPE_SD_REL = 0.13  # batch's DEFAULT_SHAPE_SD_REL: the lumen is not a cylinder
+# what `bodyslam batch` assumes for a plain folder: the lens without a calibration, and the population's lumen
+# radius prior and shape share, which meta.json states (the clip's true radius is hidden)
+FOV_DEG = DEFAULT_FOV_DEG
+PRIOR_RADIUS_M, PRIOR_RADIUS_SD_M, PRIOR_SHAPE_SD_REL = DEFAULT_RADIUS_M, DEFAULT_RADIUS_SD_M, DEFAULT_SHAPE_SD_REL
 MAX_MAGNIFICATION = 2.0  # past it a frame's texture is the real frame's pixels blurred (truth.json counts them)
 MAP_STEP = 4  # pixels between the nodes where the geometry is cast (the maps are interpolated between them)
 
@@ -110,11 +111,6 @@ def axis_direction(rgb: np.ndarray, mask: np.ndarray, cam: FisheyeCamera, how: s
     return ray[0] / np.linalg.norm(ray[0])
 
 
-def roll_z(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def fill_outside(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """The field's content carried past the field stop (inpainted), so that a view that brings in wall from just
     outside the stop gets texture, not the stop's black edge moving with the scene."""
@@ -123,9 +119,8 @@ def fill_outside(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     msmall = cv2.erode(msmall, np.ones((3, 3), np.uint8))
     far = cv2.resize(cv2.inpaint(small, 1 - msmall, 9, cv2.INPAINT_TELEA), rgb.shape[1::-1],
                      interpolation=cv2.INTER_LINEAR)
-    out = far.copy()
-    out[mask] = rgb[mask]
-    return out
+    far[mask] = rgb[mask]
+    return far
 
 
 @dataclass(frozen=True)
@@ -201,7 +196,7 @@ def source_map(shape: tuple[int, int], cam: FisheyeCamera, lumen: Lumen, advance
     e1, _ = lumen.basis()
     c0 = -lumen.offset_m * e1  # camera 0, offset_m from the axis (which passes through the origin)
     ck = c0 + advance_m * lumen.axis
-    v = rays_k @ roll_z(roll_rad).T  # camera k -> camera 0
+    v = Rotation.from_rotvec([0.0, 0.0, roll_rad]).apply(rays_k)  # camera k -> camera 0
     t, normal = lumen.hit(ck, v)
     far = ~np.isfinite(t)
     p = ck + np.where(far, 0.0, t)[:, None] * v  # the wall point
