@@ -7,10 +7,12 @@ truth's with noise (0.3 mm and 0.2 deg per axis, stated as their 1-sigma). The p
 runs `localize` with its defaults (raw RSS, the whole-exam solve, the covariances scaled by the readings' measured
 correlation). Printed per length: the fusion's seconds, the resident memory before it (imports and inputs) and at
 its peak (Linux VmHWM), their difference per frame, and with ``--trace`` the fusion's peak of Python-traced
-allocations (tracemalloc; slower). Issue 17: the fusion's memory should not be what limits an exam's length
+allocations (tracemalloc; slower). The process frees large arrays as `bodyslam batch`'s workers do
+(:func:`bodyslam.parallel.return_large_frees`); ``--malloc-default`` measures it with glibc's own threshold. Issue 17: the fusion's memory should not be what limits an exam's length
 (bodyslam batch with RF: <= 1 GB for the whole process tree at 55,000 frames; real exams run to 100,000).
 
     .venv/bin/python benchmarks/bench_fusion_memory.py [--frames 10000,55000,100000] [--trace] [--rss-bias-states]
+        [--malloc-default]
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ def _status_mib(field: str) -> float:
     raise RuntimeError(f"/proc/self/status has no {field}")
 
 
-def child(n: int, seed: int, trace: bool, bias_states: bool) -> dict:
+def child(n: int, seed: int, trace: bool, bias_states: bool, malloc_default: bool = False) -> dict:
     """One length in this process: inputs, then the fusion; what it measured."""
     import numpy as np
     from scipy.spatial.transform import Rotation
@@ -47,6 +49,12 @@ def child(n: int, seed: int, trace: bool, bias_states: bool) -> dict:
     from testbed.rf import emulate_rf
     from testbed.scenario import build_world, load_scenario
 
+    if not malloc_default:
+        from bodyslam.parallel import return_large_frees
+
+        if not return_large_frees():
+            raise SystemExit("cannot fix the C library's mmap threshold here (not glibc, or MALLOC_MMAP_THRESHOLD_ "
+                             "set): run with --malloc-default")
     world = build_world(load_scenario("exam", long_exam_settings(n)[1::2]), seed, n)
     traj = generate_motion(world.tube, n, world.motion, world.rngs["motion"])
     rf = world.rf
@@ -96,10 +104,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--trace", action="store_true", help="also the fusion's peak of traced allocations (slower)")
     ap.add_argument("--rss-bias-states", action="store_true", help="the fusion with the per-sensor RSS bias states")
+    ap.add_argument("--malloc-default", action="store_true",
+                    help="glibc's own mmap threshold, not the one bodyslam's processes set (what that changes)")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child is not None:
-        print(json.dumps(child(args.child, args.seed, args.trace, args.rss_bias_states)))
+        print(json.dumps(child(args.child, args.seed, args.trace, args.rss_bias_states, args.malloc_default)))
         return
     try:
         lengths = [int(x) for x in args.frames.split(",")]
@@ -112,7 +122,8 @@ def main() -> None:
     rows = []
     for n in lengths:
         cmd = [sys.executable, __file__, "--child", str(n), "--seed", str(args.seed),
-               *(["--trace"] if args.trace else []), *(["--rss-bias-states"] if args.rss_bias_states else [])]
+               *(["--trace"] if args.trace else []), *(["--rss-bias-states"] if args.rss_bias_states else []),
+               *(["--malloc-default"] if args.malloc_default else [])]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
             raise SystemExit(f"the {n}-frame run failed (exit {proc.returncode}):\n{proc.stderr.strip()[-2000:]}")

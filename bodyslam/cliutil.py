@@ -8,6 +8,7 @@ import time
 from typing import Callable
 
 from bodyslam.errors import BodySlamError
+from bodyslam.parallel import return_large_frees
 
 
 class Progress:
@@ -47,7 +48,9 @@ class Progress:
 
 
 def run_cli(main: Callable[[list[str] | None], int], argv: list[str] | None, verbose: bool = False) -> int:
-    """Run a CLI body: a :class:`BodySlamError` becomes one line on stderr and exit code 1."""
+    """Run a CLI body: a :class:`BodySlamError` becomes one line on stderr and exit code 1. Large freed arrays go
+    back to the system at once (:func:`bodyslam.parallel.return_large_frees`)."""
+    return_large_frees()
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         return main(argv)

@@ -6,6 +6,10 @@ caller can stream them (progress, bounded memory). A pool has one worker per cor
 BLAS/OpenMP thread (``OMP/OPENBLAS/MKL_NUM_THREADS=1`` in the environment it is spawned with) and its chunk tasks
 to one OpenCV thread (:func:`bodyslam.vision.odometry.set_worker_threads`): more would only compete for the same
 cores. (The testbed's renderer runs its own pool: :mod:`testbed.simulate`.)
+
+Every CLI process and every pool worker gives large freed arrays back to the system at once
+(:func:`return_large_frees`): a whole exam's arrays are freed and allocated again phase after phase, and the
+process's resident peak should count what it holds, not what it once held.
 """
 
 from __future__ import annotations
@@ -13,9 +17,10 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
+import sys
 from typing import Callable, Iterator, Sequence, TypeVar
 
-__all__ = ["available_cores", "imap_tasks", "shared_pool", "submit"]
+__all__ = ["available_cores", "imap_tasks", "return_large_frees", "shared_pool", "submit", "MMAP_THRESHOLD_BYTES"]
 
 T = TypeVar("T")
 
@@ -27,6 +32,31 @@ def available_cores() -> int:
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
+# glibc's malloc gives an allocation of at least its mmap threshold a mapping of its own, unmapped when freed; the
+# threshold starts at 128 KiB but rises (to 32 MiB on 64-bit) to the size of each such block freed, so after the
+# first whole-exam array is freed the next ones (128 KiB-32 MiB: a 55,000-frame exam's 6x6 covariances are 15 MiB)
+# come from the heap, whose freed memory the process keeps and its resident peak counts. Fixed at 1 MiB (setting it
+# stops the rise): a frame (320x320 RGB: 300 KiB) stays on the heap, whole-exam arrays go back when freed. Measured
+# (benchmarks/bench_fusion_memory.py, session 46): the fusion's peak 180 / 362 / 547 -> 164 / 299 / 467 MiB at
+# 10,000 / 55,000 / 100,000 frames, its results bit-identical (docs/RESULTS.md).
+MMAP_THRESHOLD_BYTES = 1 << 20
+_M_MMAP_THRESHOLD = -3  # mallopt's parameter number (glibc's malloc.h)
+
+
+def return_large_frees() -> bool:
+    """Fix glibc's mmap threshold at :data:`MMAP_THRESHOLD_BYTES` in this process (see there). True where set;
+    False where the C library is not glibc or the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
+    if "MALLOC_MMAP_THRESHOLD_" in os.environ or not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.gnu_get_libc_version  # glibc's, not another C library's
+    except (OSError, AttributeError):
+        return False
+    return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+
 
 def _init_worker(log_level: int | None = None, log_format: str | None = None) -> None:
     """A pool worker's start. It leaves Ctrl-C to the parent (the terminal sends it to the whole process group):
@@ -37,6 +67,7 @@ def _init_worker(log_level: int | None = None, log_format: str | None = None) ->
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return_large_frees()
     if log_format is not None:
         logging.basicConfig(level=log_level, format=log_format)
 
