@@ -209,6 +209,10 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--mark", default=None, help="frames to locate, e.g. 120,455,1000-1002")
     ba.add_argument("--mark-file", default=None, help="CSV of marked frames: frame[,label][,exam]")
     ba.add_argument("--landmark", default=None, help="landmark frames (e.g. 310 = pylorus): path from each")
+    ba.add_argument("--frame-range", default=None, metavar="FIRST-LAST",
+                    help="process frames FIRST..LAST of each exam only (frame numbers, both kept; FIRST- to the end), "
+                         "e.g. the small bowel between its first duodenal and first caecal frame; they keep their "
+                         "numbers and times")
     ba.add_argument("--chunk-frames", type=int, default=None,
                     help="frames per checkpointed chunk (default: from the study's length and the workers, each "
                          "worker >= 4 chunks of 20-500 frames; recorded in batch.json; results do not depend on it)")
@@ -596,15 +600,18 @@ def _localize(args) -> int:
 
 
 def _batch(args) -> int:
-    from bodyslam.exam.batch import BatchSettings, open_exams, parse_frame_list, read_marks, run_batch
+    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, read_marks,
+                                     run_batch)
     from bodyslam.steps import WITH_ESTIMATE
 
     _check_bias_states(args)
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
+    frame_range = parse_frame_range(args.frame_range) if args.frame_range else None
     skipped: list = []  # exams of a study that cannot be opened: listed, the others go on
     exams = open_exams(args.inputs, calib=args.calib, fps=args.fps, radius_m=args.radius_m, mask=args.mask,
-                       rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks, problems=skipped)
+                       rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks, problems=skipped,
+                       frame_range=frame_range)
     for p in skipped:
         print(f"  {p[3]}")  # "exam not processed: <file>: why"
     if args.mark_file:

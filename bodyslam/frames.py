@@ -62,7 +62,8 @@ class Frame:
 @dataclass
 class FrameSource:
     """Frames of one exam. ``kind``: ``folder`` (image files, a sequence directory's frames among them) or
-    ``video``. ``frames``: ``(index, file name)`` per position for folders; ``n_frames`` for videos."""
+    ``video``. ``frames``: ``(index, file name)`` per position for folders; ``n_frames`` for videos, from frame
+    number ``start`` on."""
 
     kind: str
     source: str  # frames folder or video file
@@ -70,6 +71,7 @@ class FrameSource:
     frames: list[tuple[int, str]] = field(default_factory=list, repr=False)
     n_frames: int = 0
     offset: int = 0  # position of frames[0] (a subset sent to a worker)
+    start: int = 0  # videos: the frame number at position 0 (an exam that is a stretch of the video)
 
     @classmethod
     def sequence(cls, frames_dir: str | os.PathLike, n_frames: int, frame_rate_hz: float) -> "FrameSource":
@@ -110,17 +112,18 @@ class FrameSource:
                 yield Frame(pos, idx, idx / self.frame_rate_hz, path, img, notes)
             return
         cap = cv2.VideoCapture(self.source)
+        s0 = self.start
         try:
-            if first > 0:
-                cap.set(cv2.CAP_PROP_POS_FRAMES, first)
+            if s0 + first > 0:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, s0 + first)
             for pos in range(first, last + 1):
                 ok, bgr = cap.read()
                 if not ok:
-                    yield Frame(pos, -1, pos / self.frame_rate_hz, self.source, None,
-                                [("info", f"the video ends at frame {pos} (its container says {self.n_frames} "
-                                          f"frames: an estimate)")], path_is_video=True)
+                    yield Frame(pos, -1, (s0 + pos) / self.frame_rate_hz, self.source, None,
+                                [("info", f"the video ends at frame {s0 + pos} (its container says "
+                                          f"{s0 + self.n_frames} frames: an estimate)")], path_is_video=True)
                     return
-                yield Frame(pos, pos, _presentation_time_s(cap, pos, self.frame_rate_hz), self.source,
+                yield Frame(pos, s0 + pos, _presentation_time_s(cap, s0 + pos, self.frame_rate_hz), self.source,
                             cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), [], path_is_video=True)
         finally:
             cap.release()

@@ -21,7 +21,10 @@ Frames of a folder are its image files in the order of the last number in their 
 ``img_0042.jpg``); that number is the frame index and ``t = index / frame_rate``. Missing numbers are reported as
 a gap (one problem per gap) and the step across the gap is estimated between the frames on either side. Files
 that are not images (by extension) are reported and skipped. A video's frames are numbered from 0; its frame
-rate is the container's unless given.
+rate is the container's unless given. An exam can be a stretch of its recording (``frame_range``, ``--frame-range
+FIRST-LAST``: the small bowel between two landmark frames, say): only those frames are read, and they keep their
+numbers and times (a folder's listing problems outside the stretch are not reported; a video is read from its frame
+FIRST on).
 
 Chunks, checkpoints, resuming
 -----------------------------
@@ -156,10 +159,14 @@ class Exam:
     problems: list[list] = field(default_factory=list, repr=False)  # found while listing (gaps, non-images)
     radius_sd_m: float = 0.0  # 1-sigma of radius_m: meta.json's, 0 when given, DEFAULT_RADIUS_SD_M when assumed
     shape_sd_rel: float = 0.0  # the lumen's departure from a cylinder: meta.json's, else DEFAULT_SHAPE_SD_REL
+    # the stretch of the recording asked for, frame numbers (last None: to the end); None: all of it
+    frame_range: tuple[int, int | None] | None = None
+    video_start: int = 0  # videos: the frame number of the exam's first frame
 
     def frame_source(self) -> FrameSource:
         # (while the exam is being opened its frame rate is not known yet: 1 frame/s for the size probe)
-        return FrameSource(self.kind, self.source, self.frame_rate_hz or 1.0, self.frames, self.n_frames)
+        return FrameSource(self.kind, self.source, self.frame_rate_hz or 1.0, self.frames, self.n_frames,
+                           start=self.video_start)
 
     def describe(self) -> dict:
         """What the plan fingerprints: everything that changes results."""
@@ -177,7 +184,7 @@ class Exam:
         return {"name": self.name, "kind": self.kind, "source": os.path.abspath(self.source), "camera": self.camera,
                 "frame_rate_hz": self.frame_rate_hz, "radius_m": self.radius_m, "radius_sd_m": self.radius_sd_m,
                 "shape_sd_rel": self.shape_sd_rel,
-                "n_frames": self.n_positions,
+                "n_frames": self.n_positions, "frame_range": self.frame_range, "video_start": self.video_start,
                 "mask": self.mask, "rf": self.rf, "sensors": self.sensors, "files_sha256": h.hexdigest()}
 
     @property
@@ -302,6 +309,23 @@ def parse_frame_list(text: str) -> list[int]:
     return out
 
 
+def parse_frame_range(text: str) -> tuple[int, int | None]:
+    """``"1200-48000"`` -> ``(1200, 48000)`` (frame numbers, both kept); ``"1200-"`` -> ``(1200, None)``: to the
+    end."""
+    m = re.fullmatch(r"\s*(\d+)\s*-\s*(\d*)\s*", str(text))
+    if m is None:
+        raise InputError(f"frame range {text!r}: give FIRST-LAST (frame numbers, both kept; e.g. 1200-48000) or "
+                         f"FIRST- (from FIRST to the end)")
+    first, last = int(m.group(1)), (int(m.group(2)) if m.group(2) else None)
+    if last is not None and last <= first:
+        raise InputError(f"frame range {text!r}: LAST must be after FIRST (an exam needs two frames for a step)")
+    return first, last
+
+
+def _range_text(r: tuple[int, int | None]) -> str:
+    return f"{r[0]}-{'' if r[1] is None else r[1]}"
+
+
 def read_marks(path: str | os.PathLike, exams: list[Exam]) -> None:
     """Add the marked frames of a CSV (``frame[,label][,exam]``) to the exams (all exams when no ``exam``).
 
@@ -337,12 +361,14 @@ def _unique_name(name: str, taken: set[str]) -> str:
 def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = None,
                radius_m: float | None = None, mask: str | None = None, rf: str | None = None,
                sensors: str | None = None, marks: list[tuple[int, str]] | None = None,
-               landmarks: list[int] | None = None, problems: list | None = None) -> list[Exam]:
+               landmarks: list[int] | None = None, problems: list | None = None,
+               frame_range: tuple[int, int | None] | None = None) -> list[Exam]:
     """Exams from command-line inputs: frame folders, sequence directories, videos, manifests (CSV/JSON).
 
     A manifest lists one exam per row (CSV with a header) or object (JSON list): ``input`` and optionally
-    ``name, calib, fps, radius_m, mask, rf, sensors, marks, landmarks`` (frame lists as ``"120;455"``);
-    relative paths are relative to the manifest. Command-line options are defaults for every exam.
+    ``name, calib, fps, radius_m, mask, rf, sensors, marks, landmarks, frame_range`` (frame lists as
+    ``"120;455"``, the range as ``"1200-48000"``: :func:`parse_frame_range`); relative paths are relative to the
+    manifest. Command-line options are defaults for every exam.
 
     ``problems``: in a study (several inputs or manifest rows), an exam that cannot be opened is listed there as
     ``[source, "", "error", reason]`` and the others go on (the study then exits 3); without it, or when no exam
@@ -367,7 +393,7 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
             problems.append([str(source), "", "error", f"exam not processed: {exc}"])
 
     base = {"calib": calib, "fps": fps, "radius_m": radius_m, "mask": mask, "rf": rf, "sensors": sensors,
-            "marks": marks or [], "landmarks": landmarks or []}
+            "marks": marks or [], "landmarks": landmarks or [], "frame_range": frame_range}
     for inp in inputs:
         p = Path(inp)
         if p.is_file() and p.suffix.lower() in (".csv", ".json") and p.name not in SIDECARS:
@@ -401,6 +427,8 @@ def _manifest_exam(p: Path, loc: str, row: dict, base: dict, taken: set[str]) ->
             opts["marks"] = [(f, "") for f in parse_frame_list(row["marks"])]
         if row.get("landmarks"):
             opts["landmarks"] = parse_frame_list(row["landmarks"])
+        if row.get("frame_range"):
+            opts["frame_range"] = parse_frame_range(row["frame_range"])
         src = (p.parent / row["input"]).resolve()
         return _open_exam(src, row.get("name") or src.stem, taken, **opts)
     except InputError as exc:
@@ -434,7 +462,7 @@ def _read_manifest(path: Path) -> list[tuple[str, dict]]:
 
 
 def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask, rf, sensors, marks,
-               landmarks) -> Exam:
+               landmarks, frame_range=None) -> Exam:
     from bodyslam.meta import read_meta
 
     assumed: list[str] = []
@@ -451,9 +479,14 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
         if not frames:
             raise InputError(f"{src}: no image files found (looked in {frames_dir})")
         n_meta = meta.n_frames if meta else None
-        if n_meta is not None and frames[-1][0] < n_meta - 1:
+        if frame_range is not None:
+            frames, problems = _folder_range(src, frames, problems, frame_range)
+        last_wanted = None if n_meta is None else n_meta - 1
+        if last_wanted is not None and frame_range is not None and frame_range[1] is not None:
+            last_wanted = min(last_wanted, frame_range[1])
+        if last_wanted is not None and frames[-1][0] < last_wanted:
             a = frames[-1][0] + 1
-            problems.append([str(frames_dir), a, "warning", f"frames {a}-{n_meta - 1} missing at the end "
+            problems.append([str(frames_dir), a, "warning", f"frames {a}-{last_wanted} missing at the end "
                                                              f"(meta.json says {n_meta})"])
         exam = Exam(name, kind, str(frames_dir), {}, 0.0, 0.0, frames=frames, problems=problems)
     elif src.is_file() and src.suffix.lower() in VIDEO_EXTS:
@@ -472,7 +505,12 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
             while cap.grab():
                 n += 1
             cap.release()
-        exam = Exam(name, "video", str(src), {}, 0.0, 0.0, n_frames=n)
+        first, last = frame_range or (0, None)
+        if first >= n - 1:
+            raise InputError(f"{src}: frame range {_range_text(frame_range)} starts at or past the video's last "
+                             f"frame ({n} frames by its container, numbered 0-{n - 1})")
+        n_in = (n if last is None else min(n, last + 1)) - first
+        exam = Exam(name, "video", str(src), {}, 0.0, 0.0, n_frames=n_in, video_start=first)
         if fps is None and vfps > 0:
             fps = vfps
     elif src.exists():
@@ -525,7 +563,20 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
     exam.marks = list(marks)
     exam.landmarks = list(landmarks)
     exam.assumed = assumed
+    exam.frame_range = frame_range
     return exam
+
+
+def _folder_range(src: Path, frames: list[tuple[int, str]], problems: list[list],
+                  frame_range: tuple[int, int | None]) -> tuple[list[tuple[int, str]], list[list]]:
+    """A folder's frames and listing problems inside ``frame_range`` (problems without a frame number are kept)."""
+    first, last = frame_range
+    last = frames[-1][0] if last is None else last
+    inside = [f for f in frames if first <= f[0] <= last]
+    if len(inside) < 2:
+        raise InputError(f"{src}: frame range {_range_text(frame_range)} holds {len(inside)} frame(s) (the folder's "
+                         f"frames are numbered {frames[0][0]}-{frames[-1][0]}); an exam needs at least 2")
+    return inside, [p for p in problems if not isinstance(p[1], int) or first <= p[1] <= last]
 
 
 def _given_or_assumed(src, what: str, given, from_meta, default: float, default_text: str, assumed: list) -> float:
@@ -1045,7 +1096,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
             n_beside += s.beside_wall
             dr.step(s)
             acc.record(row, dr, classes, step_length(s), lost_to_motion(s))
-    eof = info["eof"]
+    eof = None if info["eof"] is None else info["eof"] + exam.video_start  # a frame number, as the user counts
     n = acc.n
     t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
     frame_idx = acc.frame[:n].tolist()
@@ -1072,6 +1123,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
         wait_check()
     summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
                "frames_expected": n_expected, "video_ended_at": eof,
+               "frame_range": None if exam.frame_range is None else [frame_idx[0], frame_idx[-1]] if n else None,
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
                "classes": ({"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]} if classified
                            else "not classified"),
@@ -1226,9 +1278,16 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
         return []
     where = {f: k for k, f in enumerate(frame_idx)}
     lms = [lm for lm in exam.landmarks if lm in where]
+
+    def absent(f: int) -> str:
+        r = exam.frame_range
+        if r is not None and not (r[0] <= f <= (frame_idx[-1] if r[1] is None else r[1])):
+            return f"not in the exam: outside its frame range {_range_text(r)}"
+        return "not in the exam (or unreadable)"
+
     for lm in exam.landmarks:
         if lm not in where:
-            problems.append([exam.source, lm, "error", "landmark frame not in the exam (or unreadable)"])
+            problems.append([exam.source, lm, "error", f"landmark frame {absent(lm)}"])
     header = ["frame", "label", "t", "x_m", "y_m", "z_m", "sd_position_m", "path_from_start_m",
               "sd_path_from_start_m"]
     for lm in lms:
@@ -1237,7 +1296,7 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
     for f, label in exam.marks:
         k = where.get(f)
         if k is None:
-            problems.append([exam.source, f, "error", "marked frame not in the exam (or unreadable)"])
+            problems.append([exam.source, f, "error", f"marked frame {absent(f)}"])
             continue
         row = [f, label, t[k], *P[k], sd[k], path_m[k], math.sqrt(path_var[k])]
         for lm in lms:
@@ -1320,7 +1379,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                                      "kw": {"body_frame": fused}}, jobs)
     sm = summary
     cls = sm["classes"]
-    rows = [["source", f"{sm['source']} ({sm['kind']})"],
+    fr = sm.get("frame_range")
+    rows = [["source", f"{sm['source']} ({sm['kind']})" + (f"; frames {fr[0]}-{fr[1]} of it" if fr else "")],
             ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"
              + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
             ["duration", f"{duration_text(sm['duration_s'])} at {sm['frame_rate_hz']:g} frames/s"],

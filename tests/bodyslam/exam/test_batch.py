@@ -468,3 +468,75 @@ def test_the_lumen_scale_rescales_every_step_with_a_pose(tmp_path, monkeypatch):
     assert sc["effective_radius_m"] == pytest.approx(0.9 * json.loads(
         (tmp_path / "on" / "exam" / "summary.json").read_text())["radius_m"])
     assert json.loads((tmp_path / "off" / "exam" / "summary.json").read_text())["lumen_scale"] is None
+
+
+def test_a_frame_range_is_a_stretch_of_the_recording_with_its_own_numbers_and_times(tmp_path):
+    """The small bowel between two landmark frames, say: only those frames are read, they keep their numbers and
+    times, and every step inside is the one the whole recording gives (each step depends on its two frames only;
+    the demo's radius is known, so no exam-wide scale touches them)."""
+    run_batch(open_exams([str(DEMO)]), tmp_path / "all", FAST, jobs=1)
+    rep = run_batch(open_exams([str(DEMO)], frame_range=(5, 30), marks=[(12, ""), (3, "")], landmarks=[8]),
+                    tmp_path / "cut", FAST, jobs=1)
+    whole = {r["frame"]: r for r in _rows(tmp_path / "all" / "demo_seed0" / "motion.csv")}
+    d = tmp_path / "cut" / "demo_seed0"
+    steps = _rows(d / "motion.csv")
+    assert [int(r["frame"]) for r in steps] == list(range(6, 31))
+    assert all(r == whole[r["frame"]] for r in steps)
+    frames = _rows(d / "frames.csv")
+    assert [int(r["frame"]) for r in frames] == list(range(5, 31)) and float(frames[0]["t"]) == 2.5
+    s = rep.exams[0]
+    assert s["frames"] == s["frames_expected"] == 26 and s["frame_range"] == [5, 30]
+    assert [int(r["frame"]) for r in _rows(d / "marks.csv")] == [12]
+    problems = _rows(tmp_path / "cut" / "problems.csv")
+    assert [(p["frame"], p["reason"]) for p in problems] == [("3", "marked frame not in the exam: outside its "
+                                                                    "frame range 5-30")]
+    # a folder's gaps outside the stretch are not its problems; to the end with "FIRST-"
+    folder = _plain_folder(tmp_path / "plain", 12)
+    (folder / "capsule_00003.png").unlink()
+    assert len(open_exams([str(folder)])[0].problems) == 1
+    e = open_exams([str(folder)], frame_range=(4, None))[0]
+    assert [f[0] for f in e.frames] == list(range(4, 12)) and e.problems == []
+    assert e.describe() != open_exams([str(folder)], frame_range=(5, None))[0].describe()  # no resuming across
+
+
+def test_a_frame_range_of_a_video_seeks_to_its_first_frame(tmp_path):
+    vid = tmp_path / "exam.avi"
+    _write_video(vid, 20)
+    run_batch(open_exams([str(vid)], radius_m=0.015), tmp_path / "all", BatchSettings(chunk_frames=20), jobs=1)
+    rep = run_batch(open_exams([str(vid)], radius_m=0.015, frame_range=(7, 15)), tmp_path / "cut",
+                    BatchSettings(chunk_frames=4), jobs=1)
+    whole = _rows(tmp_path / "all" / "exam" / "frames.csv")
+    frames = _rows(tmp_path / "cut" / "exam" / "frames.csv")
+    assert [int(r["frame"]) for r in frames] == list(range(7, 16))
+    assert [r["t"] for r in frames] == [r["t"] for r in whole[7:16]]  # the container's times, as read from 0
+    all_steps = {r["frame"]: r for r in _rows(tmp_path / "all" / "exam" / "motion.csv")}
+    assert all(r == all_steps[r["frame"]] for r in _rows(tmp_path / "cut" / "exam" / "motion.csv"))
+    assert rep.exams[0]["frame_range"] == [7, 15]
+    # past the end of the video, the range's end is the video's end (a container's count is an estimate)
+    assert open_exams([str(vid)], frame_range=(10, 500))[0].n_positions == 10
+
+
+@pytest.mark.parametrize("text, message", [("12", "give FIRST-LAST"), ("30-12", "LAST must be after FIRST"),
+                                           ("a-b", "give FIRST-LAST"), ("5-5", "LAST must be after FIRST")])
+def test_a_bad_frame_range_is_refused_by_name(tmp_path, capsys, text, message):
+    code = cli_main(["batch", str(DEMO), "--frame-range", text, "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 1 and message in err and repr(text) in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_frame_range_outside_the_recording_is_refused_by_name(tmp_path, capsys):
+    vid = tmp_path / "exam.avi"
+    _write_video(vid, 6)
+    for src, text, message in ((DEMO, "50-60", "holds 0 frame(s) (the folder's frames are numbered 0-39)"),
+                               (DEMO, "39-", "holds 1 frame(s)"),
+                               (vid, "5-9", "starts at or past the video's last frame (6 frames by its container")):
+        code = cli_main(["batch", str(src), "--frame-range", text, "--out", str(tmp_path / "o")])
+        err = capsys.readouterr().err
+        assert code == 1 and message in err and len(err.strip().splitlines()) == 1, err
+    # in a manifest: the row is named
+    (tmp_path / "m.csv").write_text(f"input,frame_range\n{DEMO},10-\n{DEMO},x\n")
+    with pytest.raises(InputError, match=r"m.csv:line 3: frame range 'x'"):
+        open_exams([str(tmp_path / "m.csv")])
+    (tmp_path / "m2.csv").write_text(f"input,frame_range\n{DEMO},10-\n")
+    assert open_exams([str(tmp_path / "m2.csv")])[0].frame_range == (10, None)
