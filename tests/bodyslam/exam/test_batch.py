@@ -490,6 +490,9 @@ def test_a_frame_range_is_a_stretch_of_the_recording_with_its_own_numbers_and_ti
     problems = _rows(tmp_path / "cut" / "problems.csv")
     assert [(p["frame"], p["reason"]) for p in problems] == [("3", "marked frame not in the exam: outside its "
                                                                     "frame range 5-30")]
+    again = run_batch(open_exams([str(DEMO)], frame_range=(5, 30), marks=[(12, ""), (3, "")], landmarks=[8]),
+                      tmp_path / "cut", FAST, jobs=1)  # the same command resumes its own run
+    assert again.chunks_computed == 0 and again.chunks_reused > 0
     # a folder's gaps outside the stretch are not its problems; to the end with "FIRST-"
     folder = _plain_folder(tmp_path / "plain", 12)
     (folder / "capsule_00003.png").unlink()
