@@ -1,7 +1,9 @@
 """Scenarios: TOML files that fully determine a testbed run given a seed (SPEC.md "Standard scenarios").
 
 Shipped scenarios live in ``testbed/scenarios/NAME.toml``; a scenario argument is either such a name or a path to a
-TOML file. ``--set section.key=value`` overrides one field (the value is parsed as TOML, so ``0.012``, ``true``,
+TOML file. A scenario may name another as its ``base`` (a shipped name): it is that scenario with its own keys
+replacing the base's, table by table (``realistic_exam`` is ``realistic`` at a whole exam's pace). ``--set
+section.key=value`` overrides one field (the value is parsed as TOML, so ``0.012``, ``true``,
 ``[1, 2]`` and ``"text"`` work; a bare word is taken as a string).
 
 :func:`build_world` turns a scenario and a seed into the objects the testbed renders. Independent random streams
@@ -62,9 +64,32 @@ def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict
         scn = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{origin}: malformed TOML ({exc})") from None
+    base = scn.pop("base", None)
+    if base is not None:
+        if not isinstance(base, str) or Path(base).suffix or base in _loading:
+            raise ConfigError(f"{origin}: base must name another shipped scenario, got {base!r}")
+        _loading.append(base)
+        try:
+            parent = load_scenario(base)
+        finally:
+            _loading.pop()
+        parent.pop("_origin", None)
+        parent.pop("description", None)  # the scenario's own says what it is
+        scn = _merged(parent, scn)
     scn.setdefault("name", p.stem)
     scn["_origin"] = origin
     return apply_overrides(scn, overrides or [])
+
+
+_loading: list[str] = []  # the bases being read (a scenario that is its own base, at any depth, is refused)
+
+
+def _merged(base: dict, own: dict) -> dict:
+    """``base`` with ``own``'s keys in its place, tables merged key by key (nested tables too)."""
+    out = copy.deepcopy(base)
+    for k, v in own.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
 
 
 # Keys the world reads from its plain sections with a default (so a scenario file may leave them out), with their
