@@ -8,8 +8,9 @@ runs `localize` with its defaults (raw RSS, the whole-exam solve, the covariance
 correlation). Printed per length: the fusion's seconds, the resident memory before it (imports and inputs) and at
 its peak (Linux VmHWM), their difference per frame, and with ``--trace`` the fusion's peak of Python-traced
 allocations (tracemalloc; slower). The process frees large arrays as `bodyslam batch`'s workers do
-(:func:`bodyslam.parallel.return_large_frees`); ``--malloc-default`` measures it with glibc's own threshold. Issue 17: the fusion's memory should not be what limits an exam's length
-(bodyslam batch with RF: <= 1 GB for the whole process tree at 55,000 frames; real exams run to 100,000).
+(:func:`bodyslam.parallel.return_large_frees`); ``--malloc-default`` measures it with glibc's own threshold. Issue
+17: the fusion's memory should not be what limits an exam's length (bodyslam batch with RF: <= 1 GB for the whole
+process tree at 55,000 frames; real exams run to 100,000).
 
     .venv/bin/python benchmarks/bench_fusion_memory.py [--frames 10000,55000,100000] [--trace] [--rss-bias-states]
         [--malloc-default]

@@ -37,8 +37,8 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 # first whole-exam array is freed the next ones (128 KiB-32 MiB: a 55,000-frame exam's 6x6 covariances are 15 MiB)
 # come from the heap, whose freed memory the process keeps and its resident peak counts. Fixed at 1 MiB (setting it
 # stops the rise): a frame (320x320 RGB: 300 KiB) stays on the heap, whole-exam arrays go back when freed. Measured
-# (benchmarks/bench_fusion_memory.py, session 46): the fusion's peak 180 / 362 / 547 -> 164 / 299 / 467 MiB at
-# 10,000 / 55,000 / 100,000 frames, its results bit-identical (docs/RESULTS.md).
+# (benchmarks/bench_fusion_memory.py, session 46, the same day): the fusion's peak 180 / 358 / 537 -> 166 / 296 / 466
+# MiB at 10,000 / 55,000 / 100,000 frames, its results bit-identical (docs/RESULTS.md).
 MMAP_THRESHOLD_BYTES = 1 << 20
 _M_MMAP_THRESHOLD = -3  # mallopt's parameter number (glibc's malloc.h)
 

@@ -73,8 +73,8 @@ def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict
             parent = load_scenario(base)
         finally:
             _loading.pop()
-        parent.pop("_origin", None)
-        parent.pop("description", None)  # the scenario's own says what it is
+        for k in ("_origin", "name", "description"):  # the scenario's own (its file's name where it gives none)
+            parent.pop(k, None)
         scn = _merged(parent, scn)
     scn.setdefault("name", p.stem)
     scn["_origin"] = origin

@@ -1123,7 +1123,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
         wait_check()
     summary = {"exam": exam.name, "source": exam.source, "kind": exam.kind, "frames": n,
                "frames_expected": n_expected, "video_ended_at": eof,
-               "frame_range": None if exam.frame_range is None else [frame_idx[0], frame_idx[-1]] if n else None,
+               "frame_range": [frame_idx[0], frame_idx[-1]] if exam.frame_range is not None and n else None,
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
                "classes": ({"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]} if classified
                            else "not classified"),

@@ -30,6 +30,8 @@ def test_a_users_scenario_file_builds_on_a_shipped_one_and_overrides_apply_last(
     thesis = load_scenario("thesis")
     assert scn["motion"]["mean_step_m"] == 0.002 and scn["motion"]["mean_roll_deg"] == 1.5
     assert scn["tube"] == thesis["tube"] and scn["name"] == "mine" and "base" not in scn
+    f.write_text('base = "thesis"\n')  # no name of its own: its file's, not its base's
+    assert load_scenario(str(f))["name"] == "mine" and "description" not in load_scenario(str(f))
 
 
 @pytest.mark.parametrize("text, message", [('base = "mine"\n', "unknown scenario 'mine'"),
