@@ -71,6 +71,8 @@ def load_scenario(name_or_path: str, overrides: list[str] | None = None) -> dict
         _loading.append(base)
         try:
             parent = load_scenario(base)
+        except ConfigError as exc:
+            raise ConfigError(f"{origin}: its base: {exc}") from None
         finally:
             _loading.pop()
         for k in ("_origin", "name", "description"):  # the scenario's own (its file's name where it gives none)

@@ -34,10 +34,10 @@ def test_a_users_scenario_file_builds_on_a_shipped_one_and_overrides_apply_last(
     assert load_scenario(str(f))["name"] == "mine" and "description" not in load_scenario(str(f))
 
 
-@pytest.mark.parametrize("text, message", [('base = "mine"\n', "unknown scenario 'mine'"),
+@pytest.mark.parametrize("text, message", [('base = "mine"\n', "mine.toml: its base: unknown scenario 'mine'"),
                                            ('base = "x.toml"\n', "base must name another shipped scenario"),
                                            ("base = 3\n", "base must name another shipped scenario"),
-                                           ('base = "nonesuch"\n', "unknown scenario 'nonesuch'")])
+                                           ('base = "nonesuch"\n', "mine.toml: its base: unknown scenario 'nonesuch'")])
 def test_a_bad_base_is_refused_by_name(tmp_path, text, message):
     f = tmp_path / "mine.toml"
     f.write_text(text)
@@ -54,6 +54,7 @@ def test_a_scenario_that_is_its_own_base_is_refused(tmp_path, monkeypatch):
     (tmp_path / "scenarios" / "loop.toml").write_text('base = "loop2"\n')
     (tmp_path / "scenarios" / "loop2.toml").write_text('base = "loop"\n')
     monkeypatch.setattr(sc, "resources", types.SimpleNamespace(files=lambda package: tmp_path))
-    with pytest.raises(ConfigError, match="base must name another shipped scenario, got 'loop2'"):
+    with pytest.raises(ConfigError, match="loop.toml: its base: .*loop2.toml: its base: .*loop.toml: base must "
+                                          "name another shipped scenario, got 'loop2'"):
         load_scenario("loop")
     assert sc._loading == []  # nothing left behind for the next load
