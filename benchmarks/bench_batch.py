@@ -7,8 +7,13 @@ the streaming dead reckoning) and samples the resident memory of its whole proce
 its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole process, start-up included) and
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
-    .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--mode fast] [--keep /tmp/bench_batch] [--rf]
+    .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--scenario exam|realistic_exam] [--mode fast]
+        [--keep /tmp/bench_batch] [--rf]
         [--rss-bias-states] [--jobs 1,2] [--jobs-rf 1,2] [--jobs-only] [--dask 2] [--repeat 3]
+
+``--scenario realistic_exam``: the realistic testbed's look (collapsed, folded, contracting lumen; fluid, debris and
+bubbles; capsule optics; its radio channel) at the same pace, rendered at each length as it is (no longer path):
+what frames like a real exam's cost.
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
 so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85). ``--rss-bias-states``:
@@ -127,6 +132,9 @@ def run_on_dask(cmd: list[str], out_local: Path, n_workers: int, n: int, exam: s
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", default="2000,10000")
+    ap.add_argument("--scenario", choices=("exam", "realistic_exam"), default="exam",
+                    help="the stand-in rendered: exam (ideal frames, default) or realistic_exam (the realistic "
+                         "testbed's look at the same pace: a real exam's frames are more like these)")
     ap.add_argument("--mode", default="fast")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--keep", type=Path, default=Path("/tmp/bench_batch"))
@@ -167,23 +175,27 @@ def main() -> None:
     args.keep.mkdir(parents=True, exist_ok=True)
     res = {}
     for n in lengths:
-        seq = args.keep / f"exam_{args.seed}_{n}"
+        tag = "" if args.scenario == "exam" else f"{args.scenario}_"  # (the exam's caches keep their names)
+        seq = args.keep / (f"exam_{args.seed}_{n}" if not tag else f"{tag}{args.seed}_{n}")
         if not (seq / "meta.json").exists():
             t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", "exam", "--seed", str(args.seed),
-                            "--frames", str(n), "--out", str(seq), "--force", *long_exam_settings(n)], check=True)
+            longer = long_exam_settings(n) if args.scenario == "exam" else []
+            subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", args.scenario, "--seed", str(args.seed),
+                            "--frames", str(n), "--out", str(seq), "--force", *longer], check=True)
             print(f"rendered {n} frames in {time.perf_counter() - t0:.0f} s", flush=True)
         # the frames only (a plain folder + the calibration): no RF, so memory is the streaming path's
-        folder = args.keep / f"frames_{args.seed}_{n}"
+        folder = args.keep / f"{tag}frames_{args.seed}_{n}"
         if not folder.exists():
             folder.symlink_to(seq / "frames")
         meta = json.loads((seq / "meta.json").read_text())
-        calib = args.keep / "calib.json"
+        calib = args.keep / f"{tag}calib.json"
         calib.write_text(json.dumps(meta["camera"]))
-        out = args.keep / f"out_{args.mode}_{n}"
+        out = args.keep / f"{tag}out_{args.mode}_{n}"
         shutil.rmtree(out, ignore_errors=True)
+        # a radius the scenario tells is given; a prior (realistic) is left to batch's own, the one meta.json states
+        told = [] if meta.get("tube_radius_sd_m") else ["--radius-m", str(meta["tube_radius_m"])]
         cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode,
-               "--calib", str(calib), "--fps", "2", "--radius-m", str(meta["tube_radius_m"])]
+               "--calib", str(calib), "--fps", "2", *told]
         # the same exam with its RF (the sequence directory); item 6, the output, is set per run
         cmd_rf = [sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", "OUT", "--mode", args.mode,
                   *(["--rss-bias-states"] if args.rss_bias_states else [])]
@@ -193,7 +205,7 @@ def main() -> None:
                 continue
             scaling, ref = {}, None
             for j in [int(x) for x in counts.split(",")]:
-                out_j = args.keep / f"out_{args.mode}_{n}_{key}{j}"
+                out_j = args.keep / f"{tag}out_{args.mode}_{n}_{key}{j}"
                 shutil.rmtree(out_j, ignore_errors=True)
                 el_j, peak_j, _ = run_measured([*base_cmd[:6], str(out_j), *base_cmd[7:], "--jobs", str(j)])
                 files = tuple((out_j / name / f).read_bytes() for f in ("motion.csv", "trajectory.tum"))
@@ -228,7 +240,7 @@ def main() -> None:
                 res[n]["dask"] = run_on_dask(cmd, out, args.dask, n, folder.name)
             el_rf = None
             if args.rf:
-                out_rf = args.keep / f"out_{args.mode}_{n}_rf"
+                out_rf = args.keep / f"{tag}out_{args.mode}_{n}_rf"
                 shutil.rmtree(out_rf, ignore_errors=True)
                 el_rf, peak_rf, rc_rf = run_measured([*cmd_rf[:6], str(out_rf), *cmd_rf[7:]])
                 traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
