@@ -1,0 +1,146 @@
+"""What a user gets from `bodyslam batch` with its defaults, on rendered exams with exact truth (issues 15 and 16).
+
+For each seed: render SCENARIO (default `realistic_exam`: the realistic gut at a whole exam's pace) with `testbed
+simulate`, run `bodyslam batch SEQ --out D` as a user would (its defaults: fast mode, both cores, the FT/FL
+classifier, RF fused from the sequence's `rf.csv` and `sensors.csv`), then score the exam's outputs against the truth
+the sequence keeps (scoring only; the pipeline never reads it):
+
+- the path travelled at the exam's end (`summary.json`) against `truth.json`'s, and whether the error lies inside
+  the stated 1-sigma;
+- the steps (`testbed score-motion`'s code): share with a full estimate, mean distance error, share fitted beside
+  the wall;
+- FT/FL (`frames.csv` against `labels.csv`): lumen-facing frames called FL, wall-facing frames found;
+- the fused trajectory (`trajectory.tum` against `groundtruth.tum`): mean position error, and the share of frames
+  inside the 68% ellipsoid of their stated per-axis 1-sigma (`uncertainty.csv`; its axes only, their correlations
+  are not written).
+
+Prints a line per seed and the mean over seeds; ``--json`` writes them. Use tuning seeds (500-599) to choose
+anything and reporting seeds (700-799) to report (README, "Seeds").
+
+    .venv/bin/python benchmarks/bench_batch_accuracy.py --seeds 744-751 [--scenario realistic_exam] [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bodyslam.errors import BodySlamError
+from bodyslam.io import read_tum
+from testbed.scenario import load_scenario
+from testbed.score import score_motion
+from testbed.simulate import simulate
+
+CHI2_3DOF_68 = 3.527  # the chi-square quantile of a 3-D 68% ellipsoid
+
+
+def parse_seeds(s: str) -> list[int]:
+    try:
+        if "-" in s:
+            a, b = (int(v) for v in s.split("-"))
+            seeds = list(range(a, b + 1))
+        else:
+            seeds = [int(v) for v in s.split(",")]
+    except ValueError:
+        raise SystemExit(f"--seeds {s!r}: expected A-B or A,B,C (integers)") from None
+    if not seeds:
+        raise SystemExit(f"--seeds {s!r} names no seed (A-B needs A <= B)")
+    return seeds
+
+
+def score_exam(seq: Path, ex: Path) -> dict:
+    """The scores of one exam's outputs ``ex`` (``bodyslam batch``'s folder for it) against the sequence ``seq``."""
+    summary = json.loads((ex / "summary.json").read_text())
+    true_path = json.loads((seq / "truth.json").read_text())["path_travelled_m"]
+    path, sd_path = summary["path_travelled_m"], summary["sd_path_travelled_m"]
+    label = {int(r["frame"]): r["label"] for r in csv.DictReader(open(seq / "labels.csv", newline=""))}
+    called = [(label[int(r["frame"])], r["class"]) for r in csv.DictReader(open(ex / "frames.csv", newline=""))]
+    ft = np.array([c for t, c in called if t == "FT"])
+    fl = np.array([c for t, c in called if t == "FL"])
+    motion = score_motion(seq, ex / "motion.csv")
+    beside = [r.get("beside_wall") == "1" for r in csv.DictReader(open(ex / "motion.csv", newline=""))]
+    _, p_est, _ = read_tum(ex / "trajectory.tum")
+    _, p_true, _ = read_tum(seq / "groundtruth.tum")
+    err = p_est - p_true
+    sd = np.array([[float(r[k]) for k in ("sd_x_m", "sd_y_m", "sd_z_m")]
+                   for r in csv.DictReader(open(ex / "uncertainty.csv", newline=""))])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inside = np.sum((err / sd) ** 2, axis=1) <= CHI2_3DOF_68
+    return {
+        "path_m": path, "sd_path_m": sd_path, "true_path_m": true_path, "path_error_rel": path / true_path - 1.0,
+        "path_inside_1sigma": bool(abs(path - true_path) <= sd_path),
+        "steps_estimated": motion["coverage"], "step_distance_error_cm": motion["all"]["mae_distance_cm"],
+        "steps_beside_wall": float(np.mean(beside)) if beside else 0.0,
+        "lumen_facing_called_fl": float(np.mean(ft == "FL")) if len(ft) else None,
+        "wall_facing_found": float(np.mean(fl == "FL")) if len(fl) else None,
+        "fused_mean_error_cm": 100.0 * float(np.mean(np.linalg.norm(err, axis=1))),
+        "fused_inside_68": float(np.mean(inside)),
+        "trajectory": summary.get("trajectory"),
+    }
+
+
+def fmt(r: dict) -> str:
+    fl = "--" if r["wall_facing_found"] is None else f"{r['wall_facing_found']:.2f}"
+    return (f"path {100 * r['path_error_rel']:+.1f}% ({100 * r['path_m']:.1f} +- {100 * r['sd_path_m']:.1f} cm of "
+            f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}); steps "
+            f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
+            f"{r['steps_beside_wall']:.2f}; lumen-facing called FL {r['lumen_facing_called_fl']:.3f}, wall-facing "
+            f"found {fl}; fused {r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", required=True, help="A-B or A,B,C")
+    ap.add_argument("--scenario", default="realistic_exam")
+    ap.add_argument("--keep", type=Path, default=None, help="keep (and reuse) the renders and batch outputs here")
+    ap.add_argument("--json", type=Path, default=None, help="write the per-seed scores and their means here")
+    args = ap.parse_args()
+    seeds = parse_seeds(args.seeds)
+    try:
+        scn = load_scenario(args.scenario)
+    except BodySlamError as e:
+        raise SystemExit(f"--scenario {args.scenario!r}: {e}") from None
+    root = args.keep or Path(tempfile.mkdtemp(prefix="bench_batch_acc_"))
+    root.mkdir(parents=True, exist_ok=True)
+    rows = {}
+    for seed in seeds:
+        seq = root / f"{args.scenario}_{seed}"
+        if not (seq / "meta.json").exists():
+            simulate(scn, seed, seq, force=True)
+        out = root / f"out_{args.scenario}_{seed}"
+        t0 = time.perf_counter()
+        p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", str(out), "--force"],
+                           capture_output=True, text=True)
+        el = time.perf_counter() - t0
+        ex = out / seq.name
+        if not (ex / "summary.json").exists():
+            raise SystemExit(f"bodyslam batch failed on {seq} (exit {p.returncode}): {p.stderr.strip()[-500:]}")
+        rows[seed] = dict(score_exam(seq, ex), batch_s=el, exit=p.returncode)
+        print(f"{args.scenario} {seed}: {fmt(rows[seed])} ({el:.0f} s)", flush=True)
+    errs = np.array([r["path_error_rel"] for r in rows.values()])
+    keys = ("path_inside_1sigma", "steps_estimated", "step_distance_error_cm", "steps_beside_wall",
+            "lumen_facing_called_fl", "wall_facing_found", "fused_mean_error_cm", "fused_inside_68")
+    mean = {k: float(np.mean([r[k] for r in rows.values() if r[k] is not None])) for k in keys}
+    mean.update(path_error_rel=float(np.mean(errs)), path_error_median=float(np.median(errs)),
+                path_error_abs=float(np.mean(np.abs(errs))), path_error_worst=float(np.max(np.abs(errs))))
+    print(f"mean over {len(rows)} seeds: path {100 * mean['path_error_rel']:+.1f}% (median "
+          f"{100 * mean['path_error_median']:+.1f}%, mean absolute "
+          f"{100 * mean['path_error_abs']:.1f}%, worst {100 * mean['path_error_worst']:.1f}%; ends inside 1-sigma "
+          f"{mean['path_inside_1sigma']:.2f}); steps {mean['steps_estimated']:.3f} estimated, "
+          f"{mean['step_distance_error_cm']:.4f} cm, beside the wall {mean['steps_beside_wall']:.2f}; lumen-facing "
+          f"called FL {mean['lumen_facing_called_fl']:.3f}, wall-facing found {mean['wall_facing_found']:.2f}; fused "
+          f"{mean['fused_mean_error_cm']:.2f} cm, inside 68% {mean['fused_inside_68']:.2f}")
+    if args.json:
+        args.json.write_text(json.dumps({"scenario": args.scenario, "seeds": rows, "mean": mean}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
