@@ -5,8 +5,8 @@ simulate`, run `bodyslam batch SEQ --out D` as a user would (its defaults: fast 
 classifier, RF fused from the sequence's `rf.csv` and `sensors.csv`), then score the exam's outputs against the truth
 the sequence keeps (scoring only; the pipeline never reads it):
 
-- the path travelled at the exam's end (`summary.json`) against `truth.json`'s, and whether the error lies inside
-  the stated 1-sigma;
+- the path travelled at the exam's end (`summary.json`) against `truth.json`'s, whether the error lies inside the
+  stated 1-sigma, and the share of the path in steps without an estimate (`path_without_estimate_share`);
 - the steps (`testbed score-motion`'s code): share with a full estimate, mean distance error, share fitted beside
   the wall;
 - FT/FL (`frames.csv` against `labels.csv`): lumen-facing frames called FL, wall-facing frames found;
@@ -77,6 +77,7 @@ def score_exam(seq: Path, ex: Path) -> dict:
     return {
         "path_m": path, "sd_path_m": sd_path, "true_path_m": true_path, "path_error_rel": path / true_path - 1.0,
         "path_inside_1sigma": bool(abs(path - true_path) <= sd_path),
+        "path_without_estimate_share": summary.get("path_without_estimate_share"),
         "steps_estimated": motion["coverage"], "step_distance_error_cm": motion["all"]["mae_distance_cm"],
         "steps_beside_wall": float(np.mean(beside)) if beside else 0.0,
         "lumen_facing_called_fl": float(np.mean(ft == "FL")) if len(ft) else None,
@@ -90,7 +91,8 @@ def score_exam(seq: Path, ex: Path) -> dict:
 def fmt(r: dict) -> str:
     fl = "--" if r["wall_facing_found"] is None else f"{r['wall_facing_found']:.2f}"
     return (f"path {100 * r['path_error_rel']:+.1f}% ({100 * r['path_m']:.1f} +- {100 * r['sd_path_m']:.1f} cm of "
-            f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}); steps "
+            f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}; "
+            f"{100 * (r['path_without_estimate_share'] or 0.0):.0f}% of it without an estimate); steps "
             f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
             f"{r['steps_beside_wall']:.2f}; lumen-facing called FL {r['lumen_facing_called_fl']:.3f}, wall-facing "
             f"found {fl}; fused {r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}")
@@ -126,7 +128,7 @@ def main() -> None:
         rows[seed] = dict(score_exam(seq, ex), batch_s=el, exit=p.returncode)
         print(f"{args.scenario} {seed}: {fmt(rows[seed])} ({el:.0f} s)", flush=True)
     errs = np.array([r["path_error_rel"] for r in rows.values()])
-    keys = ("path_inside_1sigma", "steps_estimated", "step_distance_error_cm", "steps_beside_wall",
+    keys = ("path_inside_1sigma", "path_without_estimate_share", "steps_estimated", "step_distance_error_cm", "steps_beside_wall",
             "lumen_facing_called_fl", "wall_facing_found", "fused_mean_error_cm", "fused_inside_68")
     mean = {k: float(np.mean([r[k] for r in rows.values() if r[k] is not None])) for k in keys}
     mean.update(path_error_rel=float(np.mean(errs)), path_error_median=float(np.median(errs)),

@@ -600,8 +600,8 @@ def _localize(args) -> int:
 
 
 def _batch(args) -> int:
-    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, read_marks,
-                                     run_batch)
+    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, path_share_text,
+                                     read_marks, run_batch)
     from bodyslam.steps import WITH_ESTIMATE
 
     _check_bias_states(args)
@@ -628,13 +628,15 @@ def _batch(args) -> int:
         c = s["classes"]
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
+        filled = path_share_text(s.get("path_without_estimate_share", 0.0))
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
               f"({steps.get('wall', 0)} facing the wall, "
               + (f"{s['steps_beside_wall']} fitted beside the wall, " if s["steps_beside_wall"] else "")
               + f"{steps.get('bridged', 0)} bridged; "
               f"{steps.get('rotation', 0)} more with only their rotation; {steps.get('lost', 0)} lost to fast "
               f"motion), path "
-              f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm, {s['trajectory']}; "
+              f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm"
+              + (f" ({filled})" if filled else "") + f", {s['trajectory']}; "
               f"{s['problems']} problem(s)")
         print(f"  {_lumen_scale_text(s['lumen_scale'])}")
         for a in s["assumed"]:

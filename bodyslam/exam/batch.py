@@ -1070,7 +1070,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
     from bodyslam.steps import lost_step_floor_m, lost_to_motion
-    from bodyslam.vision.tracking import path_from_lengths, step_length
+    from bodyslam.vision.tracking import path_from_lengths, share_without_estimate, step_length
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
@@ -1131,6 +1131,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                # estimated steps whose 1-sigma was widened: fitted beside their own tube's wall or across the view
                "steps_beside_wall": n_beside, "path_travelled_m": float(path_m[-1]) if n else 0.0,
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
+               # the share of that path in steps without an estimate: the missing-step model's lengths, not the frames'
+               "path_without_estimate_share": share_without_estimate(path_m, acc.length[1:n]) if n else 0.0,
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
                               + (" and refined" if settings.fusion == "rss" else "")
                               + ("; per-sensor RSS bias states)"
@@ -1316,6 +1318,16 @@ STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)"
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
 
+def path_share_text(share: float) -> str:
+    """The path's share in steps without an estimate, as the report and the CLI say it beside the path travelled:
+    ``"85% of it in steps without an estimate: the missing-step model's lengths, not the frames'"``, or ``""``
+    where every step was estimated."""
+    if not share > 0:
+        return ""
+    pct = f"{100 * share:.0f}%" if share >= 0.005 else "<1%"
+    return f"{pct} of it in steps without an estimate: the missing-step model's lengths, not the frames'"
+
+
 def duration_text(seconds: float) -> str:
     """An exam's length as a person reads it: ``"1.5 s"``, ``"4.2 min"``, ``"7 h 38 min"``."""
     if not math.isfinite(seconds) or seconds < 120:
@@ -1379,6 +1391,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                                      "kw": {"body_frame": fused}}, jobs)
     sm = summary
     cls = sm["classes"]
+    filled = path_share_text(sm.get("path_without_estimate_share", 0.0))
     fr = sm.get("frame_range")
     rows = [["source", f"{sm['source']} ({sm['kind']})" + (f"; frames {fr[0]}-{fr[1]} of it" if fr else "")],
             ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"
@@ -1389,7 +1402,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
              + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or "
                 "across the view (a folded or collapsed lumen: motion kept, wider 1-sigma)"
                 if sm["steps_beside_wall"] else "")],
-            ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma)"],
+            ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma"
+             + (f"; {filled}" if filled else "") + ")"],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the prior)"],
             ["lumen scale seen in the frames", lumen_scale_text(sm.get("lumen_scale"))],

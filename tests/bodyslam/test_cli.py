@@ -104,6 +104,9 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
     assert "bias states" in summary["trajectory"], summary["trajectory"]
     # the count of fits beside the wall is printed where there are any (the ideal demo tube has none: no noise)
     assert ("fitted beside the wall" in p.stdout) == (summary["steps_beside_wall"] > 0), p.stdout
+    # and how much of the path lies in steps without an estimate (the demo's two rotation-only steps: some)
+    assert summary["path_without_estimate_share"] > 0
+    assert f"({100 * summary['path_without_estimate_share']:.0f}% of it in steps without an estimate" in p.stdout
     assert "steps estimated" in p.stdout
     assert (tmp_path / "b" / "demo_seed0" / "rss_bias.csv").is_file()
     p = run("batch", str(DEMO / "frames"), "--out", str(tmp_path / "b2"), "--jobs", "1")

@@ -430,6 +430,36 @@ def test_the_summary_counts_the_steps_fitted_beside_the_wall(tmp_path, monkeypat
     assert f"{len(flagged)} of the estimated steps fitted beside the wall" in (d / "report.html").read_text()
 
 
+def test_the_summary_says_how_much_of_the_path_the_missing_steps_hold(tmp_path, monkeypatch):
+    """summary.json's ``path_without_estimate_share`` is the share of the path travelled in steps without an
+    estimate (their lengths are the missing-step model's), as uncertainty.csv's path column holds them, and the
+    report says it beside the path. Every fourth pair loses its matches here, as in turbid fluid."""
+    from dataclasses import replace
+
+    from bodyslam.steps import StepMotion, StepStatus
+    from bodyslam.vision.odometry import VisualOdometry
+
+    plain = VisualOdometry.estimate_pair
+    calls = iter(range(10**6))
+
+    def lossy(self, f1, f2, *a, **kw):
+        s = plain(self, f1, f2, *a, **kw)
+        return StepMotion(n_matches=5, status=StepStatus.LOST) if next(calls) % 4 == 1 else s
+
+    monkeypatch.setattr(VisualOdometry, "estimate_pair", lossy)
+    settings = replace(FAST, motion=replace(FAST.motion, bridge_gaps=0))  # the lost steps stay lost
+    run_batch(open_exams([str(_plain_folder(tmp_path / "exam", 12))]), tmp_path / "out", settings, jobs=1)
+    d = tmp_path / "out" / "exam"
+    summary = json.loads((d / "summary.json").read_text())
+    rows = _rows(d / "motion.csv")
+    missing = np.array([r["status"] not in ("ok", "wall", "bridged") for r in rows])
+    assert missing.sum() >= 2
+    path = np.array([float(r["path_m"]) for r in _rows(d / "uncertainty.csv")])
+    expected = float(np.diff(path)[missing].sum() / path[-1])
+    assert 0 < summary["path_without_estimate_share"] == pytest.approx(expected)
+    assert f"{100 * expected:.0f}% of it in steps without an estimate" in (d / "report.html").read_text()
+
+
 def test_the_lumen_scale_rescales_every_step_with_a_pose(tmp_path, monkeypatch):
     """The exam's lumen scale (bodyslam.vision.lumen_scale), the median of the sampled steps' ring ratios, rescales
     the translation of every step with a pose in motion.csv and leaves its rotation; summary.json says what was

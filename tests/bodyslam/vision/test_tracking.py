@@ -309,3 +309,19 @@ def test_a_step_matching_loses_takes_its_length_from_the_speed_around_it():
     p_fast = path_from_lengths(fast, np.full(11, 1e-8), lost=np.r_[[False] * 10, True], radius_m=radius)[0]
     # 20%: the prior ends at one radius (1.25 cm), and its jumps pull toward shorter steps
     assert p_fast[-1] - p_fast[-2] == pytest.approx(0.01, rel=0.2)
+
+
+def test_the_share_of_the_path_without_an_estimate_counts_the_filled_steps_only():
+    """``share_without_estimate``: the path's share in the steps whose length the missing-step model gave (NaN in
+    the lengths), against the path's end; 0 where every step was estimated and for a path of length 0."""
+    from bodyslam.vision.tracking import path_from_lengths, share_without_estimate
+
+    length = np.array([1e-3, np.nan, 2e-3, np.nan, np.nan, 1e-3])
+    lost = np.array([False, True, False, True, True, False])
+    path, _ = path_from_lengths(length, np.where(np.isfinite(length), 1e-8, 0.0), lost=lost, radius_m=0.0125)
+    filled = path[-1] - np.nansum(length)
+    assert filled > 0
+    assert share_without_estimate(path, length) == pytest.approx(filled / path[-1])
+    full = np.array([1e-3, 2e-3, 1e-3])
+    assert share_without_estimate(np.r_[0.0, np.cumsum(full)], full) == 0.0
+    assert share_without_estimate(np.zeros(4), np.array([np.nan, 0.0, np.nan])) == 0.0
