@@ -736,7 +736,8 @@ def _motion_or_track(args) -> int:
 
     from bodyslam.io import check_writable, write_motion_csv, write_tum
     from bodyslam.vision.odometry import Sequence, sequence_motion, write_mask
-    from bodyslam.vision.tracking import dead_reckon, path_travelled
+    from bodyslam.exam.batch import path_share_text
+    from bodyslam.vision.tracking import dead_reckon, path_travelled, share_without_estimate, step_length
 
     settings = _motion_settings(args)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
@@ -757,10 +758,12 @@ def _motion_or_track(args) -> int:
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
     path, var = path_travelled(steps, seq.radius_sd_rel, seq.radius_m)
+    filled = path_share_text(share_without_estimate(path, [step_length(s)[0] for s in steps]))
     beside = sum(s.beside_wall for s in steps)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}"
           + (f"; {beside} of them fitted beside the wall, wider 1-sigma" if beside else "") + "); "
-          f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator})")
+          f"path travelled {path[-1] * 100:.1f} +- {np.sqrt(var[-1]) * 100:.1f} cm ({args.mode}, {args.estimator}"
+          + (f"; {filled}" if filled else "") + ")")
     print(f"  {_lumen_scale_text(scale[0])}")
     return _print_problems(problems)
 

@@ -54,6 +54,9 @@ def test_motion_and_score_on_the_demo_sequence(tmp_path):
     assert p.returncode == 0, p.stderr
     header = out.read_text().splitlines()[0]
     assert header.startswith("frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,n_matches,status")
+    # the printed path says how much of it lies in steps without an estimate, where there are any
+    statuses = [r.split(",")[8] for r in out.read_text().splitlines()[1:]]
+    assert ("of it in steps without an estimate" in p.stdout) == any(x not in ("ok", "wall") for x in statuses)
     p = run("testbed.cli", "score-motion", str(DEMO), str(out), "--json", str(tmp_path / "score.json"))
     assert p.returncode == 0, p.stderr
     rep = json.loads((tmp_path / "score.json").read_text())
