@@ -600,8 +600,9 @@ def _localize(args) -> int:
 
 
 def _batch(args) -> int:
-    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, path_share_text,
-                                     read_marks, run_batch)
+    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, read_marks,
+                                     run_batch)
+    from bodyslam.vision.tracking import path_share_text
     from bodyslam.steps import WITH_ESTIMATE
 
     _check_bias_states(args)
@@ -736,8 +737,8 @@ def _motion_or_track(args) -> int:
 
     from bodyslam.io import check_writable, write_motion_csv, write_tum
     from bodyslam.vision.odometry import Sequence, sequence_motion, write_mask
-    from bodyslam.exam.batch import path_share_text
-    from bodyslam.vision.tracking import dead_reckon, path_travelled, share_without_estimate, step_length
+    from bodyslam.vision.tracking import (dead_reckon, path_share_text, path_travelled, share_without_estimate,
+                                          step_length)
 
     settings = _motion_settings(args)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)

@@ -1318,16 +1318,6 @@ STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)"
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
 
-def path_share_text(share: float) -> str:
-    """The path's share in steps without an estimate, as the report and the CLI say it beside the path travelled:
-    ``"85% of it in steps without an estimate: the missing-step model's lengths, not the frames'"``, or ``""``
-    where every step was estimated."""
-    if not share > 0:
-        return ""
-    pct = f"{100 * share:.0f}%" if share >= 0.005 else "<1%"
-    return f"{pct} of it in steps without an estimate: the missing-step model's lengths, not the frames'"
-
-
 def duration_text(seconds: float) -> str:
     """An exam's length as a person reads it: ``"1.5 s"``, ``"4.2 min"``, ``"7 h 38 min"``."""
     if not math.isfinite(seconds) or seconds < 120:
@@ -1378,6 +1368,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
     from bodyslam.report import table, view_3d, write_page
     from bodyslam.steps import LOST_STEP_FLOOR_R, MISSING_STEP_REL_SD
     from bodyslam.vision.lumen_scale import lumen_scale_text
+    from bodyslam.vision.tracking import path_share_text
 
     if len(t) < 2:
         return
@@ -1402,8 +1393,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
              + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or "
                 "across the view (a folded or collapsed lumen: motion kept, wider 1-sigma)"
                 if sm["steps_beside_wall"] else "")],
-            ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm (1-sigma"
-             + (f"; {filled}" if filled else "") + ")"],
+            ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm "
+             + (f"(1-sigma; {filled})" if filled else "(1-sigma)")],
             ["trajectory", sm["trajectory"]],
             ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the prior)"],
             ["lumen scale seen in the frames", lumen_scale_text(sm.get("lumen_scale"))],

@@ -24,7 +24,7 @@ from bodyslam.steps import (LOSS_SLOPE, LOST_STEP_FLOOR_R, LOST_STEP_QUANTILE, M
                             STEP_MAX_R, StepMotion, lost_step_floor_m, lost_to_motion)
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "missing_step_lengths", "step_length",
-           "scale_path_variance", "segment_variance", "share_without_estimate", "SCALE_CORR_M"]
+           "scale_path_variance", "segment_variance", "share_without_estimate", "path_share_text", "SCALE_CORR_M"]
 
 # the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
 # the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
@@ -230,6 +230,16 @@ def share_without_estimate(path_m: np.ndarray, length_m: np.ndarray) -> float:
         return 0.0
     missing = ~np.isfinite(np.asarray(length_m, float))
     return float(np.sum(np.diff(path)[missing]) / total)
+
+
+def path_share_text(share: float) -> str:
+    """The path's share in steps without an estimate, as the report and the CLI say it beside the path travelled:
+    ``"85% of it in steps without an estimate: the missing-step model's lengths, not the frames'"``, or ``""``
+    where every step was estimated."""
+    if not share > 0:
+        return ""
+    pct = f"{100 * share:.0f}%" if share >= 0.005 else "<1%"
+    return f"{pct} of it in steps without an estimate: the missing-step model's lengths, not the frames'"
 
 
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
