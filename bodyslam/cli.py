@@ -541,6 +541,7 @@ def _localize(args) -> int:
     from bodyslam.fusion.localize import RfInput, localize, write_localization
     from bodyslam.meta import read_meta
     from bodyslam.vision.odometry import Sequence, sequence_motion
+    from bodyslam.vision.tracking import path_share_text, share_without_estimate, step_length
 
     _check_bias_states(args)
     seq_dir = Path(args.seqdir)
@@ -580,7 +581,9 @@ def _localize(args) -> int:
     write_localization(out, loc)
     res = loc.smoothed
     sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
-    print(f"{out}: {n} poses; path travelled {loc.path_m[-1] * 100:.1f} +- {np.sqrt(loc.path_var_m2[-1]) * 100:.1f} cm; "
+    filled = path_share_text(share_without_estimate(loc.path_m, [step_length(s)[0] for s in steps]))
+    print(f"{out}: {n} poses; path travelled {loc.path_m[-1] * 100:.1f} +- {np.sqrt(loc.path_var_m2[-1]) * 100:.1f} cm"
+          + (f" ({filled})" if filled else "") + "; "
           f"position 1-sigma median {np.median(sd) * 100:.2f} cm (max {sd.max() * 100:.2f}; RSS errors correlated "
           f"x{loc.channel.kappa:.1f} over the exam, x{np.mean(loc.kappa_smoothed):.1f} over the smoother's window, "
           "bodyslam.fusion.channel); "

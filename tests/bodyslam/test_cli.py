@@ -87,6 +87,8 @@ def test_uncertainty_csv_has_one_schema(tmp_path):
 
     p = run("localize", str(DEMO), "--out", str(tmp_path / "loc"), "--mode", "fast", "--jobs", "1")
     assert p.returncode == 0, p.stderr
+    # the demo's two rotation-only steps: part of the printed path is the missing-step model's
+    assert "% of it in steps without an estimate" in p.stdout, p.stdout
     # the opt-in per-sensor RSS bias states: another trajectory from the same steps, the same files
     p = run("localize", str(DEMO), "--out", str(tmp_path / "loc_b"), "--motion", str(tmp_path / "loc" / "motion.csv"),
             "--rss-bias-states")
