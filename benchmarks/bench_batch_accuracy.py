@@ -35,25 +35,12 @@ import numpy as np
 
 from bodyslam.errors import BodySlamError
 from bodyslam.io import read_tum
+from testbed.cli import parse_seeds
 from testbed.scenario import load_scenario
 from testbed.score import score_motion
 from testbed.simulate import simulate
 
 CHI2_3DOF_68 = 3.527  # the chi-square quantile of a 3-D 68% ellipsoid
-
-
-def parse_seeds(s: str) -> list[int]:
-    try:
-        if "-" in s:
-            a, b = (int(v) for v in s.split("-"))
-            seeds = list(range(a, b + 1))
-        else:
-            seeds = [int(v) for v in s.split(",")]
-    except ValueError:
-        raise SystemExit(f"--seeds {s!r}: expected A-B or A,B,C (integers)") from None
-    if not seeds:
-        raise SystemExit(f"--seeds {s!r} names no seed (A-B needs A <= B)")
-    return seeds
 
 
 def score_exam(seq: Path, ex: Path) -> dict:
@@ -90,26 +77,27 @@ def score_exam(seq: Path, ex: Path) -> dict:
 
 def fmt(r: dict) -> str:
     fl = "--" if r["wall_facing_found"] is None else f"{r['wall_facing_found']:.2f}"
+    ft = "--" if r["lumen_facing_called_fl"] is None else f"{r['lumen_facing_called_fl']:.3f}"
     return (f"path {100 * r['path_error_rel']:+.1f}% ({100 * r['path_m']:.1f} +- {100 * r['sd_path_m']:.1f} cm of "
             f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}; "
             f"{100 * (r['path_without_estimate_share'] or 0.0):.0f}% of it without an estimate); steps "
             f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
-            f"{r['steps_beside_wall']:.2f}; lumen-facing called FL {r['lumen_facing_called_fl']:.3f}, wall-facing "
-            f"found {fl}; fused {r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}")
+            f"{r['steps_beside_wall']:.2f}; lumen-facing called FL {ft}, wall-facing found {fl}; fused "
+            f"{r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", required=True, help="A-B or A,B,C")
+    ap.add_argument("--seeds", required=True, help="A-B, a,b,c or N (seeds 0..N-1), as testbed evaluate")
     ap.add_argument("--scenario", default="realistic_exam")
     ap.add_argument("--keep", type=Path, default=None, help="keep (and reuse) the renders and batch outputs here")
     ap.add_argument("--json", type=Path, default=None, help="write the per-seed scores and their means here")
     args = ap.parse_args()
-    seeds = parse_seeds(args.seeds)
     try:
+        seeds = parse_seeds(args.seeds)
         scn = load_scenario(args.scenario)
     except BodySlamError as e:
-        raise SystemExit(f"--scenario {args.scenario!r}: {e}") from None
+        raise SystemExit(str(e)) from None
     root = args.keep or Path(tempfile.mkdtemp(prefix="bench_batch_acc_"))
     root.mkdir(parents=True, exist_ok=True)
     rows = {}

@@ -529,6 +529,13 @@ def _check_bias_states(args) -> None:
                           f"--fusion {args.fusion}")
 
 
+def _path_filled_text(path_m, steps) -> str:
+    """The printed path's share in steps without an estimate (bodyslam.vision.tracking.path_share_text), or ""."""
+    from bodyslam.vision.tracking import path_share_text, share_without_estimate, step_length
+
+    return path_share_text(share_without_estimate(path_m, [step_length(s)[0] for s in steps]))
+
+
 def _localize(args) -> int:
     from pathlib import Path
 
@@ -541,7 +548,6 @@ def _localize(args) -> int:
     from bodyslam.fusion.localize import RfInput, localize, write_localization
     from bodyslam.meta import read_meta
     from bodyslam.vision.odometry import Sequence, sequence_motion
-    from bodyslam.vision.tracking import path_share_text, share_without_estimate, step_length
 
     _check_bias_states(args)
     seq_dir = Path(args.seqdir)
@@ -581,7 +587,7 @@ def _localize(args) -> int:
     write_localization(out, loc)
     res = loc.smoothed
     sd = np.sqrt(np.trace(res.cov[:, :3, :3], axis1=1, axis2=2))
-    filled = path_share_text(share_without_estimate(loc.path_m, [step_length(s)[0] for s in steps]))
+    filled = _path_filled_text(loc.path_m, steps)
     print(f"{out}: {n} poses; path travelled {loc.path_m[-1] * 100:.1f} +- {np.sqrt(loc.path_var_m2[-1]) * 100:.1f} cm"
           + (f" ({filled})" if filled else "") + "; "
           f"position 1-sigma median {np.median(sd) * 100:.2f} cm (max {sd.max() * 100:.2f}; RSS errors correlated "
@@ -740,8 +746,7 @@ def _motion_or_track(args) -> int:
 
     from bodyslam.io import check_writable, write_motion_csv, write_tum
     from bodyslam.vision.odometry import Sequence, sequence_motion, write_mask
-    from bodyslam.vision.tracking import (dead_reckon, path_share_text, path_travelled, share_without_estimate,
-                                          step_length)
+    from bodyslam.vision.tracking import dead_reckon, path_travelled
 
     settings = _motion_settings(args)
     seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
@@ -762,7 +767,7 @@ def _motion_or_track(args) -> int:
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
     path, var = path_travelled(steps, seq.radius_sd_rel, seq.radius_m)
-    filled = path_share_text(share_without_estimate(path, [step_length(s)[0] for s in steps]))
+    filled = _path_filled_text(path, steps)
     beside = sum(s.beside_wall for s in steps)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}"
           + (f"; {beside} of them fitted beside the wall, wider 1-sigma" if beside else "") + "); "
