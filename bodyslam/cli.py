@@ -99,7 +99,8 @@ def _parser() -> argparse.ArgumentParser:
                             "dissertation does; by default the tube fit estimates it (status wall, 1-sigma inflated)")
         q.add_argument("--no-rotation-steps", action="store_true",
                        help="do not measure the rotation alone of a step the tube fit fails on (fast steps; by "
-                            "default guided matching measures it: status rotation, distance unknown)")
+                            "default guided matching measures it: status rotation, or rotation_slow where short "
+                            "steps match best; distance unknown)")
         q.add_argument("--no-rescue", action="store_true",
                        help="fast mode: do not try SIFT on the full frame where tracking and the smaller detections "
                             "fail (faster on fast motion, fewer steps estimated)")
@@ -643,7 +644,9 @@ def _batch(args) -> int:
               f"({steps.get('wall', 0)} facing the wall, "
               + (f"{s['steps_beside_wall']} fitted beside the wall, " if s["steps_beside_wall"] else "")
               + f"{steps.get('bridged', 0)} bridged; "
-              f"{steps.get('rotation', 0)} more with only their rotation; {steps.get('lost', 0)} lost to fast "
+              f"{steps.get('rotation', 0) + steps.get('rotation_slow', 0)} more with only their rotation"
+              + (f" ({steps['rotation_slow']} of them slow)" if steps.get("rotation_slow") else "")
+              + f"; {steps.get('lost', 0)} lost to fast "
               f"motion), path "
               f"{s['path_travelled_m'] * 100:.1f} +- {s['sd_path_travelled_m'] * 100:.1f} cm"
               + (f" ({filled})" if filled else "") + f", {s['trajectory']}; "

@@ -16,6 +16,10 @@ Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which 
 - ``rotation``: only the rotation was measured (a fast step whose ordinary matches were too few: guided matching,
   :mod:`bodyslam.vision.guided`); roll, pitch, yaw, tilt and ``R_c1_c2`` are set, the distance and translation
   are NaN;
+- ``rotation_slow``: as ``rotation``, but guided matching's short-step hypotheses (the capsule nearly in place)
+  verified at least :data:`bodyslam.vision.guided.SLOW_MATCH_RATIO` times the matches of its forward ones: the
+  pair overlaps as a slow step does, so the step is not counted lost to motion (a capsule turning in turbid fluid
+  or against a featureless wall: session 48);
 - ``lost``: no estimate, and lost to motion: ordinary and guided matching both failed between two frames rich in
   features (:data:`bodyslam.vision.odometry.LOST_MIN_KEYPOINTS_FRAC`), with no more verified matches than
   unrelated frames give (:data:`~bodyslam.vision.odometry.LOST_MAX_MATCHES`), so the view changed too much to
@@ -28,7 +32,7 @@ Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which 
 - ``missing``: no row for the step in a ``motion.csv`` that was read back.
 
 Steps that are neither ``ok``, ``wall`` nor ``bridged`` carry NaN distances, never an invented number; only
-``rotation`` steps among them carry a rotation.
+``rotation`` and ``rotation_slow`` steps among them carry a rotation.
 """
 
 from __future__ import annotations
@@ -86,6 +90,7 @@ class StepStatus(StrEnum):
     WALL = "wall"
     BRIDGED = "bridged"
     ROTATION = "rotation"
+    ROTATION_SLOW = "rotation_slow"
     LOST = "lost"
     TOO_FEW_MATCHES = "too_few_matches"
     UNCERTAIN = "uncertain"
@@ -99,7 +104,7 @@ class StepStatus(StrEnum):
 # that carries at least a rotation
 MEASURED = (StepStatus.OK, StepStatus.WALL)
 WITH_ESTIMATE = (*MEASURED, StepStatus.BRIDGED)
-WITH_ROTATION = (*WITH_ESTIMATE, StepStatus.ROTATION)
+WITH_ROTATION = (*WITH_ESTIMATE, StepStatus.ROTATION, StepStatus.ROTATION_SLOW)
 # statuses of a step lost to motion (lost_to_motion)
 LOST_TO_MOTION = (StepStatus.ROTATION, StepStatus.LOST)
 
@@ -160,7 +165,7 @@ class StepMotion:
 
     @property
     def has_rotation(self) -> bool:
-        """A rotation the filters can use: every step with an estimate, and ``rotation`` steps."""
+        """A rotation the filters can use: every step with an estimate, and ``rotation`` / ``rotation_slow`` steps."""
         return (self.status in WITH_ROTATION and self.R_c1_c2 is not None
                 and bool(np.isfinite(self.R_c1_c2).all()))
 
@@ -199,10 +204,12 @@ def motion_from_transform(R_c1_c2, t_c1_c2_m: np.ndarray, n_matches: int = 0, si
                       sigma_rotation_rad)
 
 
-def rotation_step(R_c1_c2, n_matches: int, sigma_rotation_rad: float) -> StepMotion:
-    """A step with only its rotation measured (status ``rotation``, ``R_c1_c2``: scipy Rotation): roll, pitch, yaw
-    and tilt as :func:`motion_from_transform` gives them, distance and translation NaN / None."""
-    s = motion_from_transform(R_c1_c2, np.zeros(3), n_matches, NAN, sigma_rotation_rad, StepStatus.ROTATION)
+def rotation_step(R_c1_c2, n_matches: int, sigma_rotation_rad: float, slow: bool = False) -> StepMotion:
+    """A step with only its rotation measured (status ``rotation``, or ``rotation_slow`` where ``slow``: the pair
+    overlaps as a slow step does; ``R_c1_c2``: scipy Rotation): roll, pitch, yaw and tilt as
+    :func:`motion_from_transform` gives them, distance and translation NaN / None."""
+    s = motion_from_transform(R_c1_c2, np.zeros(3), n_matches, NAN, sigma_rotation_rad,
+                              StepStatus.ROTATION_SLOW if slow else StepStatus.ROTATION)
     return replace(s, distance_m=NAN, t_c1_c2_m=None)
 
 
@@ -211,7 +218,8 @@ def lost_to_motion(s: StepMotion) -> bool:
     the wall in both frames (status ``rotation``, :mod:`bodyslam.vision.guided`), or although both frames are rich
     in features (status ``lost``): a step longer than the matcher measures (on the realistic testbed's tuning seeds:
     median 0.68-0.71 cm against 0.20 for the measured ones). A step without an estimate between a dark, blurred or
-    featureless frame and the next may be a capsule at rest: not counted."""
+    featureless frame and the next may be a capsule at rest: not counted; nor is a ``rotation_slow`` step, whose
+    pair short-step hypotheses matched best."""
     return s.status in LOST_TO_MOTION
 
 

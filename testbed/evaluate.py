@@ -290,7 +290,7 @@ def _rotation_html(rot: dict) -> str:
     """The report page's line on the steps with only their rotation measured ("" when there are none)."""
     if not rot.get("n_steps_scored"):
         return ""
-    return (f"<p>Steps with only their rotation measured (status rotation: fast steps, distance unknown): "
+    return (f"<p>Steps with only their rotation measured (status rotation or rotation_slow, distance unknown): "
             f"{rot['n_steps_scored']}, roll error {rot['mae_roll_deg']:.2f} deg mean "
             f"({rot['rms_roll_error_deg']:.2f} RMS; their true roll {rot['mean_true_roll_deg']:.2f} deg), "
             f"tilt error {rot['mae_tilt_deg']:.2f} deg (true {rot['mean_true_tilt_deg']:.2f})"

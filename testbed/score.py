@@ -14,7 +14,8 @@ them best to the truth (``distance_scale``: the factor of least mean absolute er
 by ``|e|``, so never above the raw error), as monocular odometry benchmarks align scale before scoring. It is an
 oracle no pipeline has: it separates the scale a monocular step cannot see (here the lumen radius the tube fit is
 told) from everything else. ``rotation_only`` scores the roll and tilt of the steps that measured only their rotation
-(status ``rotation``), which are not in the coverage. Steps without an estimate are counted, never scored as zero.
+(status ``rotation`` or ``rotation_slow``), which are not in the coverage. Steps without an estimate are counted,
+never scored as zero.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ from bodyslam.io import read_motion_csv
 from bodyslam.steps import MEASURED, StepStatus
 
 __all__ = ["score_motion", "score_path", "format_table", "CHI2_3_683", "CHI_3_683"]
+
+# the statuses of steps that measured only their rotation
+ROTATION_ONLY = [str(StepStatus.ROTATION), str(StepStatus.ROTATION_SLOW)]
 
 
 def _wrap(a):
@@ -87,7 +91,8 @@ def _l1_scale(e: np.ndarray, t: np.ndarray) -> float:
 
 
 def _rotation_block(tr: dict, es: dict, idx: np.ndarray) -> dict:
-    """Roll and tilt errors of steps that measured only their rotation (status ``rotation``; no distance)."""
+    """Roll and tilt errors of steps that measured only their rotation (status ``rotation`` or ``rotation_slow``; no
+    distance)."""
     if len(idx) == 0:
         return {"n_steps_scored": 0}
     e_r, e_t, e_v = _angle_errors(tr, es, idx)
@@ -188,7 +193,7 @@ def score_motion(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike) -> d
         "ft_only": _block(tr, es, np.nonzero(has & ft)[0]),
         "wall_only": _block(tr, es, np.nonzero(has & (status == StepStatus.WALL))[0]),
         "beside_wall_only": _block(tr, es, np.nonzero(has & beside)[0]),
-        "rotation_only": _rotation_block(tr, es, np.nonzero((status == StepStatus.ROTATION)
+        "rotation_only": _rotation_block(tr, es, np.nonzero(np.isin(status, ROTATION_ONLY)
                                                             & np.isfinite(es["roll_rad"]))[0]),
     }
 

@@ -1314,6 +1314,8 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
 STEP_WORDS = {"wall": " (fitted although a frame faces the wall; wider 1-sigma)",
               "bridged": " (shares of gaps measured end to end)",
               "rotation": " (fast steps: only the rotation measured, the distance unknown)",
+              "rotation_slow": " (only the rotation measured; the frames overlap as a slow step's do, so not counted "
+                               "lost to motion)",
               "lost": " (fast steps: no match between frames rich in features; counted long in the path)",
               "no_lumen": " (a frame too dark or saturated, or facing the wall, and not fitted)"}
 
@@ -1415,9 +1417,9 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                   " (x toward the patient's left, y anterior, z cranial). The 1-sigma is the filter's, scaled by the "
                   "RF readings' measured correlation")
                + "; the path travelled is the sum of the visual steps, a step without a distance given a length "
-                 "from the capsule's speed around it, one lost to motion (status rotation or lost) as one the "
-                 f"matcher could not reach (half of the steps are lost at {LOST_STEP_FLOOR_R:g} lumen radii); its "
-                 "1-sigma includes the lumen radius's and each filled step's (at least "
-                 f"{MISSING_STEP_REL_SD:.0%} of it).", body,
+                 "from the capsule's speed around it, one lost to motion (status rotation or lost; not rotation_slow) "
+                 "as one the matcher could not reach (half of the steps are lost at "
+                 f"{LOST_STEP_FLOOR_R:g} lumen radii); its 1-sigma includes the lumen radius's and each filled step's "
+                 f"(at least {MISSING_STEP_REL_SD:.0%} of it).", body,
                ["trajectory.png", "path.png"])
     drawn()  # the plot is in place before the run says it is done

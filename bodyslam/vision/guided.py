@@ -1,4 +1,4 @@
-"""The rotation of a fast step, by matching under motion hypotheses (status ``rotation``).
+"""The rotation of a fast step, by matching under motion hypotheses (status ``rotation``, or ``rotation_slow``).
 
 A capsule that jumps ~1 cm in a frame interval (the realistic testbed's fast phases: most of a lumen radius)
 leaves frame 1's near wall out of frame 2: Lowe's ratio test over the whole
@@ -20,10 +20,19 @@ hypotheses (mean error 0.48 cm of 0.83) and is not reported. The roll and tilt h
 :data:`MIN_GUIDED_MATCHES` matches after the second pass (80 in ``sift`` mode: 140 of the 220 steps) the roll
 errs 2.4 deg at the 68th percentile (3.8 RMS) and the tilt 2.5, where those steps' true roll is ~11 deg RMS.
 The step is written with its rotation, ``distance_m`` NaN, and a 1-sigma that falls with the matches that
-verified (:func:`rotation_sigma_rad`); the
-filters apply the rotation and treat the translation as unknown (the last estimated step again, stretched to the
-estimated steps so far at their 90th percentile: a step matching loses is a long one; with that length as
-1-sigma; :func:`bodyslam.fusion.ekf.step_noise`).
+verified (:func:`rotation_sigma_rad`).
+
+A rotation step is not always a fast one. A capsule that turns nearly in place in turbid fluid, or against a
+featureless stretch of wall, loses its ordinary matches too (session 47: a realistic exam whose 82 such steps were
+filled as a fast phase, its path four times the truth). So the same search is run under short steps
+(:data:`SHORT_STEPS_R`): where they verify at least :data:`SLOW_MATCH_RATIO` times the forward hypotheses'
+matches, the pair overlaps as a slow step's does and the step is ``rotation_slow``, which the path's missing-step
+model and the filters do not count as lost to motion (:func:`bodyslam.steps.lost_to_motion`). Its rotation is the
+forward search's, as for any rotation step.
+
+The filters apply the rotation of either kind and treat the translation as unknown: the last estimated step again,
+for a ``rotation`` step stretched to the estimated steps so far at their 90th percentile (a step matching loses
+is a long one), with that length as 1-sigma (:func:`bodyslam.fusion.ekf.step_noise`).
 """
 
 from __future__ import annotations
@@ -39,7 +48,8 @@ from bodyslam.steps import StepMotion, rotation_step
 from bodyslam.vision.matching import Matcher, Matches, squared_distances
 from bodyslam.vision.motion import fit_tube, tube_predict
 
-__all__ = ["estimate_rotation", "hypotheses", "guided_matches", "descriptor_distances", "MIN_GUIDED_MATCHES",
+__all__ = ["estimate_rotation", "hypotheses", "short_hypotheses", "guided_matches", "descriptor_distances",
+           "MIN_GUIDED_MATCHES", "SHORT_STEPS_R", "SLOW_MATCH_RATIO",
            "rotation_sigma_rad"]
 
 # fewer verified guided matches than this after the second pass: no estimate, per matcher mode (the count a wrong
@@ -63,18 +73,35 @@ SIGMA_AT_MIN_RAD, SIGMA_POWER, SIGMA_FLOOR_RAD = math.radians(6.5), 2.7, math.ra
 # ~12 px on the testbed's 420 px frames
 WINDOW_RAD, REFINE_WINDOW_RAD = 0.19, 0.08
 RATIO = 0.9  # Lowe's ratio against the next neighbour inside the window (the window already excludes most)
+# A rotation step is ``rotation_slow`` (not lost to motion) where the short-step hypotheses (SHORT_STEPS_R lumen radii,
+# the same rolls) verify at least SLOW_MATCH_RATIO times the matches the forward ones verify (each the best of its
+# set, on the first pass's window). Chosen on realistic tuning renders (session 48, fast mode, ``bodyslam batch``'s
+# defaults): at a real exam's pace (587-590, 45 rotation steps, true 0.09 lumen radii at the median) the short
+# hypotheses verify 1.09 times the forward ones' matches at the median and >= 1.1 times on 49% of the steps; at the
+# dissertation's pace (595-598, 117 rotation steps, true 0.65 radii) 0.89 times, >= 1.1 on 4%. Ratio 1.0 / 1.1 / 1.2:
+# the path's mean absolute error at the runs' ends, slow 43.9% (as shipped before) -> 18.3 / 23.9 / 32.3%, fast
+# 16.6% -> 20.9 / 17.1 / 16.7%
+SHORT_STEPS_R = (0.0, 0.08, 0.16)
+SLOW_MATCH_RATIO = 1.1
 
 
-def hypotheses(radius_m: float) -> list[np.ndarray]:
+def hypotheses(radius_m: float, steps_r=(0.32, 0.64, 0.96, 1.28)) -> list[np.ndarray]:
     """Tube-model 10-vectors (:func:`bodyslam.vision.motion.fit_tube`) of the motion hypotheses: forward steps of
-    0.3-1.3 lumen radii (4-16 mm at the 12.5 mm prior) by rolls of -16, -8, 0, 8, 16 deg, axis on the optical axis."""
+    ``steps_r`` lumen radii (0.3-1.3: 4-16 mm at the 12.5 mm prior) by rolls of -16, -8, 0, 8, 16 deg, axis on the
+    optical axis."""
     out = []
-    for d in np.array([0.32, 0.64, 0.96, 1.28]) * radius_m:
+    for d in np.asarray(steps_r, float) * radius_m:
         for roll in np.radians([-16.0, -8.0, 0.0, 8.0, 16.0]):
             x = np.zeros(10)
             x[2], x[5] = roll, d
             out.append(x)
     return out
+
+
+def short_hypotheses(radius_m: float) -> list[np.ndarray]:
+    """:func:`hypotheses` of a capsule nearly in place: steps of 0, 0.08 and 0.16 lumen radii (0-2 mm at the prior),
+    the same rolls (:data:`SLOW_MATCH_RATIO`)."""
+    return hypotheses(radius_m, SHORT_STEPS_R)
 
 
 def descriptor_distances(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
@@ -159,19 +186,14 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
     def matches(x, window_rad):
         return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad, level=level)
 
-    starts = ([] if start is None else [np.asarray(start, float)]) + hypotheses(radius_m)
-    # The first hypothesis (in the order above) with the most verified matches. Verification (a RANSAC per
-    # hypothesis) is the cost, and it can only remove matches: hypotheses are verified in decreasing order of
-    # their candidates, and only while one could still win.
-    cands = [guided_candidates(pts1, pts2, tree, dist12, x, camera, radius_m, WINDOW_RAD) for x in starts]
-    best, best_h = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0), len(starts)
-    for h in sorted(range(len(starts)), key=lambda h: (-len(cands[h][0]), h)):
-        n = len(cands[h][0])
-        if n == 0 or n < len(best) or (n == len(best) and h > best_h):
-            break
-        m = matcher.verify(*cands[h], level=level)
-        if len(m) > len(best) or (len(m) == len(best) and h < best_h):
-            best, best_h = m, h
+    forward = hypotheses(radius_m)
+    starts = ([] if start is None else [np.asarray(start, float)]) + forward
+
+    def candidates(xs):
+        return [guided_candidates(pts1, pts2, tree, dist12, x, camera, radius_m, WINDOW_RAD) for x in xs]
+
+    cands = candidates(starts)
+    best, best_h = _most_verified(matcher, cands, level)
     _, x = fit_tube(best, camera, radius_m, min_matches=8, max_sigma_distance_m=math.inf, start="rotation")
     if x is None:
         return None
@@ -182,7 +204,27 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
                     start="rotation")
     if x is None:
         return None
-    return rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), rotation_sigma_rad(len(refined), min_matches))
+    # does the pair overlap as a slow step does? The short-step hypotheses against the forward ones, on the
+    # first pass's window (the rotation above is the forward search's either way)
+    n_forward = len(best) if start is None or best_h > 0 else len(_most_verified(matcher, cands[1:], level)[0])
+    n_short = len(_most_verified(matcher, candidates(short_hypotheses(radius_m)), level)[0])
+    return rotation_step(Rotation.from_matrix(s.R_c1_c2), len(refined), rotation_sigma_rad(len(refined), min_matches),
+                         slow=n_short >= SLOW_MATCH_RATIO * n_forward)
+
+
+def _most_verified(matcher: Matcher, cands: list, level: str) -> tuple[Matches, int]:
+    """The first candidate set (in list order) with the most verified matches, and its index (``len(cands)`` and
+    no matches when none verifies). Verification (a RANSAC per set) is the cost, and it can only remove matches:
+    sets are verified in decreasing order of their candidates, and only while one could still win."""
+    best, best_h = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0), len(cands)
+    for h in sorted(range(len(cands)), key=lambda h: (-len(cands[h][0]), h)):
+        n = len(cands[h][0])
+        if n == 0 or n < len(best) or (n == len(best) and h > best_h):
+            break
+        m = matcher.verify(*cands[h], level=level)
+        if len(m) > len(best) or (len(m) == len(best) and h < best_h):
+            best, best_h = m, h
+    return best, best_h
 
 
 def rotation_sigma_rad(n_matches: int, min_matches: int) -> float:

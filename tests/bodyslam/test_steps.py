@@ -19,7 +19,7 @@ def test_which_statuses_carry_an_estimate():
         t = s.with_status(status)
         assert t.has_estimate == (status in ("ok", "wall", "bridged")), status
         assert t.ok == (status in ("ok", "wall")), status
-        assert t.has_rotation == (status in ("ok", "wall", "bridged", "rotation")), status
+        assert t.has_rotation == (status in ("ok", "wall", "bridged", "rotation", "rotation_slow")), status
     f = StepMotion.failed("no_lumen", n_matches=7)
     assert not f.has_estimate and math.isnan(f.distance_m) and f.n_matches == 7
     assert f.sigma_t_m > 0 and f.sigma_r_rad > 0  # the defaults for a file that states none
@@ -39,19 +39,25 @@ def test_a_transform_gives_the_dissertations_quantities():
     assert s.tilt_rad == pytest.approx(0.1) and abs(s.roll_rad) < 1e-12
 
 
-def test_a_rotation_step_carries_its_rotation_and_no_translation(tmp_path):
-    """A fast step whose rotation alone was measured (status rotation): the filters get its rotation, not a
-    pose; motion.csv keeps the rotation and NaN for the distance and translation, and reads back the same."""
+@pytest.mark.parametrize("status, lost", [("rotation", True), ("rotation_slow", False)])
+def test_a_rotation_step_carries_its_rotation_and_no_translation(tmp_path, status, lost):
+    """A step whose rotation alone was measured (status rotation: a fast one, lost to motion; rotation_slow: its
+    frames overlap as a slow step's do, not lost to motion): the filters get its rotation, not a pose; motion.csv
+    keeps the rotation and NaN for the distance and translation, and reads back the same."""
     from bodyslam.io import motion_row, read_motion_steps, write_motion_csv
+    from bodyslam.steps import lost_to_motion, rotation_step
 
     R = Rotation.from_rotvec([0.02, -0.01, 0.15])
-    s = StepMotion(math.nan, 0.15, 0.02, -0.01, 0.022, 120, "rotation", R.as_matrix(), None, math.nan, 0.07)
+    s = StepMotion(math.nan, 0.15, 0.02, -0.01, 0.022, 120, status, R.as_matrix(), None, math.nan, 0.07)
+    assert lost_to_motion(s) == lost
+    assert rotation_step(R, 120, 0.07, slow=not lost).status == status
     assert s.has_rotation and not s.has_estimate and not s.ok
     row = motion_row(3, 1.5, s)
     assert math.isnan(row[2]) and all(math.isnan(v) for v in row[9:12])  # distance, tx, ty, tz
     write_motion_csv(tmp_path / "m.csv", [3], [1.5], [s])
     (back,) = read_motion_steps(tmp_path / "m.csv", [3])
-    assert back.status == "rotation" and back.has_rotation and back.t_c1_c2_m is None
+    assert back.status == status and back.has_rotation and back.t_c1_c2_m is None
+    assert lost_to_motion(back) == lost
     assert np.allclose(back.R_c1_c2, R.as_matrix(), atol=1e-9) and back.sigma_rotation_rad == pytest.approx(0.07)
     assert math.isnan(back.distance_m)
 

@@ -38,10 +38,10 @@ def test_steps_measured_from_their_pair_are_scored_and_bridged_shares_only_count
 
 
 def test_rotation_steps_are_scored_for_their_rotation_only(tmp_path):
-    """Steps that measured only their rotation (status rotation, distance NaN) are not in the coverage or the
-    distance error; their roll and tilt are scored in their own block."""
+    """Steps that measured only their rotation (status rotation or rotation_slow, distance NaN) are not in the
+    coverage or the distance error; their roll and tilt are scored in their own block."""
     rows = [f"{k},{k * 0.5},0.011,0,0,0,0,50,ok,0.002" for k in range(1, 7)]
-    rows += ["7,3.5,nan,0.02,0,0,0.01,120,rotation,nan", "8,4.0,nan,-0.04,0,0,0.03,90,rotation,nan"]
+    rows += ["7,3.5,nan,0.02,0,0,0.01,120,rotation,nan", "8,4.0,nan,-0.04,0,0,0.03,90,rotation_slow,nan"]
     _write(tmp_path, rows)
     rep = score_motion(tmp_path, tmp_path / "motion.csv")
     assert rep["coverage"] == pytest.approx(6 / 8) and rep["all"]["n_steps_scored"] == 6
