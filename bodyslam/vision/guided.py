@@ -23,12 +23,12 @@ The step is written with its rotation, ``distance_m`` NaN, and a 1-sigma that fa
 verified (:func:`rotation_sigma_rad`).
 
 A rotation step is not always a fast one. A capsule that turns nearly in place in turbid fluid, or against a
-featureless stretch of wall, loses its ordinary matches too (session 47: a realistic exam whose 82 such steps were
-filled as a fast phase, its path four times the truth). So the same search is run under short steps
-(:data:`SHORT_STEPS_R`): where they verify at least :data:`SLOW_MATCH_RATIO` times the forward hypotheses'
-matches, the pair overlaps as a slow step's does and the step is ``rotation_slow``, which the path's missing-step
-model and the filters do not count as lost to motion (:func:`bodyslam.steps.lost_to_motion`). Its rotation is the
-forward search's, as for any rotation step.
+featureless stretch of wall, loses its ordinary matches too (session 47: a realistic exam whose 82 steps lost to
+matching, 54 of them rotation steps, were filled as a fast phase, its path four times the truth). So the same search
+is run under short steps (:data:`SHORT_STEPS_R`): where they verify at least :data:`SLOW_MATCH_RATIO` times the
+forward hypotheses' matches, the pair overlaps as a slow step's does and the step is ``rotation_slow``, which the
+path's missing-step model and the filters do not count as lost to motion (:func:`bodyslam.steps.lost_to_motion`). Its
+rotation is the forward search's, as for any rotation step.
 
 The filters apply the rotation of either kind and treat the translation as unknown: the last estimated step again,
 for a ``rotation`` step stretched to the estimated steps so far at their 90th percentile (a step matching loses
@@ -79,8 +79,9 @@ RATIO = 0.9  # Lowe's ratio against the next neighbour inside the window (the wi
 # defaults): at a real exam's pace (587-590, 45 rotation steps, true 0.09 lumen radii at the median) the short
 # hypotheses verify 1.09 times the forward ones' matches at the median and >= 1.1 times on 49% of the steps; at the
 # dissertation's pace (595-598, 117 rotation steps, true 0.65 radii) 0.89 times, >= 1.1 on 4%. Ratio 1.0 / 1.1 / 1.2:
-# the path's mean absolute error at the runs' ends, slow 43.9% (as shipped before) -> 18.3 / 23.9 / 32.3%, fast
-# 16.6% -> 20.9 / 17.1 / 16.7%
+# the path's mean absolute error at the runs' ends, recomputed from their motion.csv, slow 43.9% (as shipped
+# before) -> 18.3 / 23.9 / 32.3%, fast 16.6% -> 20.9 / 17.1 / 16.7%; through ``bodyslam batch`` at 1.1: slow 45 ->
+# 31%, fast 16.6 -> 16.9% (docs/RESULTS.md, "A slow turn told from a fast step")
 SHORT_STEPS_R = (0.0, 0.08, 0.16)
 SLOW_MATCH_RATIO = 1.1
 
