@@ -15,15 +15,20 @@ the sequence keeps (scoring only; the pipeline never reads it):
   are not written).
 
 Prints a line per seed and the mean over seeds; ``--json`` writes them. Use tuning seeds (500-599) to choose
-anything and reporting seeds (700-799) to report (README, "Seeds").
+anything and reporting seeds (700-799) to report (README, "Seeds"). ``--frames`` and ``--set`` change the scenario as
+`testbed simulate`'s do, e.g. the ideal world at the same pace and length: ``--scenario exam --frames 400`` (the
+`exam` stand-in is `realistic_exam`'s motion in a rigid tube of known radius, 10,000 frames a run).
 
-    .venv/bin/python benchmarks/bench_batch_accuracy.py --seeds 744-751 [--scenario realistic_exam] [--keep DIR]
+    .venv/bin/python benchmarks/bench_batch_accuracy.py --seeds 744-751 [--scenario realistic_exam] [--frames K]
+        [--set SECTION.KEY=VALUE ...] [--keep DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import csv
+import hashlib
 import json
 import subprocess
 import sys
@@ -53,7 +58,9 @@ def score_exam(seq: Path, ex: Path) -> dict:
     ft = np.array([c for t, c in called if t == "FT"])
     fl = np.array([c for t, c in called if t == "FL"])
     motion = score_motion(seq, ex / "motion.csv")
-    beside = [r.get("beside_wall") == "1" for r in csv.DictReader(open(ex / "motion.csv", newline=""))]
+    rows = list(csv.DictReader(open(ex / "motion.csv", newline="")))
+    beside = [r.get("beside_wall") == "1" for r in rows]
+    status = collections.Counter(r["status"] for r in rows)
     _, p_est, _ = read_tum(ex / "trajectory.tum")
     _, p_true, _ = read_tum(seq / "groundtruth.tum")
     err = p_est - p_true
@@ -72,6 +79,8 @@ def score_exam(seq: Path, ex: Path) -> dict:
         "fused_mean_error_cm": 100.0 * float(np.mean(np.linalg.norm(err, axis=1))),
         "fused_inside_68": float(np.mean(inside)),
         "trajectory": summary.get("trajectory"),
+        "steps_rotation": status["rotation"], "steps_rotation_slow": status["rotation_slow"],
+        "steps_lost": status["lost"],
     }
 
 
@@ -82,7 +91,8 @@ def fmt(r: dict) -> str:
             f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}; "
             f"{100 * (r['path_without_estimate_share'] or 0.0):.0f}% of it without an estimate); steps "
             f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
-            f"{r['steps_beside_wall']:.2f}; lumen-facing called FL {ft}, wall-facing found {fl}; fused "
+            f"{r['steps_beside_wall']:.2f}, rotation {r['steps_rotation']} (+{r['steps_rotation_slow']} slow), lost "
+            f"{r['steps_lost']}; lumen-facing called FL {ft}, wall-facing found {fl}; fused "
             f"{r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}")
 
 
@@ -90,22 +100,30 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", required=True, help="A-B, a,b,c or N (seeds 0..N-1), as testbed evaluate")
     ap.add_argument("--scenario", default="realistic_exam")
+    ap.add_argument("--frames", type=int, default=None, help="frames a run (default: the scenario's)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="override a scenario field, as testbed simulate's --set (repeatable)")
     ap.add_argument("--keep", type=Path, default=None, help="keep (and reuse) the renders and batch outputs here")
     ap.add_argument("--json", type=Path, default=None, help="write the per-seed scores and their means here")
     args = ap.parse_args()
     try:
         seeds = parse_seeds(args.seeds)
-        scn = load_scenario(args.scenario)
+        scn = load_scenario(args.scenario, args.overrides)
+        if args.frames is not None and args.frames < 2:
+            raise BodySlamError(f"--frames must be at least 2, got {args.frames}")
     except BodySlamError as e:
         raise SystemExit(str(e)) from None
+    # renders of other frames or overrides keep to their own folders
+    variant = ("" if args.frames is None and not args.overrides else "_" + hashlib.sha1(
+        json.dumps([args.frames, args.overrides]).encode()).hexdigest()[:8])
     root = args.keep or Path(tempfile.mkdtemp(prefix="bench_batch_acc_"))
     root.mkdir(parents=True, exist_ok=True)
     rows = {}
     for seed in seeds:
-        seq = root / f"{args.scenario}_{seed}"
+        seq = root / f"{args.scenario}{variant}_{seed}"
         if not (seq / "meta.json").exists():
-            simulate(scn, seed, seq, force=True)
-        out = root / f"out_{args.scenario}_{seed}"
+            simulate(scn, seed, seq, n_frames=args.frames, force=True)
+        out = root / f"out_{args.scenario}{variant}_{seed}"
         t0 = time.perf_counter()
         p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", str(out), "--force"],
                            capture_output=True, text=True)
@@ -121,15 +139,18 @@ def main() -> None:
     mean = {k: float(np.mean([r[k] for r in rows.values() if r[k] is not None])) for k in keys}
     mean.update(path_error_rel=float(np.mean(errs)), path_error_median=float(np.median(errs)),
                 path_error_abs=float(np.mean(np.abs(errs))), path_error_worst=float(np.max(np.abs(errs))))
+    total = {k: int(sum(r[k] for r in rows.values())) for k in ("steps_rotation", "steps_rotation_slow", "steps_lost")}
     print(f"mean over {len(rows)} seeds: path {100 * mean['path_error_rel']:+.1f}% (median "
           f"{100 * mean['path_error_median']:+.1f}%, mean absolute "
           f"{100 * mean['path_error_abs']:.1f}%, worst {100 * mean['path_error_worst']:.1f}%; ends inside 1-sigma "
           f"{mean['path_inside_1sigma']:.2f}); steps {mean['steps_estimated']:.3f} estimated, "
-          f"{mean['step_distance_error_cm']:.4f} cm, beside the wall {mean['steps_beside_wall']:.2f}; lumen-facing "
+          f"{mean['step_distance_error_cm']:.4f} cm, beside the wall {mean['steps_beside_wall']:.2f}, in all rotation "
+          f"{total['steps_rotation']} (+{total['steps_rotation_slow']} slow), lost {total['steps_lost']}; lumen-facing "
           f"called FL {mean['lumen_facing_called_fl']:.3f}, wall-facing found {mean['wall_facing_found']:.2f}; fused "
           f"{mean['fused_mean_error_cm']:.2f} cm, inside 68% {mean['fused_inside_68']:.2f}")
     if args.json:
-        args.json.write_text(json.dumps({"scenario": args.scenario, "seeds": rows, "mean": mean}, indent=1))
+        args.json.write_text(json.dumps({"scenario": args.scenario, "frames": args.frames, "overrides": args.overrides,
+                                         "seeds": rows, "mean": mean, "total": total}, indent=1))
 
 
 if __name__ == "__main__":
