@@ -18,8 +18,8 @@ Statuses (:class:`StepStatus`, a ``StrEnum``: compares equal to its text, which 
   are NaN;
 - ``rotation_slow``: as ``rotation``, but guided matching's short-step hypotheses (the capsule nearly in place)
   verified at least :data:`bodyslam.vision.guided.SLOW_MATCH_RATIO` times the matches of its forward ones: the
-  pair overlaps as a slow step does, so the step is not counted lost to motion (a capsule turning in turbid fluid
-  or against a featureless wall: session 48);
+  pair overlaps as a slow step does, so the step is not counted lost to motion (a capsule turning in pooled
+  turbid fluid, session 48; the ``lost`` steps of a turn into a featureless wall stay ``lost``);
 - ``lost``: no estimate, and lost to motion: ordinary and guided matching both failed between two frames rich in
   features (:data:`bodyslam.vision.odometry.LOST_MIN_KEYPOINTS_FRAC`), with no more verified matches than
   unrelated frames give (:data:`~bodyslam.vision.odometry.LOST_MAX_MATCHES`), so the view changed too much to

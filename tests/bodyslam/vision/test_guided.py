@@ -87,7 +87,9 @@ def test_a_rotation_step_whose_frames_overlap_as_a_slow_step_does_is_not_lost_to
     assert s.has_rotation and not s.has_estimate and math.isnan(s.distance_m)
     assert not lost_to_motion(s)
     truth = motion_from_transform(R_TRUE, np.array([0.0, 0.0, forward_m]))
-    assert abs(s.roll_rad - truth.roll_rad) < math.radians(1.0)  # the rotation holds (fast step above: 0.5 deg)
+    # the rotation is still the forward search's, and holds: exact geometry gives it to ~1e-11 deg here; 1 deg is a
+    # bar well under the tuning seeds' 2.2 deg 68th percentile (module docstring of bodyslam.vision.guided)
+    assert abs(s.roll_rad - truth.roll_rad) < math.radians(1.0)
     # with the ratio out of reach, the same pair is an ordinary rotation step
     guided_ratio = guided.SLOW_MATCH_RATIO
     try:
