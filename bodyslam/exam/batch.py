@@ -1069,7 +1069,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
-    from bodyslam.steps import lost_step_floor_m, lost_to_motion
+    from bodyslam.steps import WITH_ROTATION, lost_step_floor_m, lost_to_motion
     from bodyslam.vision.tracking import path_from_lengths, share_without_estimate, step_length
 
     problems = [list(p) for p in exam.problems]
@@ -1095,13 +1095,14 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
             statuses[step[8]] = statuses.get(step[8], 0) + 1
             n_beside += s.beside_wall
             dr.step(s)
-            acc.record(row, dr, classes, step_length(s), lost_to_motion(s))
+            acc.record(row, dr, classes, step_length(s), lost_to_motion(s), s.beside_wall, s.status in WITH_ROTATION)
     eof = None if info["eof"] is None else info["eof"] + exam.video_start  # a frame number, as the user counts
     n = acc.n
     t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
     frame_idx = acc.frame[:n].tolist()
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
-                                         radius_m=exam.radius_m)
+                                         radius_m=exam.radius_m, beside_wall=acc.beside_wall[1:n],
+                                         rotated=acc.rotated[1:n])
     cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
     _path_png(exam, d, t, frame_idx, path_m, path_var)  # the fusion does not change it: drawn while it runs
     fused = None
@@ -1112,7 +1113,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
         if fused is not None:
             P, Q, cov, sd_head = fused["P"], fused["Q"], fused["cov"], fused["sd_heading"]
     if fused is None:  # dead reckoning: its steps without an estimate take the path travelled's lengths
-        P = _with_path_lengths(P, path_m, acc.length[1:n])
+        P = _with_path_lengths(P, path_m, acc.length[1:n], acc.beside_wall[1:n])
     sd = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q),
               world="body frame" if fused is not None else "first camera frame")
@@ -1164,9 +1165,11 @@ def _consistency_text(c: dict | None) -> str:
             f"{c['median_distance_ratio_pair_over_singles']:.2f}")
 
 
-def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarray) -> np.ndarray:
-    """Dead-reckoned positions ``(n, 3)`` whose steps without an estimate (NaN in ``length_m``, ``n - 1``) are
-    stretched along their direction to the length the path travelled gave them (``path_m``, ``n``:
+def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarray,
+                       beside_wall: np.ndarray | None = None) -> np.ndarray:
+    """Dead-reckoned positions ``(n, 3)`` whose steps without an estimate (NaN in ``length_m``, ``n - 1``) and
+    steps fitted beside the wall (``beside_wall``) are stretched along their direction to the length the path
+    travelled gave them (``path_m``, ``n``:
     :func:`bodyslam.vision.tracking.path_from_lengths`). The dead reckoner is causal and streams, so it counts a lost
     step as the estimated steps so far at their 90th percentile; the path's model sees both sides. Afterwards the
     trajectory's length is the path travelled, and marks' positions and their path from the start agree (except
@@ -1175,7 +1178,7 @@ def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarr
         return pos_m
     dp = np.diff(pos_m, axis=0)
     norm = np.linalg.norm(dp, axis=1)
-    fix = ~np.isfinite(length_m) & (norm > 1e-12)
+    fix = (~np.isfinite(length_m) if beside_wall is None else ~np.isfinite(length_m) | beside_wall) & (norm > 1e-12)
     dp[fix] *= (np.diff(path_m)[fix] / norm[fix])[:, None]
     return np.vstack([pos_m[:1], pos_m[0] + np.cumsum(dp, axis=0)])
 
@@ -1205,14 +1208,18 @@ class _Track:
         self.frame = np.zeros(n, np.int64)
         self.t, self.sd_heading, self.length, self.length_var = (np.zeros(n) for _ in range(4))
         self.lost = np.zeros(n, bool)  # the step into the frame was lost to motion (its path length's rule)
+        self.beside_wall = np.zeros(n, bool)  # ... was fitted beside the wall (ditto)
+        self.rotated = np.zeros(n, bool)  # ... carries a rotation (ditto)
         self.pos = np.zeros((n, 3))
         self.rot = np.zeros((n, 3, 3))
         self.cov = np.zeros((n, 3, 3))
 
-    def record(self, row: list, dr, classes: dict, length_var: tuple[float, float], lost: bool = False) -> None:
+    def record(self, row: list, dr, classes: dict, length_var: tuple[float, float], lost: bool = False,
+               beside_wall: bool = False, rotated: bool = False) -> None:
         k = self.n
         if k >= len(self.t):  # more frames than planned (cannot happen for folders; a video may say less)
-            for name in ("frame", "t", "sd_heading", "length", "length_var", "lost", "pos", "rot", "cov"):
+            for name in ("frame", "t", "sd_heading", "length", "length_var", "lost", "beside_wall", "rotated", "pos",
+                         "rot", "cov"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.zeros_like(a[: max(len(a), 16)])]))
         self.frame[k] = int(row[0])
@@ -1224,6 +1231,8 @@ class _Track:
         self.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
         self.length[k], self.length_var[k] = length_var
         self.lost[k] = lost
+        self.beside_wall[k] = beside_wall
+        self.rotated[k] = rotated
         self.n = k + 1
 
 

@@ -20,8 +20,9 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.steps import (LOSS_SLOPE, LOST_STEP_FLOOR_R, LOST_STEP_QUANTILE, MISSING_STEP_REL_SD, SPEED_JUMP_PROB,
-                            STEP_MAX_R, StepMotion, lost_step_floor_m, lost_to_motion)
+from bodyslam.steps import (BESIDE_WALL_LOG_SD, HAMPERED_ENTER_PROB, HAMPERED_STAY_PROB, LOSS_SLOPE, LOST_STEP_FLOOR_R,
+                            LOST_STEP_QUANTILE, MISSING_STEP_REL_SD, SPEED_JUMP_PROB, STEP_MAX_R, WITH_ROTATION,
+                            StepMotion, lost_step_floor_m, lost_to_motion)
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "missing_step_lengths", "step_length",
            "scale_path_variance", "segment_variance", "share_without_estimate", "path_share_text", "SCALE_CORR_M"]
@@ -96,10 +97,13 @@ _CONTEXT_STEPS = 25
 _DEFAULT_LOG_STEP_SD = 0.5
 
 
-def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndarray,
-                         radius_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The length (m) and its 1-sigma of every step without an estimate (NaN in ``length_m``), from the speed
-    around it: ``(mean_m (n,), sd_m (n,))``, NaN at the estimated steps.
+def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndarray, radius_m: float,
+                         beside_wall: np.ndarray | None = None,
+                         rotated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The length (m) and its 1-sigma of every step without an estimate (NaN in ``length_m``) and of every step
+    fitted beside its own tube's wall (``beside_wall``; None: none), from the speed around it: ``(mean_m (n,),
+    sd_m (n,))``, NaN at the other estimated steps. ``rotated``: the steps without an estimate that carry a rotation
+    (guided matching saw the wall in both frames; None: none do).
 
     The capsule's step length is a hidden state on a log-spaced grid (``_GRID_LO_R`` to :data:`STEP_MAX_R` lumen
     radii ``radius_m``: the radius the steps were fitted with, the prior's where the radius is one, *not* rescaled by
@@ -119,6 +123,15 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     near the prior's upper end: the rule before (the 90th percentile of the estimated steps) was 35% long on lone
     lost steps and 40% short on runs of nine or more (realistic tuning seeds 503-522; docs/RESULTS.md, "The steps
     matching loses, from the speed around them").
+    Since session 49 two more things (docs/RESULTS.md, "Beside the wall and hampered by the world"):
+
+    - the world may hamper matching for a while, a second hidden state
+      (:data:`~bodyslam.steps.HAMPERED_ENTER_PROB`, :data:`~bodyslam.steps.HAMPERED_STAY_PROB`) in which a step is
+      lost or fitted beside the wall whatever its length: a run of such steps there observes nothing of the speed.
+      A step with an ordinary fit or a rotation is never in it;
+    - a step fitted beside the wall observes its length only weakly, a Gaussian in ln(length) about the fit's with
+      :data:`~bodyslam.steps.BESIDE_WALL_LOG_SD`, and those steps' lengths do not set the speed's spread.
+
     The model is symmetric in time: an exam played backwards gets the same lengths."""
     length = np.asarray(length_m, float)
     var = np.asarray(var_m2, float)
@@ -126,12 +139,16 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     n = len(length)
     mean, sd = np.full(n, np.nan), np.full(n, np.nan)
     est = np.isfinite(length)
-    if est.all():
+    wall = np.zeros(n, bool) if beside_wall is None else np.asarray(beside_wall, bool) & est
+    model = ~est | wall  # the steps whose length this gives
+    if not model.any():
         return mean, sd
+    # the steps the world may have hampered: nothing measured, not even a rotation, or fitted beside the wall
+    hampered = (~est if rotated is None else ~est & ~np.asarray(rotated, bool)) | wall
     u = np.linspace(math.log(_GRID_LO_R), math.log(STEP_MAX_R), _GRID_BINS)  # ln(length / radius)
     d_grid = radius_m * np.exp(u)
     floor_u = math.log(_GRID_LO_R)
-    le = np.where(est, np.log(np.maximum(np.abs(length), radius_m * _GRID_LO_R) / radius_m), np.nan)
+    le = np.where(est & ~wall, np.log(np.maximum(np.abs(length), radius_m * _GRID_LO_R) / radius_m), np.nan)
     dl = np.diff(le)
     dl = dl[np.isfinite(dl) & (le[1:] > floor_u) & (le[:-1] > floor_u)]  # a capsule at rest says nothing of it
     q = 1.4826 * float(np.median(np.abs(dl))) if len(dl) >= 5 else _DEFAULT_LOG_STEP_SD
@@ -139,12 +156,14 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     T = np.exp(-0.5 * ((u[:, None] - u[None, :]) / q) ** 2)
     T = (1.0 - SPEED_JUMP_PROB) * T / T.sum(axis=1, keepdims=True) + SPEED_JUMP_PROB / _GRID_BINS
     T = T.astype(np.float32)
+    a_in, a_stay = np.float32(HAMPERED_ENTER_PROB), np.float32(HAMPERED_STAY_PROB)
+    pi_h = a_in / (a_in + 1 - a_stay)  # the hampered state's stationary share: an exam read backwards is read alike
     p_lost = 1.0 / (1.0 + np.exp(-LOSS_SLOPE * (u - math.log(LOST_STEP_FLOOR_R))))
-    # windows: each run of missing steps with its context, overlapping windows merged
+    # windows: each run of modelled steps with its context, overlapping windows merged
     windows: list[list[int]] = []
-    miss = np.flatnonzero(~est)
-    ctx = np.flatnonzero(est)
-    if len(ctx):  # from the _CONTEXT_STEPS-th estimated step before each missing one to the one as far after it
+    miss = np.flatnonzero(model)
+    ctx = np.flatnonzero(~model)
+    if len(ctx):  # from the _CONTEXT_STEPS-th estimated step before each modelled one to the one as far after it
         pos = np.searchsorted(ctx, miss)
         lo = np.minimum(ctx[np.maximum(pos - _CONTEXT_STEPS, 0)], miss)
         hi = np.maximum(ctx[np.minimum(pos + _CONTEXT_STEPS - 1, len(ctx) - 1)] + 1, miss + 1)
@@ -156,35 +175,51 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
         else:
             windows.append([a, b])
     for a, b in windows:
-        E = np.ones((b - a, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
-        e = est[a:b]
-        rows = np.flatnonzero(e)
-        for c in range(0, len(rows), 4096):  # in blocks: float64 temporaries of a few MB, whatever the exam
-            r = rows[c:c + 4096]
-            d = np.abs(length[a + r])[:, None]
-            s2 = var[a + r][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2 + (radius_m * _GRID_LO_R) ** 2
-            ll = -0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2)
-            E[r] = np.exp(ll - ll.max(axis=1, keepdims=True))
+        m = b - a
+        E = np.ones((m, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
+        e, w = est[a:b], wall[a:b]
+        for kind in (e & ~w, w):
+            rows = np.flatnonzero(kind)
+            for c in range(0, len(rows), 4096):  # in blocks: float64 temporaries of a few MB, whatever the exam
+                r = rows[c:c + 4096]
+                d = np.maximum(np.abs(length[a + r]), radius_m * _GRID_LO_R)[:, None]
+                if kind is w:  # beside the wall: a weak reading, in ln(length)
+                    ll = -0.5 * (np.log(d_grid / d) / BESIDE_WALL_LOG_SD) ** 2
+                else:
+                    s2 = (var[a + r][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2
+                          + (radius_m * _GRID_LO_R) ** 2)
+                    ll = -0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2)
+                E[r] = np.exp(ll - ll.max(axis=1, keepdims=True))
         E[~e & lost[a:b]] = p_lost
-        fwd = np.empty_like(E)
-        prev = np.full(_GRID_BINS, 1.0 / _GRID_BINS, np.float32)
-        for k in range(b - a):
-            f = (prev @ T) * E[k]
-            fwd[k] = prev = f / f.sum()
+        B = hampered[a:b].astype(np.float32)  # the hampered state's likelihood of each step's observation
+        # forward: f0 the speed with matching unhampered, f1 hampered (each step normalised over both)
+        fwd, fwd1 = np.empty_like(E), np.empty_like(E)
+        p0 = np.full(_GRID_BINS, (1 - pi_h) / _GRID_BINS, np.float32)
+        p1 = np.full(_GRID_BINS, pi_h / _GRID_BINS, np.float32)
+        for k in range(m):
+            f0 = (((1 - a_in) * p0 + (1 - a_stay) * p1) @ T) * E[k]
+            f1 = ((a_in * p0 + a_stay * p1) @ T) * B[k]
+            z = f0.sum() + f1.sum()
+            fwd[k], fwd1[k] = p0, p1 = f0 / z, f1 / z
+        # backward, the posterior written over the forward pass (speed marginal: both states)
+        g0, g1 = np.ones(_GRID_BINS, np.float32), np.ones(_GRID_BINS, np.float32)
+        fwd[m - 1] += fwd1[m - 1]
+        for k in range(m - 2, -1, -1):
+            h0, h1 = T @ (E[k + 1] * g0), T @ (B[k + 1] * g1)
+            g0, g1 = (1 - a_in) * h0 + a_in * h1, (1 - a_stay) * h0 + a_stay * h1
+            z = g0.sum() + g1.sum()
+            g0, g1 = g0 / z, g1 / z
+            fwd[k] = fwd[k] * g0 + fwd1[k] * g1
+        del fwd1
         post = fwd
-        back = np.ones(_GRID_BINS, np.float32)
-        for k in range(b - a - 2, -1, -1):
-            back = T @ (E[k + 1] * back)
-            back /= back.sum()
-            post[k] = fwd[k] * back
-        w = np.flatnonzero(~e)
+        w = np.flatnonzero(model[a:b])
         for c in range(0, len(w), 4096):
             r = w[c:c + 4096]
             p = post[r].astype(float)
             p /= p.sum(axis=1, keepdims=True)
-            m, m2 = p @ d_grid, p @ d_grid**2
-            mean[a + r] = m
-            sd[a + r] = np.maximum(np.sqrt(np.maximum(m2 - m * m, 0.0)), MISSING_STEP_REL_SD * m)
+            mu, m2 = p @ d_grid, p @ d_grid**2
+            mean[a + r] = mu
+            sd[a + r] = np.maximum(np.sqrt(np.maximum(m2 - mu * mu, 0.0)), MISSING_STEP_REL_SD * mu)
     return mean, sd
 
 
@@ -194,8 +229,9 @@ def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0,
 
     The length of an estimated step is :func:`step_length`, with its own 1-sigma. A step without an estimate is a
     capsule that may still have moved. With the radius the steps assumed (``radius_m``) and which steps were lost
-    to motion, its length and 1-sigma come from the speed around it (:func:`missing_step_lengths`); the steps of
-    one run of missing steps share one speed, so their 1-sigmas add (not their variances). With nothing estimated
+    to motion, its length and 1-sigma come from the speed around it (:func:`missing_step_lengths`), and so do those
+    of a step fitted beside the wall (its fit observes its length weakly); the steps of one run of such steps share
+    one speed, so their 1-sigmas add (not their variances). With nothing estimated
     and nothing lost to motion, as below. The rest of this docstring is the rule without ``radius_m`` (and, with
     it, the rule before session 30): each step of a run without an estimate takes the mean length of the
     estimated steps that border the run (both sides inside the exam, the one side at its start or end). A step
@@ -215,7 +251,8 @@ def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0,
     """
     lv = np.array([step_length(s) for s in steps], float).reshape(-1, 2)
     return path_from_lengths(lv[:, 0], lv[:, 1], scale_sd_rel, lost=np.array([lost_to_motion(s) for s in steps]),
-                             radius_m=radius_m)
+                             radius_m=radius_m, beside_wall=np.array([s.beside_wall for s in steps], bool),
+                             rotated=np.array([s.status in WITH_ROTATION for s in steps], bool))
 
 
 def share_without_estimate(path_m: np.ndarray, length_m: np.ndarray) -> float:
@@ -244,13 +281,16 @@ def path_share_text(share: float) -> str:
 
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
                       corr_m: float = SCALE_CORR_M, lost: np.ndarray | None = None,
-                      radius_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      radius_m: float | None = None, beside_wall: np.ndarray | None = None,
+                      rotated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
     only these two numbers per step, and ``lost``: which steps were lost to motion,
     :func:`~bodyslam.steps.lost_to_motion`; None: every missing step takes its neighbours' mean at a 1-sigma as
     large, the rule before session 22; ``radius_m``: the radius the steps assumed, for the missing steps' model,
     :func:`missing_step_lengths`; None: the rule before session 30 without its floor,
-    :func:`~bodyslam.steps.lost_step_floor_m`).
+    :func:`~bodyslam.steps.lost_step_floor_m`; with them, ``beside_wall`` and ``rotated``, which
+    :func:`missing_step_lengths` takes: the steps fitted beside the wall, whose lengths it gives too, and the
+    steps with a rotation but no estimate; None: none).
     ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
     assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
     that share is taken out of the steps and added back as one error correlated along the path
@@ -263,12 +303,13 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
     n = len(length)
     est = np.isfinite(length)
     if lost is not None and radius_m is not None and radius_m > 0 and (est.any() or np.any(lost)):
-        fill, fill_sd = missing_step_lengths(length, var, lost, radius_m)
-        path = np.r_[0.0, np.cumsum(np.where(est, length, fill))]
+        fill, fill_sd = missing_step_lengths(length, var, lost, radius_m, beside_wall, rotated)
+        given = est & ~np.isfinite(fill)  # the steps whose own length counts (not the model's)
+        path = np.r_[0.0, np.cumsum(np.where(given, length, fill))]
         cum = np.zeros(n + 1)
         base = run_sd = 0.0
-        for k in range(n):  # a run of missing steps: one speed, so their 1-sigmas add
-            if est[k]:
+        for k in range(n):  # a run of modelled steps: one speed, so their 1-sigmas add
+            if given[k]:
                 base += var[k] + run_sd**2
                 run_sd = 0.0
                 cum[k + 1] = base
