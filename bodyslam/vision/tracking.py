@@ -174,42 +174,62 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
             windows[-1][1] = max(windows[-1][1], b)
         else:
             windows.append([a, b])
-    for a, b in windows:
-        m = b - a
-        E = np.ones((m, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
+    blk = 4096  # emission rows in blocks, made twice (forward and backward): float64 temporaries of a few MB
+
+    def emissions(a: int, b: int) -> np.ndarray:
+        """The unhampered state's likelihood of steps a..b-1's observations over the grid, (b - a, bins) float32."""
+        E = np.ones((b - a, _GRID_BINS), np.float32)
         e, w = est[a:b], wall[a:b]
         for kind in (e & ~w, w):
-            rows = np.flatnonzero(kind)
-            for c in range(0, len(rows), 4096):  # in blocks: float64 temporaries of a few MB, whatever the exam
-                r = rows[c:c + 4096]
-                d = np.maximum(np.abs(length[a + r]), radius_m * _GRID_LO_R)[:, None]
-                if kind is w:  # beside the wall: a weak reading, in ln(length)
-                    ll = -0.5 * (np.log(d_grid / d) / BESIDE_WALL_LOG_SD) ** 2
-                else:
-                    s2 = (var[a + r][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2
-                          + (radius_m * _GRID_LO_R) ** 2)
-                    ll = -0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2)
-                E[r] = np.exp(ll - ll.max(axis=1, keepdims=True))
+            r = np.flatnonzero(kind)
+            if not len(r):
+                continue
+            d = np.maximum(np.abs(length[a + r]), radius_m * _GRID_LO_R)[:, None]
+            if kind is w:  # beside the wall: a weak reading, in ln(length)
+                ll = -0.5 * (np.log(d_grid / d) / BESIDE_WALL_LOG_SD) ** 2
+            else:
+                s2 = (var[a + r][:, None] + (_MEASURED_REL_SD * np.maximum(d, d_grid)) ** 2
+                      + (radius_m * _GRID_LO_R) ** 2)
+                ll = -0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2)
+            E[r] = np.exp(ll - ll.max(axis=1, keepdims=True))
         E[~e & lost[a:b]] = p_lost
-        B = hampered[a:b].astype(np.float32)  # the hampered state's likelihood of each step's observation
-        # forward: f0 the speed with matching unhampered, f1 hampered (each step normalised over both)
-        fwd, fwd1 = np.empty_like(E), np.empty_like(E)
+        return E
+
+    zero = np.zeros(_GRID_BINS, np.float32)
+    for a, b in windows:
+        m = b - a
+        H = hampered[a:b]  # the hampered state's likelihood of each step's observation: 1 or 0
+        slot = np.cumsum(H) - 1  # its forward pass is kept only where it can be non-zero
+        fwd = np.empty((m, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
+        fwd1 = np.empty((int(H.sum()), _GRID_BINS), np.float32)
+        # forward: p0 the speed with matching unhampered, p1 hampered (each step normalised over both)
         p0 = np.full(_GRID_BINS, (1 - pi_h) / _GRID_BINS, np.float32)
         p1 = np.full(_GRID_BINS, pi_h / _GRID_BINS, np.float32)
-        for k in range(m):
-            f0 = (((1 - a_in) * p0 + (1 - a_stay) * p1) @ T) * E[k]
-            f1 = ((a_in * p0 + a_stay * p1) @ T) * B[k]
-            z = f0.sum() + f1.sum()
-            fwd[k], fwd1[k] = p0, p1 = f0 / z, f1 / z
-        # backward, the posterior written over the forward pass (speed marginal: both states)
+        for c in range(0, m, blk):
+            E = emissions(a + c, a + min(c + blk, m))
+            for k in range(c, min(c + blk, m)):
+                f0 = (((1 - a_in) * p0 + (1 - a_stay) * p1) @ T) * E[k - c]
+                f1 = ((a_in * p0 + a_stay * p1) @ T) if H[k] else zero
+                z = f0.sum() + f1.sum()
+                p0, p1 = f0 / z, f1 / z
+                fwd[k] = p0
+                if H[k]:
+                    fwd1[slot[k]] = p1
+        # backward, the posterior (the speed's marginal over both states) written over the forward pass
         g0, g1 = np.ones(_GRID_BINS, np.float32), np.ones(_GRID_BINS, np.float32)
-        fwd[m - 1] += fwd1[m - 1]
-        for k in range(m - 2, -1, -1):
-            h0, h1 = T @ (E[k + 1] * g0), T @ (B[k + 1] * g1)
-            g0, g1 = (1 - a_in) * h0 + a_in * h1, (1 - a_stay) * h0 + a_stay * h1
-            z = g0.sum() + g1.sum()
-            g0, g1 = g0 / z, g1 / z
-            fwd[k] = fwd[k] * g0 + fwd1[k] * g1
+        if H[m - 1]:
+            fwd[m - 1] += fwd1[slot[m - 1]]
+        for c in range(((m - 1) // blk) * blk, -1, -blk):
+            E = emissions(a + c, a + min(c + blk, m))
+            for j in range(min(c + blk, m) - 1, max(c, 1) - 1, -1):  # the message from step j to step j - 1
+                h0 = T @ (E[j - c] * g0)
+                h1 = T @ g1 if H[j] else zero
+                g0, g1 = (1 - a_in) * h0 + a_in * h1, (1 - a_stay) * h0 + a_stay * h1
+                z = g0.sum() + g1.sum()
+                g0, g1 = g0 / z, g1 / z
+                fwd[j - 1] *= g0
+                if H[j - 1]:
+                    fwd[j - 1] += fwd1[slot[j - 1]] * g1
         del fwd1
         post = fwd
         w = np.flatnonzero(model[a:b])
