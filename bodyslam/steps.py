@@ -83,10 +83,11 @@ MISSING_STEP_REL_SD = 0.4
 #   that starts with this chance per step and lasts with the next, in which a step is lost or fitted beside the wall
 #   whatever its length, so such a step says nothing of the speed there. A step with a rotation (guided matching
 #   saw the wall under motion hypotheses) or an ordinary fit is never in it. Without it, runs of three steps lost
-#   at a real exam's pace were filled as fast phases (true 0.04-0.1 cm, filled 0.9 cm). Chosen with
+#   at a real exam's pace were filled as fast phases (true 0.04-0.13 cm, filled 0.84-0.88 cm). Chosen with
 #   BESIDE_WALL_LOG_SD on realistic tuning renders through `bodyslam batch`'s defaults (slow 587-594, the
-#   dissertation's pace 595-598): 0.002-0.02 and 0.4-0.8 move the mean absolute path error by < 1 point
-#   (docs/RESULTS.md, "Beside the wall and hampered by the world")
+#   dissertation's pace 595-598) among entry 0.002-0.02, stay 0.4-0.8 and ln-sd 1-3: the best twelve of the 36 lay
+#   within 0.8 points of mean absolute path error (docs/RESULTS.md, "Beside the wall and hampered by the world";
+#   on reporting seeds it gains at a real exam's pace and loses 1-2 points at the dissertation's)
 HAMPERED_ENTER_PROB = 0.005
 HAMPERED_STAY_PROB = 0.6
 # - a step fitted beside its own tube's wall (StepMotion.beside_wall) reads its length poorly (realistic tuning

@@ -327,7 +327,9 @@ def test_a_step_matching_loses_takes_its_length_from_the_speed_around_it():
     assert m[50] == pytest.approx(1e-3, rel=0.2)  # the neighbours themselves scatter by 20%
     hampered = missing_step_lengths(length, var, lost, radius)[0]  # the run without a rotation
     assert (2 * m[20] < hampered[35:45]).all() and (hampered[35:45] < 0.6 * m[35:45]).all()
-    assert hampered[20] == pytest.approx(m[20], rel=0.1) and hampered[50] == pytest.approx(m[50], rel=1e-3)
+    # the lone lost step and the blurred frame, 6-15 steps from the run, keep their lengths (measured: 4e-9 and
+    # 2e-6 apart; 1e-3 leaves float32 room)
+    assert hampered[20] == pytest.approx(m[20], rel=1e-3) and hampered[50] == pytest.approx(m[50], rel=1e-3)
     path, v = path_from_lengths(length, var, lost=lost, radius_m=radius, rotated=rotated)
     est = np.isfinite(length)
     assert path[-1] == pytest.approx(length[est].sum() + m[~est].sum())
