@@ -1178,7 +1178,10 @@ def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarr
         return pos_m
     dp = np.diff(pos_m, axis=0)
     norm = np.linalg.norm(dp, axis=1)
-    fix = (~np.isfinite(length_m) if beside_wall is None else ~np.isfinite(length_m) | beside_wall) & (norm > 1e-12)
+    fix = ~np.isfinite(length_m)
+    if beside_wall is not None:
+        fix |= beside_wall
+    fix &= norm > 1e-12
     dp[fix] *= (np.diff(path_m)[fix] / norm[fix])[:, None]
     return np.vstack([pos_m[:1], pos_m[0] + np.cumsum(dp, axis=0)])
 
