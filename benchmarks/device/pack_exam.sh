@@ -22,4 +22,5 @@ gzip -c "$seq/rf.csv" > .devrun/side/rf.csv.gz
 cp benchmarks/device/run_16core.sh .devrun/run.sh
 ls .whl/plotly-*.whl >/dev/null 2>&1 || .venv/bin/python -m pip download -q --no-deps -d .whl plotly
 du -sh .devrun .whl
-grep -q "^.devrun" .git/info/exclude || printf '.devrun/\n.whl/\n' >> .git/info/exclude
+mkdir -p .git/info
+grep -qs "^.devrun" .git/info/exclude || printf '.devrun/\n.whl/\n' >> .git/info/exclude
