@@ -1078,6 +1078,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     classes = {"FT": 0, "FL": 0, "": 0}
     statuses: dict[str, int] = {}
     n_beside = 0  # steps whose tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall)
+    # dead reckoning is the trajectory only where no fusion gives one: with RF it runs after a failed fusion only
+    # (a second pass over the steps, _dead_reckon_into), not on the serial end of every exam (~0.12 ms a step)
     dr = DeadReckoner(lost_step_floor_m(exam.radius_m))
     info = {"problems": problems, "eof": None}
     rel = exam.radius_sd_rel
@@ -1094,25 +1096,31 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
             mw.writerow(_csv_cells(step))
             statuses[step[8]] = statuses.get(step[8], 0) + 1
             n_beside += s.beside_wall
-            dr.step(s)
+            if not exam.rf:
+                dr.step(s)
             acc.record(row, dr, classes, step_length(s), lost_to_motion(s), s.beside_wall, s.status in WITH_ROTATION)
     eof = None if info["eof"] is None else info["eof"] + exam.video_start  # a frame number, as the user counts
     n = acc.n
-    t, P, Q = acc.t[:n], acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
+    t = acc.t[:n]
     frame_idx = acc.frame[:n].tolist()
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
                                          radius_m=exam.radius_m, beside_wall=acc.beside_wall[1:n],
                                          rotated=acc.rotated[1:n])
-    cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
-    _path_png(exam, d, t, frame_idx, path_m, path_var)  # the fusion does not change it: drawn while it runs
+    # the fusion does not change path.png: drawn on a worker while the fusion runs and this goes on
+    path_drawn = submit(_path_png, {"exam": exam, "dir": d, "t": t, "frame_idx": frame_idx, "path_m": path_m,
+                                    "path_var": path_var}, jobs)
     fused = None
     if exam.rf:
         res = fusion() if fusion is not None else _fuse_task({"exam": exam, "dir": str(d), "settings": settings})
         problems.extend(res["problems"])
         fused = res["fused"]
-        if fused is not None:
-            P, Q, cov, sd_head = fused["P"], fused["Q"], fused["cov"], fused["sd_heading"]
-    if fused is None:  # dead reckoning: its steps without an estimate take the path travelled's lengths
+    if fused is not None:
+        P, Q, cov, sd_head = fused["P"], fused["Q"], fused["cov"], fused["sd_heading"]
+    else:  # dead reckoning: its steps without an estimate take the path travelled's lengths
+        if exam.rf:  # the fusion gave nothing (its reason is in problems): dead reckoning, skipped so far
+            _dead_reckon_into(acc, exam, d)
+        P, Q = acc.pos[:n], Rotation.from_matrix(acc.rot[:n]).as_quat()
+        cov, sd_head = acc.cov[:n], acc.sd_heading[:n]
         P = _with_path_lengths(P, path_m, acc.length[1:n], acc.beside_wall[1:n])
     sd = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q),
@@ -1154,7 +1162,24 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                    "step_consistency")}
     write_json(d / "summary.json", summary)
     _report(exam, d, summary, t, P, cov, frame_idx, marks, fused is not None, jobs)
+    path_drawn()  # the plot is in place before the run says it is done
     return summary, problems
+
+
+def _dead_reckon_into(acc: "_Track", exam: Exam, d: Path) -> None:
+    """Fill ``acc``'s poses, covariances and heading 1-sigmas with the exam's dead reckoning (a second pass over its
+    steps, as :func:`_finalize`'s first pass would have made them): for an exam with RF whose fusion gave nothing."""
+    from bodyslam.fusion.body_slam import DeadReckoner
+    from bodyslam.steps import lost_step_floor_m
+
+    dr = DeadReckoner(lost_step_floor_m(exam.radius_m))
+    for k, (_, step, s) in enumerate(_exam_rows(exam, d)):
+        if k >= acc.n:
+            break
+        if step is not None:
+            dr.step(s)
+        acc.pos[k], acc.rot[k], acc.cov[k] = dr.p_w_m, dr.R_w_c_matrix, dr.P[:3, :3]
+        acc.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
 
 
 def _consistency_text(c: dict | None) -> str:
@@ -1354,10 +1379,13 @@ def _vision_text(m: MotionSettings) -> str:
     return f"{m.match_mode} matcher ({tries}); {est}; {wall}; {rot}"
 
 
-def _path_png(exam: Exam, d: Path, t, frame_idx: list[int], path_m, path_var) -> None:
-    """``path.png``: how far along the gut against time, with its 1-sigma and the marked frames."""
+def _path_png(task: dict) -> None:
+    """``path.png``: how far along the gut against time, with its 1-sigma and the marked frames (a worker's task:
+    ``exam``, ``dir``, ``t``, ``frame_idx``, ``path_m``, ``path_var``)."""
     from bodyslam.plots import path_figure
 
+    exam, d, t, frame_idx = task["exam"], Path(task["dir"]), task["t"], task["frame_idx"]
+    path_m, path_var = task["path_m"], task["path_var"]
     if len(t) < 2:
         return
     where = {f: k for k, f in enumerate(frame_idx)}

@@ -405,6 +405,34 @@ def test_rf_named_by_meta_json_but_missing_is_said(tmp_path):
     assert "sensors.csv named by meta.json not found" in exam.problems[0][3]
 
 
+def test_an_exam_whose_fusion_fails_is_dead_reckoned_as_one_without_rf(tmp_path):
+    """With RF the serial end skips dead reckoning while the fusion runs; where the fusion then gives nothing (here
+    an rf.csv with readings in only two frames: too few fixes to align), the exam's trajectory and 1-sigmas are the
+    dead reckoning an exam without RF gets, byte for byte, and the reason is in problems.csv."""
+    with_rf, without = tmp_path / "with_rf", tmp_path / "without"
+    shutil.copytree(DEMO, with_rf)
+    lines = (DEMO / "rf.csv").read_text().splitlines()
+    (with_rf / "rf.csv").write_text("\n".join([lines[0], *(x for x in lines[1:] if float(x.split(",")[0]) < 0.6)])
+                                    + "\n")
+    shutil.copytree(DEMO, without)
+    meta = json.loads((without / "meta.json").read_text())
+    for f in ("rf.csv", "sensors.csv"):
+        (without / f).unlink()
+    meta.pop("rf", None)
+    (without / "meta.json").write_text(json.dumps(meta))
+    ea, eb = open_exams([str(with_rf)])[0], open_exams([str(without)])[0]
+    assert ea.rf is not None and eb.rf is None
+    ra = run_batch([ea], tmp_path / "a", FAST, jobs=1)
+    rb = run_batch([eb], tmp_path / "b", FAST, jobs=1)
+    assert ra.exams[0]["trajectory"] == rb.exams[0]["trajectory"] == "dead reckoning"
+    assert "RF not used" in (tmp_path / "a" / "problems.csv").read_text()
+    for name in ("trajectory.tum", "uncertainty.csv", "motion.csv"):
+        a, b = (tmp_path / "a" / "with_rf" / name), (tmp_path / "b" / "without" / name)
+        assert a.read_bytes() == b.read_bytes(), name
+    tum = np.loadtxt(tmp_path / "a" / "with_rf" / "trajectory.tum")
+    assert np.linalg.norm(tum[-1, 1:4] - tum[0, 1:4]) > 0.01  # a trajectory that moved, not zeros
+
+
 def test_the_summary_counts_the_steps_fitted_beside_the_wall(tmp_path, monkeypatch):
     """Steps whose tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall) are counted in
     summary.json (``steps_beside_wall``) as motion.csv marks them, and the report says so. The demo's ideal tube
