@@ -215,8 +215,9 @@ def _parser() -> argparse.ArgumentParser:
                          "e.g. the small bowel between its first duodenal and first caecal frame; they keep their "
                          "numbers and times")
     ba.add_argument("--chunk-frames", type=int, default=None,
-                    help="frames per checkpointed chunk (default: from the study's length and the workers, each "
-                         "worker >= 4 chunks of 20-500 frames; recorded in batch.json; results do not depend on it)")
+                    help="frames per checkpointed chunk, all equal (default: guided chunks of 20-500 frames that "
+                         "shrink toward the study's end, sized for the workers, so all stay busy to it; recorded in "
+                         "batch.json; results do not depend on it)")
     ba.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler (tcp://host:8786)")
     ba.add_argument("--fusion", default="rss", choices=FUSION_MODES, help="with RF: EKF on RSS (default) or fixes")
     ba.add_argument("--rss-bias-states", action="store_true", help=RSS_BIAS_HELP)

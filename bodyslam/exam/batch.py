@@ -28,9 +28,10 @@ FIRST on).
 
 Chunks, checkpoints, resuming
 -----------------------------
-An exam's frames are cut into chunks of ``chunk_frames`` (by default :func:`auto_chunk_frames`: each worker gets at
-least 4 chunks, so all stay busy to the end) that overlap by one frame (chunk ``i`` computes the
-steps into its frames, so every step belongs to exactly one chunk). A chunk's result is a small JSON file in
+An exam's frames are cut into chunks (by default guided, :func:`guided_chunk_bounds`: big ones first, smaller ones
+toward the study's end, so every worker stays busy to it; ``chunk_frames``: equal ones) that overlap by one frame
+(chunk ``i`` computes the steps into its frames, so every step belongs to exactly one chunk). A chunk's result is
+a small JSON file in
 ``OUT/<exam>/chunks/``, written atomically; its computation depends only on its own frames, so results do not
 depend on the order, the number of workers or where they ran. ``OUT/batch.json`` holds the plan (inputs, a
 fingerprint of the files, settings, chunking). Running the same command again resumes: finished chunks are
@@ -121,20 +122,38 @@ class BatchSettings:
     batch's own: frames per checkpointed chunk and the fusion mode with RF."""
 
     motion: MotionSettings = MotionSettings(match_mode="fast")
-    chunk_frames: int | None = None  # None: chosen from the study's length and the workers (auto_chunk_frames)
+    chunk_frames: int | None = None  # equal chunks of this many frames; None: guided chunks (chunk_workers)
+    # guided chunks for this many workers (guided_chunk_bounds); None with chunk_frames None: the run's own workers
+    chunk_workers: int | None = None
     fusion: str = "rss"
     rss_bias_states: bool = False  # per-sensor RSS bias states in the fusion (bodyslam.fusion.localize.localize)
 
 
-CHUNKS_PER_WORKER = 4  # the last round leaves at most ~1/4 of a worker's share idle
+# guided chunks (guided_chunk_bounds): each takes this share of the study's remaining frames per worker, so the
+# chunks shrink toward the end and every worker stays busy to it. Chosen among 1/2, 1/3 and 1/4 by simulating the
+# 10,000-frame `exam`'s measured chunk costs with noise on 2-32 workers (docs/RESULTS.md, session 50): the last
+# worker's finish over the ideal, 2 / 8 / 16 / 32 workers, was 2.0 / 6.7 / 9.0 / 11.3% with equal chunks (at least
+# 4 a worker, the rule before) and 0.0 / 1.9 / 2.3 / 6.6% with these
+GUIDED_SHARE = 1 / 3
 CHUNK_FRAMES_RANGE = (20, 500)  # fewer frames is mostly start-up; more loses more work to an interruption
 
 
-def auto_chunk_frames(n_frames: int, workers: int) -> int:
-    """Frames per chunk so that each of ``workers`` gets at least :data:`CHUNKS_PER_WORKER` chunks of a study of
-    ``n_frames`` (all its exams), within :data:`CHUNK_FRAMES_RANGE`. Results do not depend on it (tested)."""
+def guided_chunk_bounds(n: int, workers: int, after: int = 0) -> list[tuple[int, int]]:
+    """Position ranges ``(a, b)`` of an exam of ``n`` frames cut into chunks overlapping by one frame (as
+    :func:`~bodyslam.vision.odometry.chunk_bounds`), each of :data:`GUIDED_SHARE` of the study's frames left
+    (this exam's from ``a`` on plus ``after``, the frames of the exams after it) per worker, within
+    :data:`CHUNK_FRAMES_RANGE`; a rest shorter than the range's floor joins the last chunk. Guided scheduling: big
+    chunks first, small ones last, so ``workers`` workers finish together. Results do not depend on it (tested)."""
     lo, hi = CHUNK_FRAMES_RANGE
-    return int(min(hi, max(lo, n_frames // (CHUNKS_PER_WORKER * max(workers, 1)))))
+    if n <= 1:
+        return [(0, max(n - 1, 0))]
+    bounds, a = [], 0
+    while a < n - 1:
+        size = int(min(hi, max(lo, GUIDED_SHARE * (n - 1 - a + after) / max(workers, 1))))
+        b = n - 1 if n - 1 - (a + size) < lo else a + size
+        bounds.append((a, b))
+        a = b
+    return bounds
 
 
 @dataclass
@@ -711,11 +730,13 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     out = Path(out)
     plan = {"version": PLAN_VERSION, "code": code_fingerprint(), "settings": asdict(settings),
             "exams": [e.describe() for e in exams]}
-    if settings.chunk_frames is None:
-        settings = replace(settings, chunk_frames=_chunk_frames_for(out, plan, exams, jobs))
-        plan["settings"] = asdict(settings)  # the plan records the chunk size used
-    if settings.chunk_frames < 2:
+    if settings.chunk_frames is None and settings.chunk_workers is None:
+        settings = replace(settings, **_chunking_for(out, plan, exams, jobs))
+        plan["settings"] = asdict(settings)  # the plan records the chunking used
+    if settings.chunk_frames is not None and settings.chunk_frames < 2:
         raise ConfigError(f"chunk_frames must be >= 2, got {settings.chunk_frames}")
+    if settings.chunk_frames is None and not (settings.chunk_workers or 0) >= 1:
+        raise ConfigError(f"chunk_workers must be >= 1, got {settings.chunk_workers}")
     _prepare_out(out, plan, force)
     t0 = time.monotonic()
     tasks, reused, total = [], 0, sum(e.n_positions for e in exams)
@@ -723,7 +744,9 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     masks = {}
     study_problems = [["", *p] for p in (problems or [])]
     usable = []
+    after = total  # the study's frames from each exam's start on (guided chunks shrink toward the study's end)
     for e in exams:
+        after -= e.n_positions
         try:
             mask = _mask_for(e)
         except InputError as exc:
@@ -736,9 +759,11 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
         (out / e.name / "chunks").mkdir(parents=True, exist_ok=True)
         write_mask(out / e.name / "mask.png", mask, camera_from_dict(e.camera))  # the field of view used
         src = e.frame_source()
-        for i, (a, b) in enumerate(chunk_bounds(e.n_positions, settings.chunk_frames)):
+        bounds = (chunk_bounds(e.n_positions, settings.chunk_frames) if settings.chunk_frames is not None
+                  else guided_chunk_bounds(e.n_positions, settings.chunk_workers, after))
+        for i, (a, b) in enumerate(bounds):
             f = out / e.name / "chunks" / f"chunk_{i:06d}.json"
-            if _valid_chunk(f, i):
+            if _valid_chunk(f, i, a, b):
                 reused += 1
                 done_frames += b - a + (a == 0)
                 continue
@@ -843,30 +868,34 @@ def _in_background(calls: list[Callable[[], None]], thread: bool = True) -> Call
     return wait
 
 
-def _chunk_frames_for(out: Path, plan: dict, exams: list[Exam], jobs: int | None) -> int:
-    """The automatic chunk size for ``plan`` (whose ``chunk_frames`` is not chosen yet): the one of the run already
-    in ``out`` when everything else matches (a resumed run keeps its chunks whatever ``--jobs`` it is resumed
-    with), else :func:`auto_chunk_frames` for this study and the workers (``jobs``, default one per core)."""
+def _chunking_for(out: Path, plan: dict, exams: list[Exam], jobs: int | None) -> dict:
+    """The automatic chunking for ``plan`` (whose chunking is not chosen yet), as ``BatchSettings`` fields: the one
+    of the run already in ``out`` when everything else matches (a resumed run keeps its chunks whatever ``--jobs``
+    it is resumed with), else guided chunks (:func:`guided_chunk_bounds`) for the workers (``jobs``, default one per
+    core)."""
 
     def unsized(pl: dict) -> dict:
-        return dict(pl, settings=dict(pl["settings"], chunk_frames=None))
+        return dict(pl, settings=dict(pl["settings"], chunk_frames=None, chunk_workers=None))
 
     try:
         old = read_json(out / "batch.json")["plan"]
-        size = old["settings"]["chunk_frames"]
-        if unsized(old) == json.loads(json.dumps(unsized(plan))) and isinstance(size, int) and size >= 2:
-            return size
+        size, workers = old["settings"]["chunk_frames"], old["settings"]["chunk_workers"]
+        if unsized(old) == json.loads(json.dumps(unsized(plan))):
+            if isinstance(size, int) and size >= 2 and workers is None:
+                return {"chunk_frames": size, "chunk_workers": None}
+            if size is None and isinstance(workers, int) and workers >= 1:
+                return {"chunk_frames": None, "chunk_workers": workers}
     except (InputError, KeyError, TypeError, AttributeError):
         pass
-    return auto_chunk_frames(sum(e.n_positions for e in exams), jobs or available_cores())
+    return {"chunk_frames": None, "chunk_workers": int(jobs or available_cores())}
 
 
-def _valid_chunk(path: Path, i: int) -> bool:
+def _valid_chunk(path: Path, i: int, first: int, last: int) -> bool:
     if not path.is_file():
         return False
     try:
         d = json.loads(path.read_text(encoding="utf-8"))
-        return d.get("chunk") == i and "steps" in d
+        return d.get("chunk") == i and d.get("first") == first and d.get("last") == last and "steps" in d
     except (OSError, ValueError):
         return False
 

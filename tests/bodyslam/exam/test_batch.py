@@ -83,12 +83,19 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     assert list(ph) == ["first_chunk", "chunks", "bridges", "exams"] and list(ph.values()) == sorted(ph.values())
 
 
-def test_chunking_and_workers_do_not_change_results(tmp_path):
+def test_chunking_and_workers_do_not_change_results(tmp_path, monkeypatch):
     e = open_exams([str(DEMO)])
     run_batch(e, tmp_path / "a", BatchSettings(chunk_frames=40), jobs=1)
     run_batch(open_exams([str(DEMO)]), tmp_path / "b", BatchSettings(chunk_frames=7), jobs=2)
+    # guided chunks, with a floor of 3 frames so the 40-frame demo gets several: 6, 5, 4, 4, 3, 3, ... steps
+    monkeypatch.setattr("bodyslam.exam.batch.CHUNK_FRAMES_RANGE", (3, 500))
+    run_batch(open_exams([str(DEMO)]), tmp_path / "c", BatchSettings(chunk_workers=2), jobs=2)
+    chunks = [json.loads(f.read_text()) for f in sorted((tmp_path / "c" / "demo_seed0" / "chunks").glob("*.json"))]
+    sizes = [c["last"] - c["first"] for c in chunks]
+    assert len(sizes) >= 6 and sizes[0] > sizes[-2] and sum(sizes) == 39
     # chunk size is part of the plan but not of the results
     _same_outputs(tmp_path / "a" / "demo_seed0", tmp_path / "b" / "demo_seed0")
+    _same_outputs(tmp_path / "a" / "demo_seed0", tmp_path / "c" / "demo_seed0")
 
 
 def test_kill_9_then_same_command_resumes_with_identical_results(tmp_path):
@@ -309,27 +316,34 @@ def test_a_broken_exam_in_a_study_is_listed_and_the_others_finish(tmp_path, caps
     assert "broken.mp4" in capsys.readouterr().err
 
 
-def test_the_automatic_chunk_size_keeps_every_worker_busy_and_a_resume_keeps_its_chunks(tmp_path):
-    """Each worker gets >= 4 chunks within 20-500 frames; the plan (batch.json) records the size used; resuming the same run
-    with another --jobs keeps the chunks it has (their size came from the first run's workers)."""
-    from bodyslam.exam.batch import auto_chunk_frames
+def test_guided_chunks_shrink_toward_the_end_and_a_resume_keeps_its_chunks(tmp_path):
+    """Guided chunks cover the exam once, overlapping by one frame, within 20-500 frames and shrinking toward the
+    study's end (an exam followed by others keeps bigger chunks at its own end); the plan (batch.json) records the
+    workers they were sized for, and resuming with another --jobs keeps the chunks the run has."""
+    from bodyslam.exam.batch import CHUNK_FRAMES_RANGE, guided_chunk_bounds
 
-    assert auto_chunk_frames(55_000, 2) == 500 and auto_chunk_frames(10_000, 16) == 156
-    assert auto_chunk_frames(40, 2) == 20 and auto_chunk_frames(2000, 16) == 31
-    for n, w in ((55_000, 2), (10_000, 16), (2000, 16), (600, 2)):
-        size = auto_chunk_frames(n, w)
-        assert -(-n // size) >= 4 * w or size == 20
+    for n, w in ((55_000, 2), (10_000, 16), (2000, 16), (600, 2), (40, 2), (21, 4)):
+        b = guided_chunk_bounds(n, w)
+        assert b[0][0] == 0 and b[-1][1] == n - 1 and all(x[1] == y[0] for x, y in zip(b, b[1:]))
+        sizes = [y - x for x, y in b]
+        assert all(CHUNK_FRAMES_RANGE[0] <= z <= CHUNK_FRAMES_RANGE[1] for z in sizes[:-1]) or len(b) == 1
+        assert sizes[:-1] == sorted(sizes[:-1], reverse=True)  # never bigger than the chunk before
+        assert len(b) >= 2 * w or min(sizes[:-1], default=20) <= 2 * CHUNK_FRAMES_RANGE[0]  # workers fed to the end
+    assert [y - x for x, y in guided_chunk_bounds(10_000, 16)][:2] == [208, 203]  # 1/3 of 9,999 steps / 16, then of the rest
+    assert guided_chunk_bounds(1000, 2, after=100_000)[-1][1] - guided_chunk_bounds(1000, 2, after=100_000)[-1][0] > 300
     out = tmp_path / "run"
     rep = run_batch(open_exams([str(DEMO)]), out, BatchSettings(), jobs=2)
     plan = json.loads((out / "batch.json").read_text())["plan"]
-    assert plan["settings"]["chunk_frames"] == 20 and rep.chunks_computed == 2  # 40 frames: 20 (the floor)
-    again = run_batch(open_exams([str(DEMO)]), out, BatchSettings(), jobs=1)  # 1 job alone would still give 20
-    assert again.chunks_reused == 2 and again.chunks_computed == 0
-    # a size no automatic choice gives for 40 frames (7) is kept too: the resume follows the run in OUT
+    assert plan["settings"]["chunk_workers"] == 2 and plan["settings"]["chunk_frames"] is None
+    assert rep.chunks_computed == 1  # 39 steps: one chunk (a rest under 20 frames joins it)
+    again = run_batch(open_exams([str(DEMO)]), out, BatchSettings(), jobs=1)
+    assert again.chunks_reused == 1 and again.chunks_computed == 0
+    # equal chunks of a size the guided rule never gives (7) are kept too: the resume follows the run in OUT
     out7 = tmp_path / "run7"
     run_batch(open_exams([str(DEMO)]), out7, BatchSettings(chunk_frames=7), jobs=2)
     resumed = run_batch(open_exams([str(DEMO)]), out7, BatchSettings(), jobs=1)
     assert resumed.chunks_computed == 0 and resumed.chunks_reused == 6
+    _same_outputs(out / "demo_seed0", out7 / "demo_seed0")
 
 
 def test_the_reports_duration_reads_as_a_person_would():
