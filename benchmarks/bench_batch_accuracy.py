@@ -6,7 +6,8 @@ classifier, RF fused from the sequence's `rf.csv` and `sensors.csv`), then score
 the sequence keeps (scoring only; the pipeline never reads it):
 
 - the path travelled at the exam's end (`summary.json`) against `truth.json`'s, whether the error lies inside the
-  stated 1-sigma, and the share of the path in steps without an estimate (`path_without_estimate_share`);
+  stated 1-sigma, and the share of the path in steps without an estimate (`path_without_estimate_share`) and in
+  fits beside the wall (`path_beside_wall_share`: both the speed model's lengths);
 - the steps (`testbed score-motion`'s code): share with a full estimate, mean distance error, share fitted beside
   the wall;
 - FT/FL (`frames.csv` against `labels.csv`): lumen-facing frames called FL, wall-facing frames found;
@@ -72,6 +73,7 @@ def score_exam(seq: Path, ex: Path) -> dict:
         "path_m": path, "sd_path_m": sd_path, "true_path_m": true_path, "path_error_rel": path / true_path - 1.0,
         "path_inside_1sigma": bool(abs(path - true_path) <= sd_path),
         "path_without_estimate_share": summary.get("path_without_estimate_share"),
+        "path_beside_wall_share": summary.get("path_beside_wall_share"),
         "steps_estimated": motion["coverage"], "step_distance_error_cm": motion["all"]["mae_distance_cm"],
         "steps_beside_wall": float(np.mean(beside)) if beside else 0.0,
         "lumen_facing_called_fl": float(np.mean(ft == "FL")) if len(ft) else None,
@@ -89,7 +91,8 @@ def fmt(r: dict) -> str:
     ft = "--" if r["lumen_facing_called_fl"] is None else f"{r['lumen_facing_called_fl']:.3f}"
     return (f"path {100 * r['path_error_rel']:+.1f}% ({100 * r['path_m']:.1f} +- {100 * r['sd_path_m']:.1f} cm of "
             f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}; "
-            f"{100 * (r['path_without_estimate_share'] or 0.0):.0f}% of it without an estimate); steps "
+            f"{100 * (r['path_without_estimate_share'] or 0.0):.0f}% of it without an estimate, "
+            f"{100 * (r['path_beside_wall_share'] or 0.0):.0f}% in fits beside the wall); steps "
             f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
             f"{r['steps_beside_wall']:.2f}, rotation {r['steps_rotation']} (+{r['steps_rotation_slow']} slow), lost "
             f"{r['steps_lost']}; lumen-facing called FL {ft}, wall-facing found {fl}; fused "
@@ -134,8 +137,8 @@ def main() -> None:
         rows[seed] = dict(score_exam(seq, ex), batch_s=el, exit=p.returncode)
         print(f"{args.scenario} {seed}: {fmt(rows[seed])} ({el:.0f} s)", flush=True)
     errs = np.array([r["path_error_rel"] for r in rows.values()])
-    keys = ("path_inside_1sigma", "path_without_estimate_share", "steps_estimated", "step_distance_error_cm", "steps_beside_wall",
-            "lumen_facing_called_fl", "wall_facing_found", "fused_mean_error_cm", "fused_inside_68")
+    keys = ("path_inside_1sigma", "path_without_estimate_share", "path_beside_wall_share", "steps_estimated",
+            "step_distance_error_cm", "steps_beside_wall", "lumen_facing_called_fl", "wall_facing_found", "fused_mean_error_cm", "fused_inside_68")
     mean = {k: float(np.mean([r[k] for r in rows.values() if r[k] is not None])) for k in keys}
     mean.update(path_error_rel=float(np.mean(errs)), path_error_median=float(np.median(errs)),
                 path_error_abs=float(np.mean(np.abs(errs))), path_error_worst=float(np.max(np.abs(errs))))
@@ -143,7 +146,9 @@ def main() -> None:
     print(f"mean over {len(rows)} seeds: path {100 * mean['path_error_rel']:+.1f}% (median "
           f"{100 * mean['path_error_median']:+.1f}%, mean absolute "
           f"{100 * mean['path_error_abs']:.1f}%, worst {100 * mean['path_error_worst']:.1f}%; ends inside 1-sigma "
-          f"{mean['path_inside_1sigma']:.2f}); steps {mean['steps_estimated']:.3f} estimated, "
+          f"{mean['path_inside_1sigma']:.2f}; {100 * mean['path_without_estimate_share']:.0f}% of it without an "
+          f"estimate, {100 * mean.get('path_beside_wall_share', 0.0):.0f}% in fits beside the wall); steps "
+          f"{mean['steps_estimated']:.3f} estimated, "
           f"{mean['step_distance_error_cm']:.4f} cm, beside the wall {mean['steps_beside_wall']:.2f}, in all rotation "
           f"{total['steps_rotation']} (+{total['steps_rotation_slow']} slow), lost {total['steps_lost']}; lumen-facing "
           f"called FL {mean['lumen_facing_called_fl']:.3f}, wall-facing found {mean['wall_facing_found']:.2f}; fused "

@@ -532,10 +532,13 @@ def _check_bias_states(args) -> None:
 
 
 def _path_filled_text(path_m, steps) -> str:
-    """The printed path's share in steps without an estimate (bodyslam.vision.tracking.path_share_text), or ""."""
-    from bodyslam.vision.tracking import path_share_text, share_without_estimate, step_length
+    """The printed path's share in steps without an estimate and in fits beside the wall
+    (bodyslam.vision.tracking.path_share_text), or ""."""
+    from bodyslam.vision.tracking import path_share_text, share_beside_wall, share_without_estimate, step_length
 
-    return path_share_text(share_without_estimate(path_m, [step_length(s)[0] for s in steps]))
+    length = [step_length(s)[0] for s in steps]
+    return path_share_text(share_without_estimate(path_m, length),
+                           share_beside_wall(path_m, length, [s.beside_wall for s in steps]))
 
 
 def _localize(args) -> int:
@@ -640,7 +643,7 @@ def _batch(args) -> int:
         c = s["classes"]
         classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
-        filled = path_share_text(s.get("path_without_estimate_share", 0.0))
+        filled = path_share_text(s.get("path_without_estimate_share", 0.0), s.get("path_beside_wall_share", 0.0))
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "
               f"({steps.get('wall', 0)} facing the wall, "
               + (f"{s['steps_beside_wall']} fitted beside the wall, " if s["steps_beside_wall"] else "")

@@ -1099,7 +1099,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
     from bodyslam.steps import WITH_ROTATION, lost_step_floor_m, lost_to_motion
-    from bodyslam.vision.tracking import path_from_lengths, share_without_estimate, step_length
+    from bodyslam.vision.tracking import path_from_lengths, share_beside_wall, share_without_estimate, step_length
 
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
@@ -1171,6 +1171,9 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                "sd_path_travelled_m": math.sqrt(float(path_var[-1])) if n else 0.0,
                # the share of that path in steps without an estimate: the missing-step model's lengths, not the frames'
                "path_without_estimate_share": share_without_estimate(path_m, acc.length[1:n]) if n else 0.0,
+               # ... and in fits beside the wall, whose lengths are the speed model's (the fit a weak reading)
+               "path_beside_wall_share": (share_beside_wall(path_m, acc.length[1:n], acc.beside_wall[1:n]) if n
+                                          else 0.0),
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
                               + (" and refined" if settings.fusion == "rss" else "")
                               + ("; per-sensor RSS bias states)"
@@ -1453,7 +1456,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                                      "kw": {"body_frame": fused}}, jobs)
     sm = summary
     cls = sm["classes"]
-    filled = path_share_text(sm.get("path_without_estimate_share", 0.0))
+    filled = path_share_text(sm.get("path_without_estimate_share", 0.0), sm.get("path_beside_wall_share", 0.0))
     fr = sm.get("frame_range")
     rows = [["source", f"{sm['source']} ({sm['kind']})" + (f"; frames {fr[0]}-{fr[1]} of it" if fr else "")],
             ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"

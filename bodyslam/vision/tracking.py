@@ -25,7 +25,8 @@ from bodyslam.steps import (BESIDE_WALL_LOG_SD, HAMPERED_ENTER_PROB, HAMPERED_ST
                             StepMotion, lost_step_floor_m, lost_to_motion)
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "missing_step_lengths", "step_length",
-           "scale_path_variance", "segment_variance", "share_without_estimate", "path_share_text", "SCALE_CORR_M"]
+           "scale_path_variance", "segment_variance", "share_without_estimate", "share_beside_wall", "path_share_text",
+           "SCALE_CORR_M"]
 
 # the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
 # the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
@@ -281,22 +282,38 @@ def share_without_estimate(path_m: np.ndarray, length_m: np.ndarray) -> float:
     not the frames. 0 for a path of length 0. Where it is large the path is mostly the model's (session 47: a
     realistic exam in turbid fluid had 82 steps lost to matching filled as a fast phase, its path four times the
     truth); the reports say so beside the path."""
+    return _path_share(path_m, ~np.isfinite(np.asarray(length_m, float)))
+
+
+def share_beside_wall(path_m: np.ndarray, length_m: np.ndarray, beside_wall: np.ndarray) -> float:
+    """The share of the path travelled to the end that lies in the estimated steps fitted beside the wall
+    (``beside_wall``): since session 49 their lengths are the speed model's, the fit only a weak reading of them
+    (:func:`missing_step_lengths`), so the reports give it beside :func:`share_without_estimate`'s."""
+    return _path_share(path_m, np.isfinite(np.asarray(length_m, float)) & np.asarray(beside_wall, bool))
+
+
+def _path_share(path_m: np.ndarray, steps: np.ndarray) -> float:
     path = np.asarray(path_m, float)
     total = float(path[-1]) if len(path) else 0.0
     if not total > 0:
         return 0.0
-    missing = ~np.isfinite(np.asarray(length_m, float))
-    return float(np.sum(np.diff(path)[missing]) / total)
+    return float(np.sum(np.diff(path)[steps]) / total)
 
 
-def path_share_text(share: float) -> str:
-    """The path's share in steps without an estimate, as the report and the CLI say it beside the path travelled:
-    ``"85% of it in steps without an estimate: the missing-step model's lengths, not the frames'"``, or ``""``
-    where every step was estimated."""
-    if not share > 0:
-        return ""
-    pct = f"{100 * share:.0f}%" if share >= 0.005 else "<1%"
-    return f"{pct} of it in steps without an estimate: the missing-step model's lengths, not the frames'"
+def path_share_text(share: float, beside_wall_share: float = 0.0) -> str:
+    """The path's share in steps without an estimate (and in fits beside the wall), as the report and the CLI say
+    it beside the path travelled: ``"85% of it in steps without an estimate: the missing-step model's lengths, not
+    the frames'"``, ``"... and 20% in fits beside the wall: the speed model's lengths, not the frames' (a fit beside
+    the wall is a weak reading of its length)"``, or ``""`` where neither holds any of it."""
+
+    def pct(x: float) -> str:
+        return f"{100 * x:.0f}%" if x >= 0.005 else "<1%"
+
+    if not beside_wall_share > 0:
+        return (f"{pct(share)} of it in steps without an estimate: the missing-step model's lengths, not the frames'"
+                if share > 0 else "")
+    return (f"{pct(share)} of it in steps without an estimate and {pct(beside_wall_share)} in fits beside the wall: "
+            "the speed model's lengths, not the frames' (a fit beside the wall is a weak reading of its length)")
 
 
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,

@@ -470,6 +470,12 @@ def test_the_summary_counts_the_steps_fitted_beside_the_wall(tmp_path, monkeypat
     assert summary["steps_beside_wall"] == len(flagged) > 0
     assert all(r["status"] in ("ok", "wall") for r in flagged)
     assert f"{len(flagged)} of the estimated steps fitted beside the wall" in (d / "report.html").read_text()
+    # their share of the path (lengths the speed model gave them), as uncertainty.csv's path column holds it
+    wall = np.array([r["beside_wall"] == "1" for r in _rows(d / "motion.csv")])
+    path = np.array([float(r["path_m"]) for r in _rows(d / "uncertainty.csv")])
+    share = float(np.diff(path)[wall].sum() / path[-1])
+    assert 0 < summary["path_beside_wall_share"] == pytest.approx(share)
+    assert f"{100 * share:.0f}% in fits beside the wall" in (d / "report.html").read_text()
 
 
 def test_the_summary_says_how_much_of_the_path_the_missing_steps_hold(tmp_path, monkeypatch):

@@ -396,3 +396,21 @@ def test_the_share_of_the_path_without_an_estimate_counts_the_filled_steps_only(
     full = np.array([1e-3, 2e-3, 1e-3])
     assert share_without_estimate(np.r_[0.0, np.cumsum(full)], full) == 0.0
     assert share_without_estimate(np.zeros(4), np.array([np.nan, 0.0, np.nan])) == 0.0
+
+
+def test_the_share_of_the_path_beside_the_wall_counts_those_fits_only_and_is_said():
+    """``share_beside_wall``: the path's share in the estimated steps fitted beside the wall (their lengths the
+    speed model's), not in the steps without an estimate; ``path_share_text`` says both."""
+    from bodyslam.vision.tracking import path_from_lengths, path_share_text, share_beside_wall, share_without_estimate
+
+    length = np.array([1e-3, np.nan, 2e-3, 1e-5, 1e-3, 1e-3])
+    lost = np.isnan(length)
+    wall = np.array([False, True, False, True, False, False])  # the NaN step's flag does not count
+    path, _ = path_from_lengths(length, np.where(lost, 0.0, 1e-8), lost=lost, radius_m=0.0125, beside_wall=wall)
+    inc = np.diff(path)
+    assert share_beside_wall(path, length, wall) == pytest.approx(inc[3] / path[-1])
+    assert share_beside_wall(path, length, np.zeros(6, bool)) == 0.0
+    text = path_share_text(share_without_estimate(path, length), share_beside_wall(path, length, wall))
+    assert text.startswith(f"{100 * inc[1] / path[-1]:.0f}% of it in steps without an estimate and "
+                           f"{100 * inc[3] / path[-1]:.0f}% in fits beside the wall")
+    assert path_share_text(0.0, 0.0) == "" and "beside" not in path_share_text(0.2)
