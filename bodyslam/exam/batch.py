@@ -1491,7 +1491,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                + "; the path travelled is the sum of the visual steps, a step without a distance given a length "
                  "from the capsule's speed around it, one lost to motion (status rotation or lost; not rotation_slow) "
                  "as one the matcher could not reach (half of the steps are lost at "
-                 f"{LOST_STEP_FLOOR_R:g} lumen radii); its 1-sigma includes the lumen radius's and each filled step's "
+                 f"{LOST_STEP_FLOOR_R:g} lumen radii), and a fit beside the wall its length mostly from that speed "
+                 "too (the fit a weak reading of it); its 1-sigma includes the lumen radius's and each filled step's "
                  f"(at least {MISSING_STEP_REL_SD:.0%} of it).", body,
                ["trajectory.png", "path.png"])
     drawn()  # the plot is in place before the run says it is done

@@ -303,8 +303,8 @@ def _path_share(path_m: np.ndarray, steps: np.ndarray) -> float:
 def path_share_text(share: float, beside_wall_share: float = 0.0) -> str:
     """The path's share in steps without an estimate (and in fits beside the wall), as the report and the CLI say
     it beside the path travelled: ``"85% of it in steps without an estimate: the missing-step model's lengths, not
-    the frames'"``, ``"... and 20% in fits beside the wall: the speed model's lengths, not the frames' (a fit beside
-    the wall is a weak reading of its length)"``, or ``""`` where neither holds any of it."""
+    the frames'"``, ``"... and 20% in fits beside the wall: the speed model's lengths more than the frames'"`` (such
+    a fit is a weak reading of its length), or ``""`` where neither holds any of it."""
 
     def pct(x: float) -> str:
         return f"{100 * x:.0f}%" if x >= 0.005 else "<1%"
@@ -313,7 +313,7 @@ def path_share_text(share: float, beside_wall_share: float = 0.0) -> str:
         return (f"{pct(share)} of it in steps without an estimate: the missing-step model's lengths, not the frames'"
                 if share > 0 else "")
     return (f"{pct(share)} of it in steps without an estimate and {pct(beside_wall_share)} in fits beside the wall: "
-            "the speed model's lengths, not the frames' (a fit beside the wall is a weak reading of its length)")
+            "the speed model's lengths more than the frames'")
 
 
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
