@@ -30,14 +30,13 @@ Chunks, checkpoints, resuming
 -----------------------------
 An exam's frames are cut into chunks (by default guided, :func:`guided_chunk_bounds`: big ones first, smaller ones
 toward the study's end, so every worker stays busy to it; ``chunk_frames``: equal ones) that overlap by one frame
-(chunk ``i`` computes the steps into its frames, so every step belongs to exactly one chunk). A chunk's result is
-a small JSON file in
-``OUT/<exam>/chunks/``, written atomically; its computation depends only on its own frames, so results do not
-depend on the order, the number of workers or where they ran. ``OUT/batch.json`` holds the plan (inputs, a
-fingerprint of the files, settings, chunking). Running the same command again resumes: finished chunks are
-reused, the rest computed, and the outputs (always rebuilt from the chunk files) are identical to an
-uninterrupted run's. A plan that differs from the one in ``OUT`` (other inputs or settings) is refused unless
-``force`` (which clears ``OUT`` first); a non-empty ``OUT`` without a plan is never written into without it.
+(chunk ``i`` computes the steps into its frames, so every step belongs to exactly one chunk). A chunk's result is a
+small JSON file in ``OUT/<exam>/chunks/``, written atomically; its computation depends only on its own frames, so
+results do not depend on the order, the number of workers or where they ran. ``OUT/batch.json`` holds the plan
+(inputs, a fingerprint of the files, settings, chunking). Running the same command again resumes: finished chunks are
+reused, the rest computed, and the outputs (always rebuilt from the chunk files) are identical to an uninterrupted
+run's. A plan that differs from the one in ``OUT`` (other inputs or settings) is refused unless ``force`` (which
+clears ``OUT`` first); a non-empty ``OUT`` without a plan is never written into without it.
 
 Memory
 ------
