@@ -47,7 +47,7 @@ __all__ = ["StepStatus", "MEASURED", "WITH_ESTIMATE", "WITH_ROTATION", "StepMoti
            "rotation_step", "lost_to_motion", "StepLengths", "SIGMA_T_DEFAULT_M", "SIGMA_R_DEFAULT_RAD",
            "LOST_STEP_QUANTILE", "LOST_STEP_FLOOR_R", "lost_step_floor_m", "LOST_TO_MOTION", "LOSS_SLOPE",
            "STEP_MAX_R", "SPEED_JUMP_PROB", "MISSING_STEP_REL_SD", "HAMPERED_ENTER_PROB", "HAMPERED_STAY_PROB",
-           "BESIDE_WALL_LOG_SD"]
+           "BESIDE_WALL_LOG_SD", "LOSS_SCALE_GRID", "LOSS_SCALE_PRIOR_LOG_SD"]
 
 NAN = float("nan")
 # 1-sigma assumed for an estimated step whose file gave none (a motion.csv from another tool)
@@ -95,6 +95,14 @@ HAMPERED_STAY_PROB = 0.6
 #   takes its length from the speed model, the fit's length observing it with this 1-sigma in ln(length)
 #   (chosen among 1, 2 and 3 with the hampered state above)
 BESIDE_WALL_LOG_SD = 1.0
+# - the loss curve's scale is the exam's own (session 50): its half-loss length is taken among these multiples of
+#   LOST_STEP_FLOOR_R as the one under which the exam's steps (lost and not) are likeliest, with a prior of this
+#   1-sigma in ln(scale) about 1. An exam in turbid fluid loses shorter steps than the matcher's measured curve says
+#   (slow tuning renders 587-590: 10% of the steps of 0.1-0.2 radii lost, against 2-5% at the dissertation's pace).
+#   Chosen on the nineteen realistic tuning renders (587-598, 580-586) among three grids and prior widths 0.5 / 1:
+#   mean absolute path error 10.9 -> 9.1% (slow 11.2 -> 7.5, dissertation's pace 9.8 -> 7.6 and 11.5 -> 10.3)
+LOSS_SCALE_GRID = (0.5, 0.71, 1.0, 1.41)
+LOSS_SCALE_PRIOR_LOG_SD = 1.0
 
 
 def lost_step_floor_m(radius_m: float | None) -> float:

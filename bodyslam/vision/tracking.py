@@ -20,9 +20,10 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bodyslam.steps import (BESIDE_WALL_LOG_SD, HAMPERED_ENTER_PROB, HAMPERED_STAY_PROB, LOSS_SLOPE, LOST_STEP_FLOOR_R,
-                            LOST_STEP_QUANTILE, MISSING_STEP_REL_SD, SPEED_JUMP_PROB, STEP_MAX_R, WITH_ROTATION,
-                            StepMotion, lost_step_floor_m, lost_to_motion)
+from bodyslam.steps import (BESIDE_WALL_LOG_SD, HAMPERED_ENTER_PROB, HAMPERED_STAY_PROB, LOSS_SCALE_GRID,
+                            LOSS_SCALE_PRIOR_LOG_SD, LOSS_SLOPE, LOST_STEP_FLOOR_R, LOST_STEP_QUANTILE,
+                            MISSING_STEP_REL_SD, SPEED_JUMP_PROB, STEP_MAX_R, WITH_ROTATION, StepMotion,
+                            lost_step_floor_m, lost_to_motion)
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "missing_step_lengths", "step_length",
            "scale_path_variance", "segment_variance", "share_without_estimate", "share_beside_wall", "path_share_text",
@@ -99,8 +100,8 @@ _DEFAULT_LOG_STEP_SD = 0.5
 
 
 def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndarray, radius_m: float,
-                         beside_wall: np.ndarray | None = None,
-                         rotated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                         beside_wall: np.ndarray | None = None, rotated: np.ndarray | None = None,
+                         info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The length (m) and its 1-sigma of every step without an estimate (NaN in ``length_m``) and of every step
     fitted beside its own tube's wall (``beside_wall``; None: none), from the speed around it: ``(mean_m (n,),
     sd_m (n,))``, NaN at the other estimated steps. ``rotated``: the steps without an estimate that carry a rotation
@@ -159,7 +160,6 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
     T = T.astype(np.float32)
     a_in, a_stay = np.float32(HAMPERED_ENTER_PROB), np.float32(HAMPERED_STAY_PROB)
     pi_h = a_in / (a_in + 1 - a_stay)  # the hampered state's stationary share: an exam read backwards is read alike
-    p_lost = 1.0 / (1.0 + np.exp(-LOSS_SLOPE * (u - math.log(LOST_STEP_FLOOR_R))))
     # windows: each run of modelled steps with its context, overlapping windows merged
     windows: list[list[int]] = []
     miss = np.flatnonzero(model)
@@ -176,6 +176,7 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
         else:
             windows.append([a, b])
     blk = 4096  # emission rows in blocks, made twice (forward and backward): float64 temporaries of a few MB
+    p_lost = not_lost = None
 
     def emissions(a: int, b: int) -> np.ndarray:
         """The unhampered state's likelihood of steps a..b-1's observations over the grid, (b - a, bins) float32."""
@@ -193,29 +194,33 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
                       + (radius_m * _GRID_LO_R) ** 2)
                 ll = -0.5 * (d - d_grid) ** 2 / s2 - 0.5 * np.log(s2)
             E[r] = np.exp(ll - ll.max(axis=1, keepdims=True))
+            if kind is not w:  # an ordinary fit: matching did not lose it
+                E[r] *= not_lost
         E[~e & lost[a:b]] = p_lost
         return E
+
+    def loss_curve(scale: float) -> None:
+        nonlocal p_lost, not_lost
+        p_lost = (1.0 / (1.0 + np.exp(-LOSS_SLOPE * (u - math.log(scale * LOST_STEP_FLOOR_R))))).astype(np.float32)
+        not_lost = np.float32(1.0) - p_lost
+
+    # the loss curve's scale: the exam's likeliest under its prior (LOSS_SCALE_GRID), from forward passes alone
+    score = []
+    for scale in LOSS_SCALE_GRID:
+        loss_curve(scale)
+        score.append(_forward(windows, emissions, hampered, T, pi_h, a_in, a_stay, keep=False)[2]
+                     - 0.5 * (math.log(scale) / LOSS_SCALE_PRIOR_LOG_SD) ** 2)
+    chosen = LOSS_SCALE_GRID[int(np.argmax(score))]
+    loss_curve(chosen)
+    if info is not None:
+        info["loss_scale"] = chosen
 
     zero = np.zeros(_GRID_BINS, np.float32)
     for a, b in windows:
         m = b - a
         H = hampered[a:b]  # the hampered state's likelihood of each step's observation: 1 or 0
         slot = np.cumsum(H) - 1  # its forward pass is kept only where it can be non-zero
-        fwd = np.empty((m, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
-        fwd1 = np.empty((int(H.sum()), _GRID_BINS), np.float32)
-        # forward: p0 the speed with matching unhampered, p1 hampered (each step normalised over both)
-        p0 = np.full(_GRID_BINS, (1 - pi_h) / _GRID_BINS, np.float32)
-        p1 = np.full(_GRID_BINS, pi_h / _GRID_BINS, np.float32)
-        for c in range(0, m, blk):
-            E = emissions(a + c, a + min(c + blk, m))
-            for k in range(c, min(c + blk, m)):
-                f0 = (((1 - a_in) * p0 + (1 - a_stay) * p1) @ T) * E[k - c]
-                f1 = ((a_in * p0 + a_stay * p1) @ T) if H[k] else zero
-                z = f0.sum() + f1.sum()
-                p0, p1 = f0 / z, f1 / z
-                fwd[k] = p0
-                if H[k]:
-                    fwd1[slot[k]] = p1
+        fwd, fwd1, _ = _forward([(a, b)], emissions, hampered, T, pi_h, a_in, a_stay, keep=True)
         # backward, the posterior (the speed's marginal over both states) written over the forward pass
         g0, g1 = np.ones(_GRID_BINS, np.float32), np.ones(_GRID_BINS, np.float32)
         if H[m - 1]:
@@ -242,6 +247,42 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
             mean[a + r] = mu
             sd[a + r] = np.maximum(np.sqrt(np.maximum(m2 - mu * mu, 0.0)), MISSING_STEP_REL_SD * mu)
     return mean, sd
+
+
+def _forward(windows, emissions, hampered, T, pi_h, a_in, a_stay, keep: bool):
+    """The forward pass of :func:`missing_step_lengths`' two chains over ``windows``: ``p0`` the speed with
+    matching unhampered, ``p1`` hampered, each step normalised over both. Returns ``(fwd, fwd1, loglik)``: with
+    ``keep`` (one window) the unhampered state's filtered distribution at every step ``(m, bins)`` and the hampered
+    one's where it can be non-zero; and the log-likelihood of the windows' observations (the sum of the
+    normalisers: emissions are scaled per step, by amounts that do not depend on the loss curve)."""
+    blk = 4096
+    zero = np.zeros(_GRID_BINS, np.float32)
+    loglik = 0.0
+    fwd = fwd1 = None
+    for a, b in windows:
+        m = b - a
+        H = hampered[a:b]
+        slot = np.cumsum(H) - 1
+        if keep:
+            fwd = np.empty((m, _GRID_BINS), np.float32)  # float32: a whole exam can be one window
+            fwd1 = np.empty((int(H.sum()), _GRID_BINS), np.float32)
+        p0 = np.full(_GRID_BINS, (1 - pi_h) / _GRID_BINS, np.float32)
+        p1 = np.full(_GRID_BINS, pi_h / _GRID_BINS, np.float32)
+        for c in range(0, m, blk):
+            E = emissions(a + c, a + min(c + blk, m))
+            zs = np.empty(min(c + blk, m) - c)
+            for k in range(c, min(c + blk, m)):
+                f0 = (((1 - a_in) * p0 + (1 - a_stay) * p1) @ T) * E[k - c]
+                f1 = ((a_in * p0 + a_stay * p1) @ T) if H[k] else zero
+                z = f0.sum() + f1.sum()
+                zs[k - c] = z
+                p0, p1 = f0 / z, f1 / z
+                if keep:
+                    fwd[k] = p0
+                    if H[k]:
+                        fwd1[slot[k]] = p1
+            loglik += float(np.sum(np.log(np.maximum(zs, 1e-300))))
+    return fwd, fwd1, loglik
 
 
 def path_travelled(steps: list[StepMotion], scale_sd_rel: float = 0.0,
