@@ -74,6 +74,7 @@ def score_exam(seq: Path, ex: Path) -> dict:
         "path_inside_1sigma": bool(abs(path - true_path) <= sd_path),
         "path_without_estimate_share": summary.get("path_without_estimate_share"),
         "path_beside_wall_share": summary.get("path_beside_wall_share"),
+        "path_loss_half_length_r": summary.get("path_loss_half_length_r"),
         "steps_estimated": motion["coverage"], "step_distance_error_cm": motion["all"]["mae_distance_cm"],
         "steps_beside_wall": float(np.mean(beside)) if beside else 0.0,
         "lumen_facing_called_fl": float(np.mean(ft == "FL")) if len(ft) else None,
@@ -92,7 +93,8 @@ def fmt(r: dict) -> str:
     return (f"path {100 * r['path_error_rel']:+.1f}% ({100 * r['path_m']:.1f} +- {100 * r['sd_path_m']:.1f} cm of "
             f"{100 * r['true_path_m']:.1f}{', inside 1-sigma' if r['path_inside_1sigma'] else ''}; "
             f"{100 * (r['path_without_estimate_share'] or 0.0):.0f}% of it without an estimate, "
-            f"{100 * (r['path_beside_wall_share'] or 0.0):.0f}% in fits beside the wall); steps "
+            f"{100 * (r['path_beside_wall_share'] or 0.0):.0f}% in fits beside the wall; half the steps lost at "
+            f"{r['path_loss_half_length_r'] or float('nan'):g} radii); steps "
             f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
             f"{r['steps_beside_wall']:.2f}, rotation {r['steps_rotation']} (+{r['steps_rotation_slow']} slow), lost "
             f"{r['steps_lost']}; lumen-facing called FL {ft}, wall-facing found {fl}; fused "

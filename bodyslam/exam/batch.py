@@ -1097,7 +1097,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     from bodyslam.fusion.body_slam import DeadReckoner
     from bodyslam.io import write_tum
     from bodyslam.fusion.localize import write_uncertainty
-    from bodyslam.steps import WITH_ROTATION, lost_step_floor_m, lost_to_motion
+    from bodyslam.steps import LOST_STEP_FLOOR_R, WITH_ROTATION, lost_step_floor_m, lost_to_motion
     from bodyslam.vision.tracking import path_from_lengths, share_beside_wall, share_without_estimate, step_length
 
     problems = [list(p) for p in exam.problems]
@@ -1131,9 +1131,10 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     n = acc.n
     t = acc.t[:n]
     frame_idx = acc.frame[:n].tolist()
+    path_info: dict = {}
     path_m, path_var = path_from_lengths(acc.length[1:n], acc.length_var[1:n], rel, lost=acc.lost[1:n],
                                          radius_m=exam.radius_m, beside_wall=acc.beside_wall[1:n],
-                                         rotated=acc.rotated[1:n])
+                                         rotated=acc.rotated[1:n], info=path_info)
     # the fusion does not change path.png: drawn on a worker while the fusion runs and this goes on
     path_drawn = submit(_path_png, {"exam": exam, "dir": d, "t": t, "frame_idx": frame_idx, "path_m": path_m,
                                     "path_var": path_var}, jobs)
@@ -1173,6 +1174,11 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                # ... and in fits beside the wall, whose lengths are the speed model's (the fit a weak reading)
                "path_beside_wall_share": (share_beside_wall(path_m, acc.length[1:n], acc.beside_wall[1:n]) if n
                                           else 0.0),
+               # the lumen radii at which the path model took matching to lose half of the steps: the measured
+               # curve's 0.4 times the exam's own scale (bodyslam.vision.tracking.missing_step_lengths); None: the
+               # model did not run (every step estimated, or no radius)
+               "path_loss_half_length_r": (round(LOST_STEP_FLOOR_R * path_info["loss_scale"], 3)
+                                           if "loss_scale" in path_info else None),
                "trajectory": ("dead reckoning" if fused is None else "fused (RF + vision, RTS-smoothed"
                               + (" and refined" if settings.fusion == "rss" else "")
                               + ("; per-sensor RSS bias states)"
@@ -1490,7 +1496,9 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
                + "; the path travelled is the sum of the visual steps, a step without a distance given a length "
                  "from the capsule's speed around it, one lost to motion (status rotation or lost; not rotation_slow) "
                  "as one the matcher could not reach (half of the steps are lost at "
-                 f"{LOST_STEP_FLOOR_R:g} lumen radii), and a fit beside the wall its length mostly from that speed "
+                 f"{sm.get('path_loss_half_length_r') or LOST_STEP_FLOOR_R:g} lumen radii: the matcher's measured "
+                 f"{LOST_STEP_FLOOR_R:g}, scaled to this exam's losses), and a fit beside the wall its length mostly "
+                 "from that speed "
                  "too (the fit a weak reading of it); its 1-sigma includes the lumen radius's and each filled step's "
                  f"(at least {MISSING_STEP_REL_SD:.0%} of it).", body,
                ["trajectory.png", "path.png"])

@@ -360,7 +360,7 @@ def path_share_text(share: float, beside_wall_share: float = 0.0) -> str:
 def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: float = 0.0,
                       corr_m: float = SCALE_CORR_M, lost: np.ndarray | None = None,
                       radius_m: float | None = None, beside_wall: np.ndarray | None = None,
-                      rotated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      rotated: np.ndarray | None = None, info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`path_travelled` from per-step lengths (NaN: no estimate) and variances (streamed callers keep
     only these two numbers per step, and ``lost``: which steps were lost to motion,
     :func:`~bodyslam.steps.lost_to_motion`; None: every missing step takes its neighbours' mean at a 1-sigma as
@@ -368,7 +368,8 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
     :func:`missing_step_lengths`; None: the rule before session 30 without its floor,
     :func:`~bodyslam.steps.lost_step_floor_m`; with them, ``beside_wall`` and ``rotated``, which
     :func:`missing_step_lengths` takes: the steps fitted beside the wall, whose lengths it gives too, and the
-    steps with a rotation but no estimate; None: none).
+    steps with a rotation but no estimate; None: none; ``info``: receives the loss curve's scale the model chose,
+    ``loss_scale``, where it ran).
     ``scale_sd_rel``: the relative 1-sigma of the lumen radius the steps
     assumed (:func:`bodyslam.vision.odometry.with_lumen_uncertainty` put its share into each step's variance):
     that share is taken out of the steps and added back as one error correlated along the path
@@ -381,7 +382,7 @@ def path_from_lengths(length_m: np.ndarray, var_m2: np.ndarray, scale_sd_rel: fl
     n = len(length)
     est = np.isfinite(length)
     if lost is not None and radius_m is not None and radius_m > 0 and (est.any() or np.any(lost)):
-        fill, fill_sd = missing_step_lengths(length, var, lost, radius_m, beside_wall, rotated)
+        fill, fill_sd = missing_step_lengths(length, var, lost, radius_m, beside_wall, rotated, info)
         given = est & ~np.isfinite(fill)  # the steps whose own length counts (not the model's)
         path = np.r_[0.0, np.cumsum(np.where(given, length, fill))]
         cum = np.zeros(n + 1)

@@ -505,7 +505,14 @@ def test_the_summary_says_how_much_of_the_path_the_missing_steps_hold(tmp_path, 
     path = np.array([float(r["path_m"]) for r in _rows(d / "uncertainty.csv")])
     expected = float(np.diff(path)[missing].sum() / path[-1])
     assert 0 < summary["path_without_estimate_share"] == pytest.approx(expected)
-    assert f"{100 * expected:.0f}% of it in steps without an estimate" in (d / "report.html").read_text()
+    page = (d / "report.html").read_text()
+    assert f"{100 * expected:.0f}% of it in steps without an estimate" in page
+    # the loss curve's scale the path model chose for this exam, in lumen radii, and on the page
+    from bodyslam.steps import LOSS_SCALE_GRID, LOST_STEP_FLOOR_R
+
+    half = summary["path_loss_half_length_r"]
+    assert half in [round(LOST_STEP_FLOOR_R * g, 3) for g in LOSS_SCALE_GRID]
+    assert f"half of the steps are lost at {half:g} lumen radii" in page
 
 
 def test_the_lumen_scale_rescales_every_step_with_a_pose(tmp_path, monkeypatch):
