@@ -97,6 +97,8 @@ _MEASURED_REL_SD = 0.1
 _CONTEXT_STEPS = 25
 # the spread of ln(step) from one step to the next where too few pairs of consecutive estimated steps say it
 _DEFAULT_LOG_STEP_SD = 0.5
+# emission rows are made in blocks of this many steps on each pass: float64 temporaries of a few MB
+_BLOCK_STEPS = 4096
 
 
 def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndarray, radius_m: float,
@@ -133,6 +135,13 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
       A step with an ordinary fit or a rotation is never in it;
     - a step fitted beside the wall observes its length only weakly, a Gaussian in ln(length) about the fit's with
       :data:`~bodyslam.steps.BESIDE_WALL_LOG_SD`, and those steps' lengths do not set the speed's spread.
+
+    Since session 50 the loss curve's half-loss length is the exam's own (docs/RESULTS.md, "The loss curve's scale
+    is each exam's own"): ``d50`` times each of :data:`~bodyslam.steps.LOSS_SCALE_GRID`, the one under which the
+    windows' observations are likeliest (forward passes) times a prior of
+    :data:`~bodyslam.steps.LOSS_SCALE_PRIOR_LOG_SD` in ln(scale); an ordinary fit observes that matching did not
+    lose it (``1 - p_lost``), without which the shortest curve would always be likeliest. ``info`` (a dict)
+    receives the scale chosen as ``loss_scale``.
 
     The model is symmetric in time: an exam played backwards gets the same lengths."""
     length = np.asarray(length_m, float)
@@ -175,7 +184,7 @@ def missing_step_lengths(length_m: np.ndarray, var_m2: np.ndarray, lost: np.ndar
             windows[-1][1] = max(windows[-1][1], b)
         else:
             windows.append([a, b])
-    blk = 4096  # emission rows in blocks, made twice (forward and backward): float64 temporaries of a few MB
+    blk = _BLOCK_STEPS
     p_lost = not_lost = None
 
     def emissions(a: int, b: int) -> np.ndarray:
@@ -255,7 +264,7 @@ def _forward(windows, emissions, hampered, T, pi_h, a_in, a_stay, keep: bool):
     ``keep`` (one window) the unhampered state's filtered distribution at every step ``(m, bins)`` and the hampered
     one's where it can be non-zero; and the log-likelihood of the windows' observations (the sum of the
     normalisers: emissions are scaled per step, by amounts that do not depend on the loss curve)."""
-    blk = 4096
+    blk = _BLOCK_STEPS
     zero = np.zeros(_GRID_BINS, np.float32)
     loglik = 0.0
     fwd = fwd1 = None
