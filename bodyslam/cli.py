@@ -15,7 +15,7 @@ import argparse
 import sys
 
 from bodyslam.choices import CAMERAS, ESTIMATORS, FUSION_MODES, MATCH_MODES, SCHEMES, TRACKERS, UNROLL_MODES
-from bodyslam.cliutil import Progress, run_cli
+from bodyslam.cliutil import Progress, jobs_count, run_cli
 
 DONE, UNUSABLE, PROBLEMS = 0, 1, 3
 
@@ -89,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
                            help="lumen radius in metres (default: meta.json tube_radius_m)")
 
     def frame_opts(q):
-        q.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
+        q.add_argument("--jobs", type=jobs_count, default=None, help="worker processes (default: one per core)")
         q.add_argument("--mask", default="auto",
                        help=FOV_HELP + "; the one used is written next to the output (*_mask.png, mask.png)")
         q.add_argument("--no-classify", action="store_true",
@@ -150,13 +150,13 @@ def _parser() -> argparse.ArgumentParser:
                     help="nine: the dissertation's features; rich: nine + five (default)")
     tc.add_argument("--work-px", type=int, default=96,
                     help="SRM working size (px) of the features, recorded in the model and used wherever it classifies")
-    tc.add_argument("--jobs", type=int, default=None)
+    tc.add_argument("--jobs", type=jobs_count, default=None)
     cl = cmd("classify")
     cl.add_argument("input", help="a sequence directory (meta.json), a folder of frames, or one image")
     cl.add_argument("--out", required=True, help="classes.csv")
     cl.add_argument("--model", default=None, help="model file (default: the shipped model)")
     cl.add_argument("--meta", default=None, help="meta.json with the camera, for a plain folder of frames")
-    cl.add_argument("--jobs", type=int, default=None)
+    cl.add_argument("--jobs", type=jobs_count, default=None)
     cl.add_argument("--mask", default="auto", help=FOV_HELP + "; written next to --out as *_mask.png")
     rl = cmd("rf-localize")
     rl.add_argument("--rf", required=True, help="rf.csv (t,sensor,rss_dbm)")

@@ -47,6 +47,20 @@ class Progress:
                 self.stream.flush()
 
 
+def jobs_count(text: str) -> int:
+    """``--jobs``' argparse type: a whole number of worker processes, at least 1 (0 or a negative count is refused
+    by name instead of read as "one per core")."""
+    import argparse
+
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"give a whole number of worker processes, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"give at least 1 worker process, got {n} (leave --jobs out for one per core)")
+    return n
+
+
 def run_cli(main: Callable[[list[str] | None], int], argv: list[str] | None, verbose: bool = False) -> int:
     """Run a CLI body: a :class:`BodySlamError` becomes one line on stderr and exit code 1. Large freed arrays go
     back to the system at once (:func:`bodyslam.parallel.return_large_frees`)."""

@@ -18,7 +18,7 @@ import argparse
 import math
 import sys
 
-from bodyslam.cliutil import Progress, run_cli
+from bodyslam.cliutil import Progress, jobs_count, run_cli
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -33,7 +33,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output sequence directory (must be empty unless --force)")
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override a scenario field, e.g. --set tube.radius_m=0.0125 (repeatable)")
-    s.add_argument("--jobs", type=int, default=None,
+    s.add_argument("--jobs", type=jobs_count, default=None,
                    help="render processes (default: one per core for 60+ frames, else 1: starting workers "
                         "costs ~2 s)")
     s.add_argument("--force", action="store_true", help="write into a non-empty directory")
@@ -93,7 +93,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="score again the sequences of an earlier run in --out (their motion.csv, RF and truth): no "
                          "rendering, no motion; for re-scoring after a change to the filters (a seed without an "
                          "earlier run is rendered and run, and said; no earlier run of any seed is an error)")
-    ev.add_argument("--jobs", type=int, default=None,
+    ev.add_argument("--jobs", type=jobs_count, default=None,
                     help="seeds run in parallel, one per core by default (1: one seed at a time on every core)")
 
     e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY)")

@@ -74,6 +74,25 @@ def test_exit_codes_done_problems_unusable(tmp_path):
     assert not (tmp_path / "loc2").exists()
 
 
+def test_a_worker_count_below_one_is_refused_by_name(tmp_path):
+    """``--jobs 0`` (or less) is an argument error that says what to give, on every command that takes it; it was
+    read as "one per core". Nothing is written."""
+    from testbed.cli import main as testbed_main
+
+    for cmd in (["motion", str(DEMO), "--out", str(tmp_path / "m.csv")],
+                ["batch", str(DEMO), "--out", str(tmp_path / "b")],
+                ["classify", str(DEMO), "--out", str(tmp_path / "c.csv")]):
+        p = run(*cmd, "--jobs", "0")
+        assert p.returncode == 2 and "argument --jobs: give at least 1 worker process, got 0" in p.stderr, cmd
+    try:
+        testbed_main(["simulate", "demo", "--seed", "0", "--out", str(tmp_path / "s"), "--jobs", "-2"])
+    except SystemExit as exc:
+        assert exc.code == 2
+    else:
+        raise AssertionError("testbed simulate --jobs -2 was accepted")
+    assert not any(tmp_path.iterdir())
+
+
 def test_interrupt_exits_130():
     def body(argv):
         raise KeyboardInterrupt
