@@ -1337,7 +1337,8 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list,
     try:
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
         loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
-                       radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m, bias_states=settings.rss_bias_states)
+                       radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m, bias_states=settings.rss_bias_states,
+                       travelled=False)  # _finalize makes the path travelled meanwhile
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
         return None

@@ -81,8 +81,8 @@ class Localization:
     smoothed: FusionResult  # the RTS smoother refined over the whole exam (refine_map; RTS alone where not refined)
     fixes: Sequence[Fix]  # ML fixes per frame (FixesOnDemand: solved when read)
     rss_dbm: np.ndarray  # (n, m) the readings of each frame (NaN: none)
-    path_m: np.ndarray  # (n,) path travelled from the first frame
-    path_var_m2: np.ndarray  # (n,)
+    path_m: np.ndarray | None  # (n,) path travelled from the first frame (None: not asked for, localize)
+    path_var_m2: np.ndarray | None  # (n,)
     rf_problems: list[str]
     # the readings' measured correlation behind the smoother's covariance, and the online filter's factor per
     # frame (None / ones: covariances as the filter computed them, ``honest_cov=False``)
@@ -103,7 +103,7 @@ class Localization:
 def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_rate_hz: float,
              frames: np.ndarray | None = None, mode: str = "rss", honest_cov: bool = True,
              radius_sd_rel: float = 0.0, refine: bool = True, radius_m: float | None = None,
-             bias_states: bool = False) -> Localization:
+             bias_states: bool = False, travelled: bool = True) -> Localization:
     """Fuse the steps into frames ``0 .. len(steps)`` with the RF readings (module docstring). ``honest_cov``:
     scale the covariances by the readings' measured correlation (step 5; False: as the filter computed them).
     ``radius_sd_rel``: relative 1-sigma of the lumen radius the steps assumed; above 0 the fusion estimates the
@@ -113,7 +113,9 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     floor of a lost step's length, in the filters and in the path travelled,
     :func:`bodyslam.vision.tracking.path_travelled`). ``bias_states``: per-sensor RSS bias states in the raw-RSS
     filter (:data:`bodyslam.fusion.body_slam.RSS_BIAS_STATES`; off by default, docs/RESULTS.md); the whole-exam
-    solve and the 1-sigma then take the readings less the filter's biases.
+    solve and the 1-sigma then take the readings less the filter's biases. ``travelled``: also the path travelled
+    (step 6); False for a caller that makes its own (``bodyslam batch``, while this runs on a worker): then
+    ``path_m`` and ``path_var_m2`` are None.
 
     Raises
     ------
@@ -153,7 +155,7 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
                                                             rf.normals_w, rf.pathloss), STATED_MAX_LAG_FRAMES)
         kappa_smoothed = smoother_inflation(channel, memory)
         ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
-    path, var = path_travelled(steps, radius_sd_rel, radius_m)
+    path, var = path_travelled(steps, radius_sd_rel, radius_m) if travelled else (None, None)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,
                         kappa_online, rts, kappa_smoothed, tuple(rf.sensor_names))
