@@ -140,7 +140,8 @@ def main() -> None:
         print(f"{args.scenario} {seed}: {fmt(rows[seed])} ({el:.0f} s)", flush=True)
     errs = np.array([r["path_error_rel"] for r in rows.values()])
     keys = ("path_inside_1sigma", "path_without_estimate_share", "path_beside_wall_share", "steps_estimated",
-            "step_distance_error_cm", "steps_beside_wall", "lumen_facing_called_fl", "wall_facing_found", "fused_mean_error_cm", "fused_inside_68")
+            "step_distance_error_cm", "steps_beside_wall", "lumen_facing_called_fl", "wall_facing_found",
+            "fused_mean_error_cm", "fused_inside_68")
     mean = {k: float(np.mean([r[k] for r in rows.values() if r[k] is not None])) for k in keys}
     mean.update(path_error_rel=float(np.mean(errs)), path_error_median=float(np.median(errs)),
                 path_error_abs=float(np.mean(np.abs(errs))), path_error_worst=float(np.max(np.abs(errs))))

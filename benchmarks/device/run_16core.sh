@@ -25,11 +25,12 @@ for m in fusion/_ekf_rss fusion/_block_tridiag vision/_tube_fit vision/_srm_merg
   fi
 done
 python3 -c "import bodyslam.fusion.ekf as e, bodyslam.fusion.refine as r, bodyslam.vision.motion as m; print('compiled ekf', e._ekf_c is not None, 'marginals', r._bt is not None, 'tube', m._tube_c is not None)"
-[ -d /tmp/bb/exam_1_10000/frames ] || python3 benchmarks/device/unpack_exam.py .devrun/exam.mp4 /tmp/bb/exam_1_10000 || exit 1
+[ -d /tmp/bb/exam_1_10000/frames ] || python3 benchmarks/device/unpack_exam.py .devrun/exam.mp4 /tmp/bb/exam_1_10000 \
+  || exit 1
 echo "setup done at +$(el) s"
 bench() {  # bench NAME ARGS...: one bench_batch.py call, its log and json in $OUT, checksums of every output
-  python3 benchmarks/bench_batch.py --frames 10000 --seed 1 --keep /tmp/bb --jobs-only --json $OUT/$1.json "${@:2}" 2>&1 \
-    | grep -v "^batch:" | tee -a $OUT/log.txt
+  python3 benchmarks/bench_batch.py --frames 10000 --seed 1 --keep /tmp/bb --jobs-only --json $OUT/$1.json \
+    "${@:2}" 2>&1 | grep -v "^batch:" | tee -a $OUT/log.txt
   for d in /tmp/bb/out_fast_10000_jobs*; do
     [ -f $d/summary.json ] || continue
     echo "$(basename $d) $(cat $d/*/motion.csv | md5sum | cut -c1-12) $(cat $d/*/trajectory.tum | md5sum | cut -c1-12)"
