@@ -11,7 +11,10 @@ Modes
   degrees per step: the extra rolls add keypoints, not matches); 20 seeds in the README.
 - ``sift``: plain SIFT, same matching (a middle ground).
 - ``fast`` (whole exams): pyramidal Lucas-Kanade tracking of up to 300 corners (forward-backward check,
-  specular highlights masked) first; when fewer than 60 tracks verify, or the step's fit fails on them, SIFT
+  specular highlights masked) first, on the frames' local contrast (:func:`local_contrast`: a capsule's light
+  stays where it is in the image while the wall moves, and on the brightness itself the pyramid's coarse levels
+  lock on to it: 25% of a realistic exam's pairs lost their tracks, 3.5% on the local contrast; session 51);
+  when fewer than 60 tracks verify, or the step's fit fails on them, SIFT
   detected on the frame scaled by :data:`COARSE_SCALE` = 0.5, and when the fit fails on those too, by
   ``detect_scale`` = 0.7 (SIFT doubles its input, so most of its cost is the first octave: 0.7 halves the
   detection time), at most 800 keypoints, at most 200 matches to verify (:meth:`Matcher.cascade`). The 0.5 try
@@ -80,6 +83,12 @@ COARSE_SCALE = 0.5
 # fast mode's rescue, its last try where the cheaper ones fail (module docstring): SIFT on the full frame, at most
 # as many keypoints and matches to verify as ``sift`` mode
 RESCUE_FEATURES, RESCUE_MATCHES = MODE_DEFAULTS["sift"][1:]
+# fast mode tracks on the frame's local contrast (local_contrast) over this angle (x the camera's focal length in
+# pixels: 12 px on the testbed's 320 px frames). Chosen on realistic frames (the first 600 pairs of
+# bench_batch.py's 2,000-frame realistic_exam render, and the first 300 of slow tuning renders 587 and 588): the
+# pairs with fewer than 60 verified tracks, 25.0 / 27.8 / 31.8% on the brightness, were 5.2 / - / - % at 6 px,
+# - / 4.7 / 13.0% at 8, 3.5 / 4.3 / 10.7% at 12, - / 5.7 / 10.4% at 16 and - / 6.7 / 11.4% at 24
+TRACK_CONTRAST_SIGMA_RAD = 0.1
 # keypoint levels and where a frame keeps each (:meth:`Matcher.keypoints`)
 LEVELS = {"default": "kp", "coarse": "kp_coarse", "full": "kp_full"}
 
@@ -106,6 +115,7 @@ class FrameFeatures:
     corners: np.ndarray | None = None
     kp_coarse: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's first SIFT try (COARSE_SCALE)
     kp_full: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's last try (full size, RESCUE_FEATURES)
+    track: np.ndarray | None = None  # fast mode's tracking image (local_contrast of gray), computed on first use
 
 
 MIN_OVERLAY_PIXELS = 16  # a constant blob inside the field smaller than this is a speck, not burned-in text
@@ -397,8 +407,9 @@ class Matcher:
         empty = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0, "lk")
         if len(p0) < 8:
             return empty
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(f1.gray, f2.gray, p0, None, **self._lk)
-        pb, st2, _ = cv2.calcOpticalFlowPyrLK(f2.gray, f1.gray, p1, None, **self._lk)
+        g1, g2 = self._track_image(f1), self._track_image(f2)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(g1, g2, p0, None, **self._lk)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(g2, g1, p1, None, **self._lk)
         a, b = p0.reshape(-1, 2).astype(np.float64), p1.reshape(-1, 2).astype(np.float64)
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb.reshape(-1, 2) - a, axis=1) < self.lk_fb_px)
         h, w = self.mask.shape
@@ -411,6 +422,13 @@ class Matcher:
             a, b = a[sel], b[sel]
         inl = self._verify(a, b)
         return Matches(a[inl], b[inl], len(a), "lk")
+
+    def _track_image(self, f: FrameFeatures) -> np.ndarray:
+        """The image Lucas-Kanade tracks on: :func:`local_contrast` of the frame's gray image, at
+        :data:`TRACK_CONTRAST_SIGMA_RAD` (x the camera's focal length in pixels), computed once per frame."""
+        if f.track is None:
+            f.track = local_contrast(f.gray, TRACK_CONTRAST_SIGMA_RAD * float(self.camera.fx))
+        return f.track
 
     def _ratio_matches(self, d1: np.ndarray, d2: np.ndarray, pts2: np.ndarray, k: int = 4,
                        min_sep_px: float = 2.0, flann: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -471,6 +489,34 @@ class Matcher:
         r1, v1 = self.camera.unproject(p1)
         r2, v2 = self.camera.unproject(p2)
         return essential_ransac(r1, r2, self.ransac_rad, v1 & v2)[4]
+
+
+def local_contrast(gray: np.ndarray, sigma_px: float, floor: float = 4.0, gain: float = 40.0) -> np.ndarray:
+    """``gray`` with its local mean taken out and its local spread divided out (both Gaussian-weighted over
+    ``sigma_px``), as 8-bit about 128: ``128 + gain (g - mean) / (sd + floor)``. Shading that changes smoothly
+    across the image (a capsule's own light, vignetting, light control) leaves it nearly unchanged, so tracking that
+    assumes a constant brightness follows the wall instead of the light. The two smooth fields are worked out on the
+    image shrunk by ``sigma_px / 3`` and brought back by linear interpolation: 0.9 ms on a 320 px frame against 3.5
+    for full-size blurs, within 0.5 of their gray levels on average."""
+    g = gray.astype(np.float32)
+    h, w = g.shape
+    f = max(1, min(int(sigma_px / 3.0), h // 16, w // 16))
+    size = (max(1, round(w / f)), max(1, round(h / f)))
+
+    def smooth(a):
+        if f == 1:
+            return cv2.GaussianBlur(a, (0, 0), sigma_px)
+        small = cv2.GaussianBlur(cv2.resize(a, size, interpolation=cv2.INTER_AREA), (0, 0), sigma_px / f)
+        return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+    d = g - smooth(g)
+    sd = smooth(d * d)
+    np.sqrt(np.maximum(sd, 0.0, out=sd), out=sd)
+    sd += floor
+    d *= gain
+    d /= sd
+    d += 128.0
+    return np.clip(d, 0, 255).astype(np.uint8)
 
 
 def _keypoint_xy(kp) -> np.ndarray:
