@@ -199,7 +199,6 @@ def test_keypoint_positions_with_and_without_opencvs_convert(monkeypatch):
     assert fast.tolist() == [[1.25, 2.5], [40.75, 7.0]] and matching._keypoint_xy([]).shape == (0, 2)
 
 
-
 def _lit_pair(size=240, shift=(10.0, 6.0), seed=8, led=1.5, texture=0.1, noise=2.0):
     """Two frames of a faint wall texture (10% contrast) moved by ``shift`` px, under a capsule's light: four LED
     lobes and a fall-off toward the rim that stay where they are in the image while the wall moves (the realistic
