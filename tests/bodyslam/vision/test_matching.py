@@ -235,7 +235,9 @@ def test_local_contrast_takes_out_smooth_shading():
     inner[40:200, 40:200] = True  # away from the disc's rim
     raw = np.abs(a - b)[inner].mean()
     lc = np.abs(local_contrast(a.astype(np.uint8), 12.0).astype(float) - local_contrast(b, 12.0))[inner].mean()
-    assert raw > 15 and lc < 0.15 * raw  # the same wall under two lights: nearly the same local contrast
+    # the same wall under two lights: nearly the same local contrast (measured: 21 gray levels apart on the
+    # brightness, ~1 on the local contrast; 0.15 leaves room for OpenCV's blurs across versions)
+    assert raw > 15 and lc < 0.15 * raw
     assert local_contrast(b, 12.0).dtype == np.uint8
 
 
