@@ -289,13 +289,17 @@ def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches:
 def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 20,
              noise_rad: float = 0.003, max_depth_m: float = 0.3, init: np.ndarray | None = None,
              max_points: int = 150, max_sigma_distance_m: float = 1e-3,
-             solver: str = "lm", start: str = "essential") -> tuple[StepMotion, np.ndarray | None]:
+             solver: str = "lm", start: str = "essential", hold_axis: bool = False,
+             starts: list[np.ndarray] | None = None) -> tuple[StepMotion, np.ndarray | None]:
     """:func:`estimate_tube` and the fitted 10-vector (rotation vector of ``R_c1_c2``, ``t_c1_c2_m``, the tube
     axis's direction ``(ax, ay, 1)`` and offset ``(ox, oy, 0)`` in frame 1; :func:`tube_predict` reads it), or
     None where no fit was made. An ``uncertain`` step keeps its parameters. ``start`` (without ``init``):
     ``essential`` (:func:`essential_start`, a pure rotation where it finds none) or ``rotation`` (the pure
     rotation that best aligns the rays: guided matching's fits, whose matches lie along the hypotheses' radial
-    epipolar lines, keep it)."""
+    epipolar lines, keep it). ``hold_axis``: the tube's axis held on the optical axis and the camera on it (the
+    last four parameters 0), only the motion fitted (a fit beside the wall of its own cylinder is fitted again so:
+    :data:`bodyslam.vision.odometry.BESIDE_WALL_HELD_AXIS`), from each of ``starts`` (10-vectors whose motion part
+    is used; default: ``init``'s or the start above), the lowest robust cost kept."""
     n = len(m)
     if n < min_matches:
         return StepMotion(n_matches=n, status="too_few_matches"), None
@@ -337,7 +341,23 @@ def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int 
         if p0 is None:  # too few rays in front of both cameras, no essential matrix, or the twisted pair's
             p0 = np.zeros(10)
             p0[0:3] = aligned.as_rotvec()
-    if solver == "lm":
+    if hold_axis:
+        if solver != "lm":
+            raise ConfigError("a fit with the axis held runs the 'lm' solver only")
+
+        def fun_jac6(q):
+            f, J = fun_jac(np.r_[q, 0.0, 0.0, 0.0, 0.0])
+            return f, J[:, :6]
+
+        best = None
+        for s0 in (starts if starts else [p0]):
+            q = _lm_soft_l1(np.asarray(s0, float)[:6].copy(), fun_jac6,
+                            lambda q: residuals(np.r_[q, 0.0, 0.0, 0.0, 0.0]), x_scale[:6], 2.0)
+            if best is None or q[3] < best[3]:
+                best = q
+        q, fval, J, cost = best
+        x = np.r_[q, 0.0, 0.0, 0.0, 0.0]
+    elif solver == "lm":
         x, fval, J, cost = _lm_soft_l1(p0, fun_jac, residuals, x_scale, 2.0)
     elif solver == "trf":
         try:
@@ -353,7 +373,7 @@ def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int 
     R, t = Rotation.from_rotvec(x[0:3]), x[3:6]
     # Uncertainty: Gauss-Newton covariance at the solution, scaled by the robust residual variance.
     m_res = len(fval) - 4
-    dof = max(1, 2 * (m_res // 3) - 10)  # two independent components per 3-vector cross-product residual
+    dof = max(1, 2 * (m_res // 3) - J.shape[1])  # two independent components per 3-vector cross-product residual
     s2 = max(float(2.0 * cost) / dof, 1.0)
     try:
         cov = np.linalg.inv(J.T @ J) * s2

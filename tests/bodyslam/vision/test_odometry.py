@@ -173,9 +173,10 @@ def test_a_step_facing_the_wall_is_estimated_by_the_tube_fit_with_a_wider_1sigma
 
 def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(monkeypatch):
     """A tube fit whose cylinder passes more than BESIDE_WALL_RADII radii from the camera (where no capsule fits
-    in a cylindrical lumen) keeps its motion and gets BESIDE_WALL_SIGMA_RADII lumen radii in its 1-sigma distance
-    (in quadrature) and its rotation's 1-sigma times BESIDE_WALL_ROTATION_FACTOR; one nearer the axis keeps the
-    fit's own 1-sigmas. The demo pair's fit is used with its axis moved to 0.7 and 0.9 radii from the camera,
+    in a cylindrical lumen) gets BESIDE_WALL_SIGMA_RADII lumen radii in its 1-sigma distance (in quadrature) and
+    its rotation's 1-sigma times BESIDE_WALL_ROTATION_FACTOR; one nearer the axis keeps the fit's own 1-sigmas.
+    With BESIDE_WALL_HELD_AXIS off (here) the flagged fit keeps its motion; on, its motion is the held fit's (the
+    next test). The demo pair's fit is used with its axis moved to 0.7 and 0.9 radii from the camera,
     tilted 30 degrees (the distance is measured square to the axis: the offset in the image plane is larger by
     1/cos 30). Between frames facing the tunnel (``ahead``) an axis tilted more than ACROSS_TILT_RAD widens it
     too (50 degrees, 0.2 radii from the camera), and only there."""
@@ -183,9 +184,11 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
 
     from bodyslam.meta import read_meta
     from bodyslam.vision.motion import axis_tilt_rad, camera_off_axis_radii
+    from bodyslam.vision import odometry
     from bodyslam.vision.odometry import (ACROSS_TILT_RAD, BESIDE_WALL_RADII, BESIDE_WALL_ROTATION_FACTOR,
                                           BESIDE_WALL_SIGMA_RADII, MotionSettings, VisualOdometry)
 
+    monkeypatch.setattr(odometry, "BESIDE_WALL_HELD_AXIS", False)
     meta = read_meta(DEMO)
     R = meta.tube_radius_m
     vo = VisualOdometry(meta.camera_model(), MotionSettings(), R)
@@ -223,6 +226,78 @@ def test_a_fit_that_puts_the_camera_beside_its_tube_wall_gets_a_wider_1sigma(mon
     assert vo.estimate_pair(f1, f2).sigma_distance_m == plain.sigma_distance_m
     across = vo.estimate_pair(f1, f2, ahead=True)
     assert across.sigma_distance_m == pytest.approx(want, rel=1e-12) and across.beside_wall
+
+
+def test_a_fit_beside_the_wall_is_fitted_again_with_the_axis_held(monkeypatch):
+    """BESIDE_WALL_HELD_AXIS: a tube fit that puts the camera beside the wall of its own cylinder (made so here: the
+    demo pair's fit with its axis moved to 0.9 radii from the camera) takes the motion of the same matches fitted
+    with the axis held on the optical axis and the camera on it (fit_tube's hold_axis, from the free fit's motion
+    and from a forward step), its 1-sigmas widened as any fit beside the wall, and its flag; the scale chain's
+    points are triangulated with the held fit; the ring ratio (the lumen scale's sample) stays the free fit's. A
+    fit flagged only for its axis across the view (a turn: 50 deg, 0.2 radii) keeps its own motion. Where the held
+    fit fails, the free fit stays."""
+    import math
+
+    from bodyslam.meta import read_meta
+    from bodyslam.steps import StepMotion
+    from bodyslam.vision import motion, odometry
+    from bodyslam.vision.odometry import (BESIDE_WALL_ROTATION_FACTOR, BESIDE_WALL_SIGMA_RADII, MotionSettings,
+                                          VisualOdometry)
+
+    assert odometry.BESIDE_WALL_HELD_AXIS
+    meta = read_meta(DEMO)
+    R = meta.tube_radius_m
+    vo = VisualOdometry(meta.camera_model(), MotionSettings(), R)
+    f1, f2 = (vo.matcher.features(read_image(DEMO / "frames" / f"{k:06d}.png")) for k in (10, 11))
+    plain = vo.estimate_pair(f1, f2)
+    fit, seen = vo._fit, {}
+
+    def beside(m, estimator=None):
+        s, x = fit(m, estimator)
+        x = x.copy()
+        x[6:10] = 0.0, 0.0, 0.9 * R, 0.0
+        seen["m"], seen["x"] = m, x
+        return s, x
+
+    monkeypatch.setattr(vo, "_fit", beside)
+    s = vo.estimate_pair(f1, f2)
+    from bodyslam.vision import lumen_scale
+
+    monkeypatch.setattr(lumen_scale, "ring_distance_ratio", lambda *a: 0.83)  # the free fit's, as on every step
+    assert vo.estimate_pair(f1, f2, ring=True).ring_ratio == 0.83 and np.isnan(s.ring_ratio)
+    forward = np.zeros(10)
+    forward[0:3] = seen["x"][0:3]
+    forward[5] = motion.ESSENTIAL_START_STEP * R
+    held, xh = motion.fit_tube(seen["m"], vo.camera, R, hold_axis=True, starts=[seen["x"], forward])
+    assert held.ok and s.beside_wall and s.distance_m != plain.distance_m
+    assert s.distance_m == pytest.approx(held.distance_m, rel=1e-12)
+    assert s.roll_rad == pytest.approx(held.roll_rad, abs=1e-12)
+    assert s.tilt_rad == pytest.approx(held.tilt_rad, abs=1e-12)
+    assert s.sigma_distance_m == pytest.approx(math.hypot(held.sigma_distance_m, BESIDE_WALL_SIGMA_RADII * R),
+                                               rel=1e-12)
+    assert s.sigma_rotation_rad == pytest.approx(held.sigma_rotation_rad * BESIDE_WALL_ROTATION_FACTOR, rel=1e-12)
+    sig = vo.signatures
+    from bodyslam.vision.scale_chain import step_signatures
+
+    want = step_signatures(seen["m"].pts1_px, seen["m"].pts2_px, xh, vo.camera)
+    assert np.array_equal(sig[0].log_depth, want[0].log_depth)
+
+    def across(m, estimator=None):  # the axis 50 deg off the view, 0.2 radii from the camera: a turn, not the wall
+        s, x = fit(m, estimator)
+        x = x.copy()
+        x[6:10] = math.tan(math.radians(50.0)), 0.0, 0.2 * R / math.cos(math.radians(50.0)), 0.0
+        return s, x
+
+    monkeypatch.setattr(vo, "_fit", across)
+    turn = vo.estimate_pair(f1, f2, ahead=True)
+    assert turn.beside_wall and turn.distance_m == plain.distance_m and turn.tilt_rad == plain.tilt_rad
+
+    monkeypatch.setattr(vo, "_fit", beside)
+    failed = StepMotion(n_matches=5, status="too_few_matches")
+    free_fit = motion.fit_tube
+    monkeypatch.setattr(motion, "fit_tube", lambda *a, **k: (failed, None) if k.get("hold_axis") else free_fit(*a, **k))
+    kept = vo.estimate_pair(f1, f2)
+    assert kept.beside_wall and kept.distance_m == pytest.approx(plain.distance_m, rel=1e-12)
 
 
 def test_an_unknown_wall_step_rule_is_refused():
