@@ -87,8 +87,8 @@ BESIDE_WALL_ROTATION_FACTOR = 2.0
 # slow realistic tuning renders 587-594 the capsule of a step fitted beside the wall lay 0.07 radii from the centre
 # line at the median (0.11 at the 90th percentile) with its view 2.7 deg off the gut (6.0), as for the other steps;
 # the free fit reads such a step at ~0 (median 0.0000 cm where 0.035 cm was true). Held, the 1,056 steps fitted
-# beside the wall there read their length with a correlation of 0.7-0.9 to the truth (0.3-0.7 free), ~1.25x long
-# once the exam's lumen scale is applied (their lumen is narrower than the exam's), and their rotation errs less
+# beside the wall there read their length with a correlation of 0.57-0.89 a run to the truth (0.25-0.72 free), ~1.25x
+# long once the exam's lumen scale is applied (their lumen is narrower than the exam's), and their rotation errs less
 # (roll / tilt 0.163 / 1.166 -> 0.070 / 0.432 deg mean; the other steps' 0.044 / 0.185). They keep their widened
 # 1-sigma and their flag: the path's speed model still reads them weakly (docs/RESULTS.md, "Fits beside the wall
 # held on the axis"). A fit flagged only by its axis across the view is not fitted again: on ideal tubes those are
