@@ -335,6 +335,8 @@ def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int 
         raise ConfigError(f"start must be 'essential' or 'rotation', got {start!r}")
     if init is not None:  # a caller's start (measured: the previous step's solution does not save iterations)
         p0 = np.asarray(init, float).copy()
+    elif hold_axis and starts:  # the caller's starts stand in for the essential matrix's (its RANSAC not run)
+        p0 = None
     else:
         aligned = Rotation.align_vectors(b1, b2)[0]  # the pure rotation with b1 ~= R_c1_c2 b2
         p0 = essential_start(b1, b2, ESSENTIAL_START_STEP * R_max, aligned) if start == "essential" else None
