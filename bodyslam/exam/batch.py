@@ -1222,9 +1222,12 @@ def _dead_reckon_into(acc: "_Track", exam: Exam, d: Path) -> None:
 def _consistency_text(c: dict | None) -> str:
     if not c or not c.get("pairs_estimated"):
         return "not measured (no run of 3 estimated steps, or the thesis estimator)"
+    ratio = c.get("median_distance_ratio_pair_over_singles")
+    # no ratio where every pair's single steps add up to no length (a capsule at rest, frames repeated)
+    ratio_text = "n/a (the single steps add up to no length)" if ratio is None else f"{ratio:.2f}"
     return (f"{c['pairs_estimated']} three-frame motions against their single steps: {c['within_1sigma']:.0%} "
             f"within 1-sigma, {c['within_2sigma']:.0%} within 2 (68% / 95% if it holds); distance ratio "
-            f"{c['median_distance_ratio_pair_over_singles']:.2f}")
+            f"{ratio_text}")
 
 
 def _with_path_lengths(pos_m: np.ndarray, path_m: np.ndarray, length_m: np.ndarray,

@@ -209,6 +209,25 @@ def test_unusable_input_is_one_clear_line(tmp_path, capsys):
         assert code == 1 and message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_repeated_frames_give_steps_at_rest_and_a_report(tmp_path, capsys):
+    # a clip exported at a higher frame rate than it was taken repeats its frames: every step is one at rest, and
+    # the per-step 1-sigma check's pairs add up to no length (its distance ratio has nothing to divide by; the
+    # report used to stop on it with a TypeError)
+    d = tmp_path / "exam"
+    d.mkdir()
+    for k in range(7):
+        shutil.copy(DEMO / "frames" / "000003.png", d / f"capsule_{k:05d}.png")
+    rc = cli_main(["batch", str(d), "--out", str(tmp_path / "out"), "--jobs", "1", "--calib",
+                   str(_calib_json(tmp_path))])
+    out, err = capsys.readouterr()
+    assert rc == 0 and "Traceback" not in err, err
+    steps = _rows(tmp_path / "out" / "exam" / "motion.csv")
+    assert len(steps) == 6 and all(r["status"] == "ok" and float(r["distance_m"]) == 0.0 for r in steps)
+    c = json.loads((tmp_path / "out" / "exam" / "summary.json").read_text())["step_consistency"]
+    assert c["pairs_estimated"] >= 1 and c["median_distance_ratio_pair_over_singles"] is None
+    assert "distance ratio n/a" in (tmp_path / "out" / "exam" / "report.html").read_text()
+
+
 def _write_video(path: Path, n: int) -> None:
     w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, (320, 320))
     assert w.isOpened()
