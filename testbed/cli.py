@@ -147,7 +147,8 @@ def _simulate(args) -> int:
         fitted = {k: v for k, v in load_speed_model(args.speed_model).items() if k != "frame_rate_hz"}
         scn["motion"] = {**scn.get("motion", {}), **fitted}
     truth = simulate(scn, args.seed, args.out, n_frames=args.frames, jobs=args.jobs, force=args.force,
-                     progress=Progress(f"render {scn.get('name')}"))
+                     progress=Progress(f"render {scn.get('name')}"),
+                     label_progress=Progress(f"label {scn.get('name')} (FT/FL, moving wall)"))
     print(f"{args.out}: {truth['n_frames']} frames; mean step {truth['mean_step_cm']:.3f} cm, "
           f"roll {truth['mean_roll_deg']:.2f} deg, tilt {truth['mean_tilt_deg']:.2f} deg per step; "
           f"advances {100 * truth['advance_m']:.1f} cm along the centre line; {truth['n_ft']} FT / {truth['n_fl']} FL")

@@ -126,7 +126,10 @@ def test_the_truths_occlusion_test_sees_the_moved_wall():
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     r = RaycastRenderer(w.tube, w.texture, w.camera, w.lighting)
     rest = np.nan_to_num(r.cast(traj.positions_w_m, u)[0], nan=1.0)
-    moved = np.nan_to_num(moving_wall_cast(w, traj, r)(traj.positions_w_m, u)[0], nan=1.0)
+    calls = []  # the progress it reports: one call per frame, the last one the whole
+    moved = np.nan_to_num(moving_wall_cast(w, traj, r, lambda done, total: calls.append((done, total)))(
+        traj.positions_w_m, u)[0], nan=1.0)
+    assert calls == [(k + 1, w.n_frames) for k in range(w.n_frames)]
     assert np.all(moved <= rest + 1e-6)
     assert np.sum(moved < rest - 0.002) >= 3  # rings stop some rays at least 2 mm short
     # several rays per frame, frame after frame (the "view" label rule's bundle): each frame's meet its own wall
