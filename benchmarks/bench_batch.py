@@ -12,8 +12,9 @@ the peak tree memory per length, and the ratio of the longest to the shortest.
         [--rss-bias-states] [--jobs 1,2] [--jobs-rf 1,2] [--jobs-only] [--dask 2] [--repeat 3]
 
 ``--scenario realistic_exam``: the realistic testbed's look (collapsed, folded, contracting lumen; fluid, debris and
-bubbles; capsule optics; its radio channel) at the same pace, rendered at each length as it is (no longer path):
-what frames like a real exam's cost.
+bubbles; capsule optics; its radio channel) at the same pace: what frames like a real exam's cost. Its 2.5 m path
+holds ~3,600 frames at that pace; a longer exam gets a longer path and a slower pace
+(:func:`long_realistic_exam_settings`).
 
 ``--rf``: also the same exam with its RF (the sequence directory: rf.csv, sensors.csv, the path-loss calibration),
 so the trajectory is the fused one, and the ratio of the two throughputs (issue 17: >= 0.85). ``--rss-bias-states``:
@@ -63,6 +64,25 @@ def long_exam_settings(n: int) -> list[str]:
     if n <= EXAM_FRAMES:
         return []
     return ["--set", f"motion.mean_step_m={LONG_EXAM_PATH_M / n:g}", "--set", "motion.offset_std_frac=0.01"]
+
+
+REALISTIC_EXAM_FRAMES = 3_600  # realistic_exam's 2.5 m path at its 0.06 cm mean step, with room for the wobble
+# beyond that: the longest path its abdomen box holds at the exam scenario's self-distance (1.5 lumen diameters;
+# `realistic`'s 2 allow ~3.6 m, this ~4.8 m: `testbed simulate` says so), covered to ~4.0 m at a slower pace
+LONG_REALISTIC_PATH_M, LONG_REALISTIC_COVER_M = 4.5, 4.0
+
+
+def long_realistic_exam_settings(n: int) -> list[str]:
+    """``testbed simulate`` overrides for a ``realistic_exam`` longer than its path holds
+    (:data:`REALISTIC_EXAM_FRAMES`): a 4.5-m path, the capsule covering ~4 m of it (the mean step 4.0 m / ``n``:
+    0.04 cm at 10,000 frames, against the scenario's 0.06) with its lateral wobble scaled down with the step (as
+    :func:`long_exam_settings` does: a wobble larger than the step keeps the capsule in place)."""
+    if n <= REALISTIC_EXAM_FRAMES:
+        return []
+    step = LONG_REALISTIC_COVER_M / n
+    wobble = 0.05 * min(1.0, step / 0.0006)  # realistic_exam's 0.05 at its 0.06 cm step
+    return ["--set", f"path.length_m={LONG_REALISTIC_PATH_M:g}", "--set", "path.min_self_distance_diameters=1.5",
+            "--set", f"motion.mean_step_m={step:g}", "--set", f"motion.offset_std_frac={wobble:g}"]
 
 
 def tree_rss_bytes(pid: int) -> int:
@@ -179,7 +199,7 @@ def main() -> None:
         seq = args.keep / (f"exam_{args.seed}_{n}" if not tag else f"{tag}{args.seed}_{n}")
         if not (seq / "meta.json").exists():
             t0 = time.perf_counter()
-            longer = long_exam_settings(n) if args.scenario == "exam" else []
+            longer = long_exam_settings(n) if args.scenario == "exam" else long_realistic_exam_settings(n)
             subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", args.scenario, "--seed", str(args.seed),
                             "--frames", str(n), "--out", str(seq), "--force", *longer], check=True)
             print(f"rendered {n} frames in {time.perf_counter() - t0:.0f} s", flush=True)
@@ -226,7 +246,7 @@ def main() -> None:
             continue
         runs = []  # (seconds without RF, seconds with RF or None), alternated --repeat times
         for rep in range(args.repeat):
-            tag = f" (run {rep + 1}/{args.repeat})" if args.repeat > 1 else ""
+            run_tag = f" (run {rep + 1}/{args.repeat})" if args.repeat > 1 else ""
             shutil.rmtree(out, ignore_errors=True)
             el, peak, rc = run_measured(cmd)
             summ = json.loads((out / "summary.json").read_text())["exams"][0]
@@ -234,21 +254,21 @@ def main() -> None:
                 res.setdefault(n, {}).update({"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20,
                                               "rc": rc, "steps": summ["steps"], "path_m": summ["path_travelled_m"]})
             print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
-                  f"(whole process, 2 cores){tag}; peak memory (process tree) {peak / 2**20:.0f} MiB; steps "
+                  f"(whole process, 2 cores){run_tag}; peak memory (process tree) {peak / 2**20:.0f} MiB; steps "
                   f"{summ['steps']}", flush=True)
             if args.dask and rep == 0:
                 res[n]["dask"] = run_on_dask(cmd, out, args.dask, n, folder.name)
             el_rf = None
             if args.rf:
-                out_rf = args.keep / f"{tag}out_{args.mode}_{n}_rf"
+                out_rf = args.keep / f"{tag}out_{args.mode}_{n}_rf"  # tag: the scenario's, as the run without RF
                 shutil.rmtree(out_rf, ignore_errors=True)
                 el_rf, peak_rf, rc_rf = run_measured([*cmd_rf[:6], str(out_rf), *cmd_rf[7:]])
                 traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
                 if rep == 0:
                     res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,
                                   rf_rc=rc_rf, rf_over_no_rf=el / el_rf)
-                print(f"  with RF ({traj}){tag}: {el_rf:.1f} s = {n / el_rf:.1f} frames/s, peak {peak_rf / 2**20:.0f} "
-                      f"MiB; throughput with RF / without: {el / el_rf:.2f}", flush=True)
+                print(f"  with RF ({traj}){run_tag}: {el_rf:.1f} s = {n / el_rf:.1f} frames/s, peak "
+                      f"{peak_rf / 2**20:.0f} MiB; throughput with RF / without: {el / el_rf:.2f}", flush=True)
             runs.append((el, el_rf))
         if args.repeat > 1:  # a machine whose speed drifts: the spread says how far one run can be trusted
             fps = np.array([n / a for a, _ in runs])
