@@ -615,7 +615,7 @@ def _localize(args) -> int:
 
 def _batch(args) -> int:
     from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, read_marks,
-                                     run_batch)
+                                     run_batch, unlit_text)
     from bodyslam.vision.tracking import path_share_text
     from bodyslam.steps import WITH_ESTIMATE
 
@@ -641,7 +641,8 @@ def _batch(args) -> int:
     for s in rep.exams:
         steps = s["steps"]
         c = s["classes"]
-        classes = f"{c['FT']} FT, {c['FL']} FL" if isinstance(c, dict) else c
+        classes = (f"{c['FT']} FT, {c['FL']} FL" + (f", {unlit_text(c)}" if unlit_text(c) else "")
+                   if isinstance(c, dict) else c)
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         filled = path_share_text(s.get("path_without_estimate_share", 0.0), s.get("path_beside_wall_share", 0.0))
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "

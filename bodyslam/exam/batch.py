@@ -1103,7 +1103,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     problems = [list(p) for p in exam.problems]
     n_expected = exam.n_positions
     acc = _Track(n_expected)  # ~200 bytes per frame, preallocated
-    classes = {"FT": 0, "FL": 0, "": 0}
+    classes = {"FT": 0, "FL": 0, "": 0, "unlit": 0}  # unlit: FL because too dark or saturated to classify
     statuses: dict[str, int] = {}
     n_beside = 0  # steps whose tube fit put the camera beside its own cylinder's wall (StepMotion.beside_wall)
     # dead reckoning is the trajectory only where no fusion gives one: with RF it runs after a failed fusion only
@@ -1163,8 +1163,8 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
                "frames_expected": n_expected, "video_ended_at": eof,
                "frame_range": [frame_idx[0], frame_idx[-1]] if exam.frame_range is not None and n else None,
                "duration_s": float(t[-1] - t[0]) if n else 0.0, "frame_rate_hz": exam.frame_rate_hz,
-               "classes": ({"FT": classes["FT"], "FL": classes["FL"], "none": classes[""]} if classified
-                           else "not classified"),
+               "classes": ({"FT": classes["FT"], "FL": classes["FL"], "none": classes[""],
+                            "FL_dark_or_saturated": classes["unlit"]} if classified else "not classified"),
                "steps": dict(sorted(statuses.items())),
                # estimated steps whose 1-sigma was widened: fitted beside their own tube's wall or across the view
                "steps_beside_wall": n_beside, "path_travelled_m": float(path_m[-1]) if n else 0.0,
@@ -1217,6 +1217,13 @@ def _dead_reckon_into(acc: "_Track", exam: Exam, d: Path) -> None:
             dr.step(s)
         acc.pos[k], acc.rot[k], acc.cov[k] = dr.p_w_m, dr.R_w_c_matrix, dr.P[:3, :3]
         acc.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
+
+
+def unlit_text(classes: dict | str) -> str:
+    """What the summary's FL count holds of frames too dark or saturated to classify (they are FL by rule, not by the
+    classifier: a capsule in the dark, a blinded sensor); ``""`` when none."""
+    n = classes.get("FL_dark_or_saturated", 0) if isinstance(classes, dict) else 0
+    return f"{n} of the FL too dark or saturated to classify" if n else ""
 
 
 def _consistency_text(c: dict | None) -> str:
@@ -1293,6 +1300,8 @@ class _Track:
         self.frame[k] = int(row[0])
         self.t[k] = float(row[2])
         classes[row[3]] = classes.get(row[3], 0) + 1
+        if row[4] in ("dark", "saturated"):  # frames.csv's status: called FL without being classified
+            classes["unlit"] += 1
         self.pos[k] = dr.p_w_m
         self.rot[k] = dr.R_w_c_matrix
         self.cov[k] = dr.P[:3, :3]
@@ -1471,7 +1480,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
             ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"
              + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
             ["duration", f"{duration_text(sm['duration_s'])} at {sm['frame_rate_hz']:g} frames/s"],
-            ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"],
+            ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"
+             + (f" ({unlit_text(cls)})" if unlit_text(cls) else "")],
             ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())
              + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or "
                 "across the view (a folded or collapsed lumen: motion kept, wider 1-sigma)"

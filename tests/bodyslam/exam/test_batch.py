@@ -228,6 +228,23 @@ def test_repeated_frames_give_steps_at_rest_and_a_report(tmp_path, capsys):
     assert "distance ratio n/a" in (tmp_path / "out" / "exam" / "report.html").read_text()
 
 
+def test_frames_too_dark_to_classify_are_counted_apart_from_the_wall(tmp_path, capsys):
+    # a capsule in the dark (or a blinded sensor) gives frames the classifier never sees: they are FL by rule, and
+    # the summary, the printed line and the report say how many of the FL are those
+    d = _plain_folder(tmp_path / "exam", 4)
+    for k in (4, 5):
+        cv2.imwrite(str(d / f"capsule_{k:05d}.png"), np.zeros((320, 320, 3), np.uint8))
+    rc = cli_main(["batch", str(d), "--out", str(tmp_path / "out"), "--jobs", "1", "--calib",
+                   str(_calib_json(tmp_path))])
+    out = capsys.readouterr().out
+    assert rc == 0
+    c = json.loads((tmp_path / "out" / "exam" / "summary.json").read_text())["classes"]
+    assert c["FL_dark_or_saturated"] == 2 and c["FT"] + c["FL"] == 6 and c["FL"] >= 2
+    assert "2 of the FL too dark or saturated to classify" in out
+    assert "2 of the FL too dark or saturated" in (tmp_path / "out" / "exam" / "report.html").read_text()
+    assert [r["status"] for r in _rows(tmp_path / "out" / "exam" / "frames.csv")][4:] == ["dark", "dark"]
+
+
 def _write_video(path: Path, n: int) -> None:
     w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, (320, 320))
     assert w.isOpened()
