@@ -68,7 +68,7 @@ def long_exam_settings(n: int) -> list[str]:
 
 REALISTIC_EXAM_FRAMES = 3_600  # realistic_exam's 2.5 m path at its 0.06 cm mean step, with room for the wobble
 # beyond that: the longest path its abdomen box holds at the exam scenario's self-distance (1.5 lumen diameters;
-# `realistic`'s 2 allow ~3.6 m, this ~4.8 m: `testbed simulate` says so), covered to ~4.0 m at a slower pace
+# `realistic`'s 2 allow ~3.4 m, this ~4.8 m: `testbed simulate` says so), covered to ~4.0 m at a slower pace
 LONG_REALISTIC_PATH_M, LONG_REALISTIC_COVER_M = 4.5, 4.0
 
 
