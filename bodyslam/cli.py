@@ -641,8 +641,7 @@ def _batch(args) -> int:
     for s in rep.exams:
         steps = s["steps"]
         c = s["classes"]
-        classes = (f"{c['FT']} FT, {c['FL']} FL" + (f", {unlit_text(c)}" if unlit_text(c) else "")
-                   if isinstance(c, dict) else c)
+        classes = f"{c['FT']} FT, {c['FL']} FL" + unlit_text(c, ", {}") if isinstance(c, dict) else c
         n_est = sum(steps.get(k, 0) for k in WITH_ESTIMATE)
         filled = path_share_text(s.get("path_without_estimate_share", 0.0), s.get("path_beside_wall_share", 0.0))
         print(f"{s['exam']}: {s['frames']} frames ({classes}), {n_est}/{sum(steps.values())} steps estimated "

@@ -1219,11 +1219,11 @@ def _dead_reckon_into(acc: "_Track", exam: Exam, d: Path) -> None:
         acc.sd_heading[k] = math.sqrt(max(float(np.trace(dr.P[3:, 3:])), 0.0))
 
 
-def unlit_text(classes: dict | str) -> str:
+def unlit_text(classes: dict | str, template: str = "{}") -> str:
     """What the summary's FL count holds of frames too dark or saturated to classify (they are FL by rule, not by the
-    classifier: a capsule in the dark, a blinded sensor); ``""`` when none."""
+    classifier: a capsule in the dark, a blinded sensor), put into ``template``; ``""`` when none."""
     n = classes.get("FL_dark_or_saturated", 0) if isinstance(classes, dict) else 0
-    return f"{n} of the FL too dark or saturated to classify" if n else ""
+    return template.format(f"{n} of the FL too dark or saturated to classify") if n else ""
 
 
 def _consistency_text(c: dict | None) -> str:
@@ -1480,8 +1480,8 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
             ["frames read / expected", f"{sm['frames']} / {sm['frames_expected']}"
              + (f" (the video ended at frame {sm['video_ended_at']})" if sm["video_ended_at"] is not None else "")],
             ["duration", f"{duration_text(sm['duration_s'])} at {sm['frame_rate_hz']:g} frames/s"],
-            ["facing the tunnel / the wall", cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}"
-             + (f" ({unlit_text(cls)})" if unlit_text(cls) else "")],
+            ["facing the tunnel / the wall",
+             cls if isinstance(cls, str) else f"{cls['FT']} / {cls['FL']}" + unlit_text(cls, " ({})")],
             ["steps", ", ".join(f"{v} {k}" + STEP_WORDS.get(k, "") for k, v in sm["steps"].items())
              + (f"; {sm['steps_beside_wall']} of the estimated steps fitted beside the wall of their own tube or "
                 "across the view (a folded or collapsed lumen: motion kept, wider 1-sigma)"
