@@ -50,7 +50,9 @@ cm, one of the new steps fitted at zero distance where the capsule moved 1.12 cm
 Every mode keeps features inside the valid field-of-view mask (eroded by ``border_px``: the rim of the image
 circle is a strong edge that moves with the lens, not with the scene), and verifies matches geometrically with a
 RANSAC essential matrix on the camera model's unit rays (any lens, not only pinhole; OpenCV's USAC: 1.2 ms per
-pair against 13 ms for its classic RANSAC, with as many inliers).
+pair against 13 ms for its classic RANSAC, with as many inliers), or a pure rotation where the essential matrix
+keeps too few: two frames without parallax (a capsule at rest, a frame repeated by the export) have none
+(:data:`ROTATION_CHECK_SHARE`).
 
 Data form: :class:`Matches` holds pixel coordinates ``pts1_px``, ``pts2_px`` ``(n, 2)`` float64 (column, row) of
 verified matches, and how many candidates there were before verification.
@@ -72,7 +74,7 @@ from bodyslam.errors import ConfigError
 log = logging.getLogger(__name__)
 
 __all__ = ["MATCH_MODES", "ASIFT_VIEWS", "Matches", "FrameFeatures", "Matcher", "detect_fov_mask", "essential_ransac",
-           "knn_l2", "squared_distances"]
+           "knn_l2", "rotation_ransac", "squared_distances"]
 
 from bodyslam.choices import MATCH_MODES  # noqa: E402
 ASIFT_VIEWS = ("compact", "standard")
@@ -89,6 +91,15 @@ RESCUE_FEATURES, RESCUE_MATCHES = MODE_DEFAULTS["sift"][1:]
 # pairs with fewer than 60 verified tracks, 25.0 / 27.8 / 31.8% on the brightness, were 5.2 / - / - % at 6 px,
 # - / 4.7 / 13.0% at 8, 3.5 / 4.3 / 10.7% at 12, - / 5.7 / 10.4% at 16 and - / 6.7 / 11.4% at 24
 TRACK_CONTRAST_SIGMA_RAD = 0.1
+# A pair whose essential matrix keeps fewer than this share of its matches is also checked against a pure
+# rotation (rotation_ransac), and verifies with the rotation's inliers where they are more: two frames without
+# parallax (a capsule at rest, a frame repeated by the export) have no essential matrix, and OpenCV's USAC then
+# keeps all or none of the matches by chance (a real clip whose frames were each written three times: 4 of its 24
+# repeated pairs verified none, were read as lost to fast motion and filled as jumps, the path +90%)
+ROTATION_CHECK_SHARE = 0.5
+# rotations tried (each from two random matches): with half the matches outliers, one of 64 pairs is clean but for
+# (3/4)^64 ~ 1e-8
+ROTATION_HYPOTHESES = 64
 # keypoint levels and where a frame keeps each (:meth:`Matcher.keypoints`)
 LEVELS = {"default": "kp", "coarse": "kp_coarse", "full": "kp_full"}
 
@@ -482,13 +493,20 @@ class Matcher:
         return cv2.LUT(gray, lut)
 
     def _verify(self, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-        """Inliers of a RANSAC essential matrix between the unit rays of the matches."""
+        """Inliers of a RANSAC essential matrix between the unit rays of the matches, or of a pure rotation
+        (:func:`rotation_ransac`) where that keeps more: a pair without parallax (a capsule at rest, a repeated
+        frame) has no essential matrix (:data:`ROTATION_CHECK_SHARE`)."""
         n = len(p1)
         if n < 8:
             return np.zeros(n, bool)
         r1, v1 = self.camera.unproject(p1)
         r2, v2 = self.camera.unproject(p2)
-        return essential_ransac(r1, r2, self.ransac_rad, v1 & v2)[4]
+        inl = essential_ransac(r1, r2, self.ransac_rad, v1 & v2)[4]
+        if inl.sum() < ROTATION_CHECK_SHARE * n:
+            rot = rotation_ransac(r1, r2, self.ransac_rad, v1 & v2)[1]
+            if rot.sum() > inl.sum():
+                return rot
+        return inl
 
 
 def local_contrast(gray: np.ndarray, sigma_px: float, floor: float = 4.0, gain: float = 40.0) -> np.ndarray:
@@ -570,6 +588,51 @@ def knn_l2(d1: np.ndarray, d2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
             dist[r0 + rows, j] = np.sqrt(sq[rows, c])
             sq[rows, c] = np.inf
     return idx, dist
+
+
+def rotation_ransac(r1: np.ndarray, r2: np.ndarray, threshold_rad: float, valid: np.ndarray | None = None,
+                    n_hypotheses: int = ROTATION_HYPOTHESES) -> tuple[np.ndarray | None, np.ndarray]:
+    """The pure rotation ``R`` (``r2 ~= R r1``) that the most matched unit rays ``r1``, ``r2`` (n, 3) follow to
+    within ``threshold_rad``, and those rays (``(R, inliers (n,) bool)``; ``(None, all False)`` with fewer than 3
+    ``valid`` rays): rotations of random pairs of matches (Kabsch, ``n_hypotheses``, a fixed seed so that a pair
+    always verifies alike), the best refitted on its inliers. The model of a pair without parallax, where the
+    essential matrix is undefined."""
+    r1 = np.asarray(r1, float)
+    r2 = np.asarray(r2, float)
+    n = len(r1)
+    use = np.ones(n, bool) if valid is None else np.asarray(valid, bool).copy()
+    inliers = np.zeros(n, bool)
+    idx = np.nonzero(use)[0]
+    if len(idx) < 3:
+        return None, inliers
+    rng = np.random.default_rng(0)
+    pick = rng.integers(0, len(idx), size=(n_hypotheses, 2))
+    pick = pick[pick[:, 0] != pick[:, 1]]
+    a, b = r1[idx[pick]], r2[idx[pick]]  # (k, 2, 3)
+    Rs = _kabsch(np.einsum("kpi,kpj->kij", a, b))
+    cos_thr = math.cos(threshold_rad)
+    votes = (np.einsum("kij,nj,ni->kn", Rs, r1[idx], r2[idx]) > cos_thr).sum(axis=1)
+    best = int(np.argmax(votes)) if len(votes) else None
+    if best is None:
+        return None, inliers
+    R = Rs[best]
+    for _ in range(2):  # refit on the inliers, then take the rays that rotation keeps
+        ok = use & (np.einsum("ij,nj,ni->n", R, r1, r2) > cos_thr)
+        if ok.sum() < 3:
+            return None, inliers
+        R = _kabsch(np.einsum("pi,pj->ij", r1[ok], r2[ok])[None])[0]
+    inliers = use & (np.einsum("ij,nj,ni->n", R, r1, r2) > cos_thr)
+    return R, inliers
+
+
+def _kabsch(H: np.ndarray) -> np.ndarray:
+    """Rotations ``R`` (k, 3, 3) that best map the ``a`` rays onto the ``b`` ones, from ``H = sum a b^T``."""
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.transpose(Vt, (0, 2, 1)) @ np.transpose(U, (0, 2, 1))))
+    D = np.zeros_like(H)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(d == 0, 1.0, d)
+    return np.transpose(Vt, (0, 2, 1)) @ D @ np.transpose(U, (0, 2, 1))
 
 
 def essential_ransac(r1: np.ndarray, r2: np.ndarray, threshold_rad: float, valid: np.ndarray | None = None):

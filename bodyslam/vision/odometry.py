@@ -509,6 +509,12 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
 
 
 # -- does the per-step 1-sigma hold? ---------------------------------------------------------------------------
+# the k-step check's distance ratio leaves out pairs whose single steps add up to less than this: a capsule at rest
+# (a repeated frame's step is fitted at ~1e-15 m, whose ratio is rounding, not scale); a micrometre is a fifth of
+# the 1-sigma the fit states for a step at rest (~5 um on demo and real frames)
+CONSISTENCY_MIN_LENGTH_M = 1e-6
+
+
 def consistency_pairs(statuses: list, k: int = 3, max_pairs: int = 30) -> list[tuple[int, int]]:
     """Position pairs ``(a, a + k)`` whose ``k`` single steps were all estimated from their own matches, spread
     evenly over the exam and not overlapping (at most ``max_pairs``)."""
@@ -543,7 +549,7 @@ def consistency_diagnostic(singles: list[list[StepMotion]], totals: list[StepMot
         d_single, d_pair = float(np.linalg.norm(t)), float(np.linalg.norm(tot.t_c1_c2_m))
         sig = math.sqrt(var + tot.sigma_t_m**2)
         z.append((d_pair - d_single) / sig if sig > 0 else math.inf)
-        if d_single > 0:
+        if d_single > CONSISTENCY_MIN_LENGTH_M:
             ratio.append(d_pair / d_single)
     z_abs = np.abs(np.array(z))
     return {"k": k, "pairs_tried": len(totals), "pairs_estimated": len(z),
