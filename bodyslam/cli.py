@@ -712,7 +712,15 @@ def _match(args) -> int:
 
     a, b = read_image(args.a), read_image(args.b)
     cam = _camera_for(a, args.meta)
-    matcher = Matcher(cam, args.mode, mask=_fov_of([a, b], cam, args.mask))
+    fov = _fov_of([a, b], cam, args.mask)
+    if not args.meta:  # an assumed lens: centred on a field off the frame's centre or small in it (as batch does)
+        from bodyslam.camera import equidistant_on_field
+
+        on_field = equidistant_on_field(fov, cam.fov_deg) if args.mask in (None, "auto") else None
+        if on_field is not None:
+            cam = on_field
+            print(f"assumed lens centred on the detected field of view at ({cam.cx:g}, {cam.cy:g})")
+    matcher = Matcher(cam, args.mode, mask=fov)
     m = matcher.match(a, b)
     un = Unroller(cam)
     left = a.copy()

@@ -174,6 +174,7 @@ class Exam:
     marks: list[tuple[int, str]] = field(default_factory=list)
     landmarks: list[int] = field(default_factory=list)
     assumed: list[str] = field(default_factory=list)
+    camera_assumed: bool = False  # no calibration, no meta.json: DEFAULT_FOV_DEG's lens, centred on the field of view
     problems: list[list] = field(default_factory=list, repr=False)  # found while listing (gaps, non-images)
     radius_sd_m: float = 0.0  # 1-sigma of radius_m: meta.json's, 0 when given, DEFAULT_RADIUS_SD_M when assumed
     shape_sd_rel: float = 0.0  # the lumen's departure from a cylinder: meta.json's, else DEFAULT_SHAPE_SD_REL
@@ -546,6 +547,7 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
         if size is None:
             raise InputError(f"{src}: no readable frame to take the image size from")
         exam.camera = {"model": "equidistant", "width": size[0], "height": size[1], "fov_deg": DEFAULT_FOV_DEG}
+        exam.camera_assumed = True
         assumed.append(f"camera: equidistant fisheye {DEFAULT_FOV_DEG:g} deg at {size[0]}x{size[1]} (no calibration)")
     camera_from_dict(exam.camera)
     exam.frame_rate_hz = _given_or_assumed(src, "frame rate", fps, meta.frame_rate_hz if meta else None,
@@ -681,10 +683,22 @@ def _prepare_out(out: Path, plan: dict, force: bool) -> None:
 
 
 def _mask_for(exam: Exam) -> np.ndarray | None:
-    """The exam's field of view (None: the image circle): ``exam.mask`` None or "auto" detects it."""
+    """The exam's field of view (None: the image circle): ``exam.mask`` None or "auto" detects it. An assumed
+    lens is then centred on a detected field that is off the frame's centre or small in it
+    (:func:`bodyslam.camera.equidistant_on_field`): ``exam.camera`` and its ``assumed`` line say so."""
+    from bodyslam.camera import equidistant_on_field
     from bodyslam.vision.odometry import resolve_mask
 
-    return resolve_mask(exam.frame_source(), camera_from_dict(exam.camera), exam.mask)
+    mask = resolve_mask(exam.frame_source(), camera_from_dict(exam.camera), exam.mask)
+    cam = equidistant_on_field(mask, DEFAULT_FOV_DEG) if exam.camera_assumed and mask is not None else None
+    if cam is not None:
+        exam.camera = cam.to_dict()
+        diameter = 2.0 * cam.fx * math.radians(cam.fov_deg) / 2.0
+        exam.assumed = [(f"camera: equidistant fisheye {cam.fov_deg:g} deg across the detected field of view, "
+                         f"centred at ({cam.cx:g}, {cam.cy:g}), {diameter:.0f} px wide, in {cam.width}x{cam.height} "
+                         "frames (no calibration)") if a.startswith("camera:") else a for a in exam.assumed]
+        log.info("%s: %s", exam.name, next(a for a in exam.assumed if a.startswith("camera:")))
+    return mask
 
 
 def _run_tasks(func, tasks: list[dict], jobs: int | None, scheduler: str | None, ordered: bool = False) -> Iterator:

@@ -78,3 +78,33 @@ def test_to_dict_round_trip():
 def test_bad_camera_descriptions_raise(desc, match):
     with pytest.raises(InputError, match=match):
         camera_from_dict(desc)
+
+
+def _disc(h, w, cx, cy, r):
+    yy, xx = np.mgrid[:h, :w]
+    return (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+
+
+def test_an_assumed_lens_is_centred_on_a_field_that_is_off_centre_or_small():
+    from bodyslam.camera import FIELD_MIN_SHARE, equidistant_on_field
+
+    # the frame's own field (a disc across the shorter side, an octagon of 89% like real PillCam frames): None
+    assert equidistant_on_field(_disc(320, 320, 159.5, 159.5, 158), 156.0) is None
+    octagon = np.zeros((576, 576), np.uint8)
+    c, r = 287.5, 255 / math.cos(math.pi / 8)
+    pts = [(c + r * math.cos(math.pi / 8 + k * math.pi / 4), c + r * math.sin(math.pi / 8 + k * math.pi / 4))
+           for k in range(8)]
+    cv2.fillConvexPoly(octagon, np.round(pts).astype(np.int32), 1)
+    assert equidistant_on_field(octagon > 0, 156.0) is None
+    # an image beside a panel: centred on the field, the circle as wide as the field
+    cam = equidistant_on_field(_disc(600, 800, 297.5, 299.5, 255), 156.0)
+    assert (cam.width, cam.height) == (800, 600) and (cam.cx, cam.cy) == (297.5, 299.5)
+    assert cam.fx == pytest.approx(510 / 2 / math.radians(78))  # columns 43-552 of the disc
+    u, valid = cam.project(np.array([[0.0, 0.0, 1.0], [math.sin(math.radians(77)), 0.0, math.cos(math.radians(77))]]))
+    assert valid.all() and u[0] == pytest.approx([297.5, 299.5]) and 540 < u[1, 0] < 553  # the field's right edge
+    # a small image in the middle of a large frame
+    small = equidistant_on_field(_disc(720, 1280, 639.5, 359.5, 0.3 * 720), 156.0)
+    assert small is not None and small.fx < FIELD_MIN_SHARE * FisheyeCamera.equidistant(1280, 720, 156.0).fx
+    # a field the frame cuts off says nothing of the circle; an empty one nothing at all
+    assert equidistant_on_field(_disc(600, 800, 250, 299.5, 300), 156.0) is None
+    assert equidistant_on_field(np.zeros((50, 60), bool), 156.0) is None

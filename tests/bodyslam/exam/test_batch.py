@@ -667,3 +667,30 @@ def test_a_frame_range_outside_the_recording_is_refused_by_name(tmp_path, capsys
         open_exams([str(tmp_path / "m.csv")])
     (tmp_path / "m2.csv").write_text(f"input,frame_range\n{DEMO},10-\n")
     assert open_exams([str(tmp_path / "m2.csv")])[0].frame_range == (10, None)
+
+
+def test_frames_exported_beside_a_panel_get_a_lens_centred_on_their_field(tmp_path, capsys):
+    # an export that puts the image at the left of a wider frame, a panel of text at its right: the assumed lens is
+    # centred on the detected field (the frame's centre put the camera beside the wall of its own fits), and the
+    # steps come out as the plain frames' do
+    plain = _plain_folder(tmp_path / "plain", 6)
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    for k in range(6):
+        canvas = np.zeros((400, 520, 3), np.uint8)
+        canvas[30:350, 10:330] = cv2.imread(str(DEMO / "frames" / f"{k:06d}.png"))
+        cv2.putText(canvas, f"00:00:{k:02d}", (360, 200), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
+        cv2.imwrite(str(wide / f"capsule_{k:05d}.png"), canvas)
+    for d in (plain, wide):
+        assert cli_main(["batch", str(d), "--out", str(tmp_path / f"out_{d.name}"), "--jobs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "centred at (169.5, 189.5)" in out and "in 520x400 frames" in out
+    cam = json.loads((tmp_path / "out_wide" / "wide" / "summary.json").read_text())["camera"]
+    assert (cam["cx"], cam["cy"]) == (169.5, 189.5)  # the field's centre, not the frame's (259.5, 199.5)
+    a, b = (_rows(tmp_path / f"out_{d}" / d / "motion.csv") for d in ("plain", "wide"))
+    da, db = (np.array([float(r["distance_m"]) for r in rows]) for rows in (a, b))
+    assert [r["beside_wall"] for r in b].count("1") == 0
+    both = np.isfinite(da) & np.isfinite(db)  # (the demo's thesis motion: a hard pair may fail either way)
+    assert both.sum() >= 3 and [r["status"] for r in b].count("ok") == [r["status"] for r in a].count("ok")
+    # the field is the disc less the detector's 1-px rim (318 of 320 px): ~1% on the lens, a few % on a distance
+    assert np.allclose(db[both], da[both], rtol=0.06), (da, db)
