@@ -300,6 +300,44 @@ def test_a_fit_beside_the_wall_is_fitted_again_with_the_axis_held(monkeypatch):
     assert kept.beside_wall and kept.distance_m == pytest.approx(plain.distance_m, rel=1e-12)
 
 
+def test_a_fit_beside_the_wall_without_parallax_is_a_capsule_at_rest(monkeypatch):
+    """REST_PARALLAX_PX: a demo frame and the same frame turned 5 degrees about the principal point (a capsule
+    rolling in place: no parallax) fitted beside the wall (made so, as above) is reported at rest -- distance 0,
+    REST_SIGMA_RADII radii of 1-sigma, the roll of the pure rotation, not flagged; with the rule off it is the held
+    fit beside the wall. The moving pair of the test above keeps its held fit (that test)."""
+    import math
+
+    import cv2
+
+    from bodyslam.meta import read_meta
+    from bodyslam.vision import odometry
+    from bodyslam.vision.odometry import REST_SIGMA_RADII, MotionSettings, VisualOdometry
+
+    meta = read_meta(DEMO)
+    R = meta.tube_radius_m
+    cam = meta.camera_model()
+    vo = VisualOdometry(cam, MotionSettings(), R)
+    img = read_image(DEMO / "frames" / "000010.png")
+    turned = cv2.warpAffine(img, cv2.getRotationMatrix2D((cam.cx, cam.cy), 5.0, 1.0), img.shape[1::-1],
+                            flags=cv2.INTER_CUBIC)
+    fit = vo._fit
+
+    def beside(m, estimator=None):
+        s, x = fit(m, estimator)
+        x = x.copy()
+        x[6:10] = 0.0, 0.0, 0.9 * R, 0.0
+        return s, x
+
+    monkeypatch.setattr(vo, "_fit", beside)
+    s = vo.estimate_pair(vo.matcher.features(img), vo.matcher.features(turned))
+    assert s.ok and not s.beside_wall and s.distance_m == 0.0 and np.array_equal(s.t_c1_c2_m, np.zeros(3))
+    assert s.sigma_distance_m == pytest.approx(REST_SIGMA_RADII * R) and vo.signatures is None
+    assert abs(math.degrees(s.roll_rad)) == pytest.approx(5.0, abs=0.2) and math.degrees(s.tilt_rad) < 0.2
+    monkeypatch.setattr(odometry, "REST_PARALLAX_PX", 0.0)
+    held = vo.estimate_pair(vo.matcher.features(img), vo.matcher.features(turned))
+    assert held.beside_wall and held.sigma_distance_m > 5 * REST_SIGMA_RADII * R
+
+
 def test_an_unknown_wall_step_rule_is_refused():
     from bodyslam.errors import ConfigError
     from bodyslam.vision.odometry import MotionSettings
