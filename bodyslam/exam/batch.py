@@ -693,7 +693,7 @@ def _mask_for(exam: Exam) -> np.ndarray | None:
     cam = equidistant_on_field(mask, DEFAULT_FOV_DEG) if exam.camera_assumed and mask is not None else None
     if cam is not None:
         exam.camera = cam.to_dict()
-        diameter = 2.0 * cam.fx * math.radians(cam.fov_deg) / 2.0
+        diameter = cam.fx * math.radians(cam.fov_deg)  # the image circle's, pixels
         exam.assumed = [(f"camera: equidistant fisheye {cam.fov_deg:g} deg across the detected field of view, "
                          f"centred at ({cam.cx:g}, {cam.cy:g}), {diameter:.0f} px wide, in {cam.width}x{cam.height} "
                          "frames (no calibration)") if a.startswith("camera:") else a for a in exam.assumed]

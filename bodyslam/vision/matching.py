@@ -626,7 +626,8 @@ def rotation_ransac(r1: np.ndarray, r2: np.ndarray, threshold_rad: float, valid:
 
 
 def _kabsch(H: np.ndarray) -> np.ndarray:
-    """Rotations ``R`` (k, 3, 3) that best map the ``a`` rays onto the ``b`` ones, from ``H = sum a b^T``."""
+    """Rotations ``R`` (k, 3, 3) with ``b ~= R a`` in the least-squares sense for rays ``a`` and ``b``, from their
+    ``H = sum a b^T`` (k, 3, 3): Kabsch's SVD, a reflection turned into a rotation."""
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.transpose(Vt, (0, 2, 1)) @ np.transpose(U, (0, 2, 1))))
     D = np.zeros_like(H)

@@ -260,7 +260,7 @@ def test_tracking_holds_under_a_light_that_stays_in_the_image(monkeypatch):
 
 def test_a_repeated_frame_verifies_all_its_matches_in_every_mode():
     # two frames without parallax (a capsule at rest, a frame an export repeats) have no essential matrix: USAC then
-    # kept all or none of the matches by chance (demo frames 0-5 repeated: 11 of 18 pairs verified none before the
+    # kept all or none of the matches by chance (demo frames 0-5 repeated: 12 of 18 pairs verified none before the
     # rotation check), and a step verified by none is lost to fast motion; a pure rotation keeps them all
     from pathlib import Path
 
