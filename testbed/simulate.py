@@ -165,6 +165,35 @@ def clear_earlier_sequence(out: Path) -> None:
                 f.unlink()
 
 
+
+# a tube's radius profile whose spread is below this (m) is one radius: the mean of a constant profile differs from
+# it by float rounding only (thesis: 0.015000000000000003)
+RADIUS_SPREAD_FLOOR_M = 1e-7
+
+
+def told_radius(world) -> dict:
+    """What meta.json tells the pipeline of the lumen radius: ``tube_radius_m``, ``tube_radius_sd_m`` and
+    ``tube_radius_source``. A world with a prior ([tube] ``radius_in_meta_m``: the realistic testbed) tells the
+    prior and its spread; otherwise the mean of this tube's radius along its centre line, with the radius's spread
+    along it (its standard deviation over arc length) as the 1-sigma: the tube estimator takes one radius for every
+    step, and where the tube tapers or its radius varies (``demo``, ``exam``: +- 1 mm), the wall a step sees is as
+    far off that mean as the spread says. Stating 0 there made the steps' 1-sigma ~3x too narrow (the `exam`
+    scenario's distances inside their 1-sigma 0.28-0.38, the demo's 0.14; docs/RESULTS.md, session 55). A tube of
+    one radius (``thesis``) still says 0: known exactly."""
+    if world.radius_in_meta_m is not None:
+        return {"tube_radius_m": float(world.radius_in_meta_m), "tube_radius_sd_m": float(world.radius_sd_in_meta_m),
+                "tube_radius_source": "population prior (the true radius is hidden)"}
+    cl = world.tube.centerline
+    r = np.asarray(cl.radius_m, dtype=np.float64)
+    mean = float(np.mean(r))  # (the samples are evenly spaced along the centre line where the testbed makes it)
+    w = np.gradient(np.asarray(cl.s_m, dtype=np.float64)) if len(r) > 1 else np.ones(1)
+    sd = float(np.sqrt(np.average((r - np.average(r, weights=w)) ** 2, weights=w)))
+    if sd < RADIUS_SPREAD_FLOOR_M:
+        return {"tube_radius_m": mean, "tube_radius_sd_m": 0.0, "tube_radius_source": "mean of this tube"}
+    return {"tube_radius_m": mean, "tube_radius_sd_m": sd,
+            "tube_radius_source": "mean of this tube; its 1-sigma is the radius's spread along the tube"}
+
+
 def simulate(
     scenario: dict,
     seed: int,
@@ -262,13 +291,8 @@ def simulate(
         "image_width": cam.width,
         "image_height": cam.height,
         "camera": cam.to_dict(),
-        # the nominal lumen radius the pipeline is told (World.radius_in_meta_m)
-        "tube_radius_m": float(np.mean(world.tube.centerline.radius_m) if world.radius_in_meta_m is None
-                               else world.radius_in_meta_m),
-        # its 1-sigma: 0 where it is this tube's (the ideal world), else the population prior's spread
-        "tube_radius_sd_m": float(world.radius_sd_in_meta_m),
-        "tube_radius_source": ("mean of this tube" if world.radius_in_meta_m is None
-                               else "population prior (the true radius is hidden)"),
+        # the nominal lumen radius the pipeline is told and its 1-sigma (told_radius)
+        **told_radius(world),
         # the lumen's departure from a cylinder as a relative 1-sigma of each step's distance: 0 on a cylinder
         "lumen_shape_sd_rel": float(world.shape_sd_in_meta_rel),
         "frames": {"dir": "frames", "pattern": "{index:06d}.png", "color": "RGB"},

@@ -340,8 +340,10 @@ def lumen_scale_text(sc: dict | None) -> str:
     """What the CLIs print and the report says of a run's lumen scale (:func:`lumen_scale_summary`, None where it
     was not measured)."""
     if sc is None:
-        return ("not measured (the radius is known, the lumen scale is off, or the thesis estimator): the steps keep "
-                "the radius's scale")
+        from bodyslam.vision.odometry import LUMEN_SCALE_MIN_PRIOR_SD_REL
+
+        return (f"not measured (the radius is known, or known to within {LUMEN_SCALE_MIN_PRIOR_SD_REL:.0%}; the "
+                "lumen scale is off; or the thesis estimator): the steps keep the radius's scale")
     tried = sc.get("steps_tried")
     sampled = f" of {tried} sampled" if tried is not None else ""
     if not sc["applied"]:

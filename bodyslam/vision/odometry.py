@@ -797,10 +797,21 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
 
 
 def lumen_scale_measured(settings: MotionSettings, radius_sd_rel: float) -> bool:
-    """Whether an exam's steps are rescaled by the lumen scale seen in them (:mod:`bodyslam.vision.lumen_scale`):
-    with the tube estimator, where the settings ask for it and the radius is a prior (``radius_sd_rel > 0``); a
-    radius known exactly (the ideal testbed's, or one given on the command line) is the scale."""
-    return settings.lumen_scale and settings.estimator == "tube" and radius_sd_rel > 0
+    """Whether an exam's steps are rescaled by the lumen scale seen in them (:mod:`bodyslam.vision.lumen_scale`)
+    and tied to their neighbours' (:mod:`bodyslam.vision.scale_chain`): with the tube estimator, where the settings
+    ask for it and the radius is a prior at least :data:`LUMEN_SCALE_MIN_PRIOR_SD_REL` wide; a radius known exactly
+    (the ideal testbed's, or one given on the command line) or to within that is the scale."""
+    return settings.lumen_scale and settings.estimator == "tube" and radius_sd_rel >= LUMEN_SCALE_MIN_PRIOR_SD_REL
+
+
+# The lumen scale is measured only where the radius's prior is at least this wide (its relative 1-sigma): the ring
+# measure errs by about 5% itself (its ratios read 0.94-0.95 on lumens without contraction rings; lumen_scale's
+# docstring, session 42), so a radius known to within that keeps its scale. A testbed tube's own mean, stated with
+# the radius's spread along the tube (exam 4.2%, demo 6.5%; testbed.simulate.told_radius), is such a radius: on the
+# demo sample the ring measure took the steps x0.974 where the wall it sees is 3% wider than the mean (distance error
+# 0.022 -> 0.028 cm; docs/RESULTS.md, session 55). Real exams' assumed prior (20%) and the realistic testbed's are
+# measured.
+LUMEN_SCALE_MIN_PRIOR_SD_REL = 0.10
 
 
 def with_lumen_uncertainty(steps: list[StepMotion], radius_sd_rel: float,

@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -95,3 +96,27 @@ def test_contact_sheet(tmp_path):
     assert main(["contact-sheet", str(seq), "--out", str(tmp_path / "s.png"), "--count", "4", "--cols", "2"]) == 0
     sheet = read_image(tmp_path / "s.png")
     assert sheet.shape == (400, 400, 3) and sheet.max() > 0
+
+
+def test_meta_json_tells_the_radius_with_its_spread_along_the_tube():
+    """The tube estimator takes one radius for every step: a testbed tube whose radius varies along it (the demo
+    tapers 1.5 -> 1.25 cm, +- 1 mm) tells its mean with the spread as 1-sigma (told as exact, the demo's distances
+    were inside their 1-sigma 14% of the time); a tube of one radius (thesis) tells it exactly, float rounding of
+    the mean notwithstanding; the realistic testbed tells its population prior. The shipped sample says what its
+    scenario says."""
+    from testbed.scenario import build_world, load_scenario
+    from testbed.simulate import told_radius
+
+    demo = build_world(load_scenario("demo"), 0, n_frames=2)
+    told = told_radius(demo)
+    r = demo.tube.centerline.radius_m
+    assert told["tube_radius_m"] == pytest.approx(np.mean(r)) and told["tube_radius_sd_m"] == pytest.approx(
+        np.std(r), rel=1e-3)
+    assert 0.05 < told["tube_radius_sd_m"] / told["tube_radius_m"] < 0.08 and "spread" in told["tube_radius_source"]
+    shipped = json.loads((Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0" / "meta.json").read_text())
+    assert {k: shipped[k] for k in told} == told
+    thesis = told_radius(build_world(load_scenario("thesis"), 0, n_frames=2))
+    assert thesis["tube_radius_sd_m"] == 0.0 and thesis["tube_radius_m"] == pytest.approx(0.015)
+    assert thesis["tube_radius_source"] == "mean of this tube"
+    realistic = told_radius(build_world(load_scenario("realistic"), 0, n_frames=2))
+    assert (realistic["tube_radius_m"], realistic["tube_radius_sd_m"]) == (0.0125, 0.0025)
