@@ -169,29 +169,39 @@ def clear_earlier_sequence(out: Path) -> None:
 # a tube's radius profile whose spread is below this (m) is one radius: the mean of a constant profile differs from
 # it by float rounding only (thesis: 0.015000000000000003)
 RADIUS_SPREAD_FLOOR_M = 1e-7
+# angles around the tube at which the folds' inward bulge is averaged (told_radius)
+BULGE_ANGLES = 64
 
 
 def told_radius(world) -> dict:
     """What meta.json tells the pipeline of the lumen radius: ``tube_radius_m``, ``tube_radius_sd_m`` and
     ``tube_radius_source``. A world with a prior ([tube] ``radius_in_meta_m``: the realistic testbed) tells the
-    prior and its spread; otherwise the mean of this tube's radius along its centre line, with the radius's spread
-    along it (its standard deviation over arc length) as the 1-sigma: the tube estimator takes one radius for every
-    step, and where the tube tapers or its radius varies (``demo``, ``exam``: +- 1 mm), the wall a step sees is as
-    far off that mean as the spread says. Stating 0 there made the steps' 1-sigma ~3x too narrow (the `exam`
-    scenario's distances inside their 1-sigma 0.28-0.38, the demo's 0.14; docs/RESULTS.md, session 55). A tube of
-    one radius (``thesis``) still says 0: known exactly."""
+    prior and its spread. Otherwise the tube's own (docs/RESULTS.md, "The radius a testbed tube states", session 55):
+
+    - the mean distance of its wall from the centre line, over the tube's length and around it: the centre line's
+      radius less the folds' inward bulge (``demo`` 2.0%, ``exam`` 1.7% of it). Told the centre line's radius, the
+      tube fit read `exam`'s steps 2-3% long on every seed (1.000 +- 0.003 with the folds taken out);
+    - as its 1-sigma, the radius's spread along the tube (the centre line's radius's standard deviation, scaled as
+      the mean): the tube estimator takes one radius for every step, and where the tube tapers or its radius varies
+      (``demo``, ``exam``: +- 1 mm) the wall a step sees is as far off the mean as that says. The folds' own ridges,
+      8 mm apart, average out over the centimetres of wall a step sees, so they are not part of it. Stated 0, the
+      steps' 1-sigma was ~3x too narrow there (inside 1-sigma: `exam` 0.28-0.38, the demo 0.14).
+
+    A tube of one radius without folds (``thesis``) says 0: known exactly."""
     if world.radius_in_meta_m is not None:
         return {"tube_radius_m": float(world.radius_in_meta_m), "tube_radius_sd_m": float(world.radius_sd_in_meta_m),
                 "tube_radius_source": "population prior (the true radius is hidden)"}
-    cl = world.tube.centerline
+    cl = world.tube.centerline  # sampled at uniform arc length
     r = np.asarray(cl.radius_m, dtype=np.float64)
-    mean = float(np.mean(r))  # (the samples are evenly spaced along the centre line where the testbed makes it)
-    w = np.gradient(np.asarray(cl.s_m, dtype=np.float64)) if len(r) > 1 else np.ones(1)
-    sd = float(np.sqrt(np.average((r - np.average(r, weights=w)) ** 2, weights=w)))
+    phi = np.linspace(0.0, 2.0 * np.pi, BULGE_ANGLES, endpoint=False)
+    bulge = world.tube.folds.profile(np.asarray(cl.s_m, dtype=np.float64)[:, None], phi[None, :]).mean(axis=1)
+    mean = float(np.mean(r * (1.0 - bulge)))
+    sd = float(np.std(r)) * mean / float(np.mean(r))
     if sd < RADIUS_SPREAD_FLOOR_M:
         return {"tube_radius_m": mean, "tube_radius_sd_m": 0.0, "tube_radius_source": "mean of this tube"}
     return {"tube_radius_m": mean, "tube_radius_sd_m": sd,
-            "tube_radius_source": "mean of this tube; its 1-sigma is the radius's spread along the tube"}
+            "tube_radius_source": "mean of this tube's wall from its centre line (folds included); its 1-sigma is "
+                                  "the radius's spread along the tube"}
 
 
 def simulate(

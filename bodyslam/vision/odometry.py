@@ -808,9 +808,9 @@ def lumen_scale_measured(settings: MotionSettings, radius_sd_rel: float) -> bool
 # measure errs by about 5% itself (its ratios read 0.94-0.95 on lumens without contraction rings; lumen_scale's
 # docstring, session 42), so a radius known to within that keeps its scale. A testbed tube's own mean, stated with
 # the radius's spread along the tube (exam 4.2%, demo 6.5%; testbed.simulate.told_radius), is such a radius: on the
-# demo sample the ring measure took the steps x0.974 where the wall it sees is 3% wider than the mean (distance error
-# 0.022 -> 0.028 cm; docs/RESULTS.md, session 55). Real exams' assumed prior (20%) and the realistic testbed's are
-# measured.
+# demo sample (told its centre line's mean, 1.38 cm) the ring measure took the steps x0.974 where the wall its frames
+# see is ~1.39 cm from the centre line (distance error 0.022 -> 0.028 cm; docs/RESULTS.md, session 55). Real exams'
+# assumed prior (20%) and the realistic testbed's are measured.
 LUMEN_SCALE_MIN_PRIOR_SD_REL = 0.10
 
 

@@ -80,7 +80,7 @@ def test_messages_name_the_field_and_value():
     with pytest.raises(InputError, match=r"malformed rear_camera"):
         meta_from_dict({**good, "rear_camera": {"camera": good["camera"]}})
     m = meta_from_dict(good)
-    assert m.rf is not None and m.rf.file == "rf.csv" and m.tube_radius_m == pytest.approx(0.013777, abs=1e-6)
+    assert m.rf is not None and m.rf.file == "rf.csv" and m.tube_radius_m == pytest.approx(0.013497, abs=1e-6)
 
 
 def test_the_lumen_shape_reaches_the_pipeline(tmp_path):

@@ -101,20 +101,24 @@ def test_contact_sheet(tmp_path):
 def test_meta_json_tells_the_radius_with_its_spread_along_the_tube():
     """The tube estimator takes one radius for every step: a testbed tube whose radius varies along it (the demo
     tapers 1.5 -> 1.25 cm, +- 1 mm) tells its mean with the spread as 1-sigma (told as exact, the demo's distances
-    were inside their 1-sigma 14% of the time); a tube of one radius (thesis) tells it exactly, float rounding of
-    the mean notwithstanding; the realistic testbed tells its population prior. The shipped sample says what its
-    scenario says."""
+    were inside their 1-sigma 14% of the time), and the mean is the wall's distance from the centre line: its
+    folds bulge into the lumen by 2% of the radius on average (told the centre line's radius, the `exam` tube's
+    steps read 2-3% long). A tube of one radius without folds (thesis) tells it exactly, float rounding of the mean
+    notwithstanding; the realistic testbed tells its population prior. The shipped sample says what its scenario
+    says."""
     from testbed.scenario import build_world, load_scenario
     from testbed.simulate import told_radius
 
     demo = build_world(load_scenario("demo"), 0, n_frames=2)
     told = told_radius(demo)
     r = demo.tube.centerline.radius_m
-    assert told["tube_radius_m"] == pytest.approx(np.mean(r)) and told["tube_radius_sd_m"] == pytest.approx(
-        np.std(r), rel=1e-3)
+    assert told["tube_radius_m"] == pytest.approx(np.mean(r) * (1 - 0.0203), rel=1e-3)  # 12% deep folds' mean bulge
+    assert told["tube_radius_sd_m"] / told["tube_radius_m"] == pytest.approx(np.std(r) / np.mean(r))
     assert 0.05 < told["tube_radius_sd_m"] / told["tube_radius_m"] < 0.08 and "spread" in told["tube_radius_source"]
     shipped = json.loads((Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0" / "meta.json").read_text())
     assert {k: shipped[k] for k in told} == told
+    flat = build_world(load_scenario("demo", ["tube.fold_depth_frac=0"]), 0, n_frames=2)
+    assert told_radius(flat)["tube_radius_m"] == pytest.approx(np.mean(flat.tube.centerline.radius_m))
     thesis = told_radius(build_world(load_scenario("thesis"), 0, n_frames=2))
     assert thesis["tube_radius_sd_m"] == 0.0 and thesis["tube_radius_m"] == pytest.approx(0.015)
     assert thesis["tube_radius_source"] == "mean of this tube"
