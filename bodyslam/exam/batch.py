@@ -1465,6 +1465,14 @@ def _trajectory_png(task: dict) -> None:
     write_image(task["path"], trajectory_figure(*task["args"], **task["kw"]))
 
 
+def radius_text(radius_m: float, sd_m: float) -> str:
+    """The report's lumen radius: a prior with its 1-sigma, or a radius known exactly (``sd_m`` 0: given on the
+    command line, or a testbed tube of one radius), which is then the steps' scale."""
+    if sd_m > 0:
+        return f"{radius_m * 100:.2f} +- {sd_m * 100:.2f} cm (the prior, 1-sigma)"
+    return f"{radius_m * 100:.2f} cm (known exactly: the steps' scale)"
+
+
 def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: list[list], fused: bool,
             jobs: int | None = 1) -> None:
     """The exam's ``trajectory.png`` (3-D and three projections with the 1-sigma and the marked frames; drawn on
@@ -1503,7 +1511,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
             ["path travelled", f"{sm['path_travelled_m'] * 100:.1f} +- {sm['sd_path_travelled_m'] * 100:.1f} cm "
              + (f"(1-sigma; {filled})" if filled else "(1-sigma)")],
             ["trajectory", sm["trajectory"]],
-            ["lumen radius", f"{exam.radius_m * 100:.2f} +- {exam.radius_sd_m * 100:.2f} cm (the prior)"],
+            ["lumen radius", radius_text(exam.radius_m, exam.radius_sd_m)],
             ["lumen scale seen in the frames", lumen_scale_text(sm.get("lumen_scale"))],
             ["lumen shape", f"steps +- {exam.shape_sd_rel:.0%} (1-sigma) for a lumen that is not a cylinder"
              if exam.shape_sd_rel > 0 else "a cylinder (each step's 1-sigma has no shape share)"],

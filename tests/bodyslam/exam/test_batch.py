@@ -694,3 +694,11 @@ def test_frames_exported_beside_a_panel_get_a_lens_centred_on_their_field(tmp_pa
     assert both.sum() >= 3 and [r["status"] for r in b].count("ok") == [r["status"] for r in a].count("ok")
     # the field is the disc less the detector's 1-px rim (318 of 320 px): ~1% on the lens, a few % on a distance
     assert np.allclose(db[both], da[both], rtol=0.06), (da, db)
+
+
+def test_the_report_says_whether_the_radius_is_a_prior_or_known():
+    """A radius with a 1-sigma is a prior; one without (--radius-m, a testbed tube of one radius) is not called one."""
+    from bodyslam.exam.batch import radius_text
+
+    assert radius_text(0.0125, 0.0025) == "1.25 +- 0.25 cm (the prior, 1-sigma)"
+    assert radius_text(0.015, 0.0) == "1.50 cm (known exactly: the steps' scale)"
