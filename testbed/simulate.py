@@ -165,7 +165,6 @@ def clear_earlier_sequence(out: Path) -> None:
                 f.unlink()
 
 
-
 # a tube's radius profile whose spread is below this (m) is one radius: the mean of a constant profile differs from
 # it by float rounding only (thesis: 0.015000000000000003)
 RADIUS_SPREAD_FLOOR_M = 1e-7
@@ -173,7 +172,7 @@ RADIUS_SPREAD_FLOOR_M = 1e-7
 BULGE_ANGLES = 64
 
 
-def told_radius(world) -> dict:
+def told_radius(world: World) -> dict:
     """What meta.json tells the pipeline of the lumen radius: ``tube_radius_m``, ``tube_radius_sd_m`` and
     ``tube_radius_source``. A world with a prior ([tube] ``radius_in_meta_m``: the realistic testbed) tells the
     prior and its spread. Otherwise the tube's own (docs/RESULTS.md, "The radius a testbed tube states", session 55):

@@ -115,7 +115,7 @@ def test_meta_json_tells_the_radius_with_its_spread_along_the_tube():
     assert told["tube_radius_m"] == pytest.approx(np.mean(r) * (1 - 0.0203), rel=1e-3)  # 12% deep folds' mean bulge
     assert told["tube_radius_sd_m"] / told["tube_radius_m"] == pytest.approx(np.std(r) / np.mean(r))
     assert 0.05 < told["tube_radius_sd_m"] / told["tube_radius_m"] < 0.08 and "spread" in told["tube_radius_source"]
-    shipped = json.loads((Path(__file__).resolve().parents[2] / "data_samples" / "demo_seed0" / "meta.json").read_text())
+    shipped = json.loads((Path(__file__).resolve().parents[2] / "data_samples/demo_seed0/meta.json").read_text())
     assert {k: shipped[k] for k in told} == told
     flat = build_world(load_scenario("demo", ["tube.fold_depth_frac=0"]), 0, n_frames=2)
     assert told_radius(flat)["tube_radius_m"] == pytest.approx(np.mean(flat.tube.centerline.radius_m))

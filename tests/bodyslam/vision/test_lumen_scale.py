@@ -194,8 +194,9 @@ def test_what_a_run_says_of_its_lumen_scale():
 def test_motion_and_batch_apply_the_same_lumen_scale(tmp_path, monkeypatch):
     """``bodyslam motion``'s engine (sequence_motion) and ``batch`` (chunks, then the scale from their rows) write the
     same motion.csv with the lumen scale applied, byte for byte. The demo tells its radius to within its spread along
-    the tube (6.5%: not measured), so the copy here makes it a wide prior; the least sample is lowered to fit its 40 frames, and every ring fitted counts (the demo's tube
-    is a cylinder: no ring is seen there). The steps counted as fitted with the ring are the ones it was fitted to."""
+    the tube (6.5%: not measured), so the copy here makes it a wide prior; the least sample is lowered to fit its 40
+    frames, and every ring fitted counts (the demo's tube has no contraction rings). The steps counted as fitted
+    with the ring are the ones it was fitted to."""
     import json
     import shutil
 
