@@ -99,6 +99,33 @@ def test_a_rotation_step_whose_frames_overlap_as_a_slow_step_does_is_not_lost_to
         guided.SLOW_MATCH_RATIO = guided_ratio
 
 
+def test_a_fast_step_backward_is_not_taken_for_a_slow_one():
+    """A capsule 6 mm back (the testbed's backward phase; real capsules too) keeps frame 1's near wall in view, so
+    read from frame 1 to frame 2 the short-step hypotheses verify more than twice the forward ones' matches, as a
+    turn in place does. Read from frame 2 to frame 1 it is a forward step: ``rotation``, lost to motion, as the
+    same clip played forwards calls it (before session 55: ``rotation_slow``, a clip and its reverse read apart)."""
+    from scipy.spatial import cKDTree
+
+    from bodyslam.vision import guided
+
+    rng = np.random.default_rng(11)
+    f1, f2 = twin_frames(500, rng, T=np.array([0.0, 0.0, -0.006]), s_range=(0.003, 0.03))
+    matcher = Matcher(CAM, "sift")
+    (pts1, d1), (pts2, d2) = matcher.keypoints(f1), matcher.keypoints(f2)
+    tree, dist12 = cKDTree(pts2), guided.descriptor_distances(d1, d2)
+
+    def most(xs):
+        return max(len(matcher.verify(*guided.guided_candidates(pts1, pts2, tree, dist12, x, CAM, R_TUBE,
+                                                                 guided.WINDOW_RAD))) for x in xs)
+
+    # the premise: forward-only, the short steps win by more than SLOW_MATCH_RATIO
+    assert most(guided.short_hypotheses(R_TUBE)) >= 2 * guided.SLOW_MATCH_RATIO * most(guided.hypotheses(R_TUBE))
+    s = estimate_rotation(matcher, f1, f2, CAM, R_TUBE)
+    assert s is not None and s.status == StepStatus.ROTATION and lost_to_motion(s)
+    truth = motion_from_transform(R_TRUE, np.array([0.0, 0.0, -0.006]))
+    assert abs(s.roll_rad - truth.roll_rad) < math.radians(1.0)  # the bar of the slow test above
+
+
 def test_a_fast_step_of_the_near_wall_stays_lost_to_motion():
     """The near-wall frames of the test above, but the 1.2 cm step: the forward hypotheses verify ~130 matches, the
     short-step ones ~12 (chance): ``rotation``, lost to motion."""
