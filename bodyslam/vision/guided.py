@@ -93,7 +93,7 @@ SLOW_MATCH_RATIO = 1.1
 # the short steps win from frame 1 to 2 and from frame 2 to 1, where a backward step is a forward one
 # (docs/RESULTS.md, "Guided matching read both ways"). Backward hypotheses in the rotation's search were tried and
 # dropped: a backward step has the same epipolar lines as the forward one, and where the forward search found no
-# rotation the backward sets verified 80-102 matches on forward steps and fitted rotations 10-28 deg off.
+# rotation the backward sets verified 80-102 matches on forward steps and fitted rotations 5-28 deg off.
 MOVING_STEPS_R = (0.32, 0.64, 0.96, 1.28)
 
 
