@@ -179,7 +179,7 @@ def told_radius(world: World) -> dict:
 
     - the mean distance of its wall from the centre line, over the tube's length and around it: the centre line's
       radius less the folds' inward bulge (``demo`` 2.0%, ``exam`` 1.7% of it). Told the centre line's radius, the
-      tube fit read `exam`'s steps 2-3% long on every seed (1.000 +- 0.003 with the folds taken out);
+      tube fit read `exam`'s steps 2-3% long on every seed (0.999-1.006 with the folds taken out);
     - as its 1-sigma, the radius's spread along the tube (the centre line's radius's standard deviation, scaled as
       the mean): the tube estimator takes one radius for every step, and where the tube tapers or its radius varies
       (``demo``, ``exam``: +- 1 mm) the wall a step sees is as far off the mean as that says. The folds' own ridges,
