@@ -68,11 +68,13 @@ TURN_MM = 5.0  # mm of gap one unit of turn costs (0: the turn only scales the g
 # 0.942, 0.908; 4 and 6 -> 0.832 / 0.943, 0.909; before: 0.811 / 0.943, 0.898)
 DROP_RATIO = 3.0
 
-__all__ = ["load_mesh", "extract_centerline", "load_reference_csv", "score_centerline", "cap_boundaries"]
+__all__ = ["load_mesh", "extract_centerline", "load_reference", "load_reference_csv", "load_reference_json",
+           "voxel_size_from_config", "score_centerline", "cap_boundaries"]
 
 
 def load_mesh(path: str | Path, repair: bool = False, allow_open: bool = False):
-    """Load a closed triangle mesh (OBJ/STL/PLY/OFF/GLB); ``allow_open``: an open one as it is.
+    """Load a closed triangle mesh (OBJ/STL/PLY/OFF/GLB, or legacy VTK POLYDATA as the GCA gut models ship their
+    surfaces: :mod:`testbed.vtk_legacy`); ``allow_open``: an open one as it is.
 
     Raises
     ------
@@ -85,10 +87,15 @@ def load_mesh(path: str | Path, repair: bool = False, allow_open: bool = False):
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: mesh file not found")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=True)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise InputError(f"{path}: not a readable mesh ({type(exc).__name__}: {exc})") from None
+    if path.suffix.lower() == ".vtk":  # trimesh has no reader for it; the same processing as its loaders apply
+        from testbed.vtk_legacy import read_polydata
+
+        mesh = trimesh.Trimesh(*read_polydata(path), process=True)
+    else:
+        try:
+            mesh = trimesh.load(path, force="mesh", process=True)
+        except Exception as exc:  # trimesh raises many types for unreadable files
+            raise InputError(f"{path}: not a readable mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"{path}: contains no triangles")
     if not mesh.is_watertight and repair:
@@ -535,16 +542,87 @@ def load_reference_csv(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.nd
         lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
+    if not lines:
+        raise InputError(f"{path}: empty (needs a header with x,y,z columns and one row per point)")
     header = [h.strip() for h in lines[0].split(",")]
     try:
         cols = [header.index(c) for c in ("x", "y", "z")]
     except ValueError:
         raise InputError(f"{path}: needs x,y,z columns, header is {header}") from None
+    rows = []
+    for i, ln in enumerate(lines[1:], start=2):
+        try:
+            rows.append([float(ln.split(",")[c]) for c in cols])
+        except (ValueError, IndexError) as exc:
+            raise InputError(f"{path}: malformed row {i} (of the lines that are not comments): {ln!r} ({exc})") \
+                from None
+    return _reference_mm(path, np.array(rows, dtype=np.float64).reshape(-1, 3), voxel_size_mm)
+
+
+def load_reference_json(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """Reference mid-line points in mm from a GCA path file (``Paths/*.jsn``: ``{"n": N, "points": [[x, y, z],
+    ...], "tangents": ..., "normals": ...}``, the points in the model's grid units); only ``points`` is read."""
+    path = Path(path)
+    doc = _read_json(path)
+    if not isinstance(doc, dict) or "points" not in doc:
+        raise InputError(f"{path}: expected a mid-line path object with a 'points' list ([[x, y, z], ...])")
+    pts = doc["points"]
+    bad = next((i for i, p in enumerate(pts) if not (isinstance(p, list) and len(p) == 3 and all(
+        isinstance(c, (int, float)) and not isinstance(c, bool) for c in p))), None) if isinstance(pts, list) else -1
+    if bad is not None:
+        raise InputError(f"{path}: 'points' must be a list of [x, y, z] numbers"
+                         + ("" if bad < 0 else f"; point {bad} is {pts[bad]!r}"))
+    if "n" in doc and doc["n"] != len(pts):
+        raise InputError(f"{path}: says n = {doc['n']} but holds {len(pts)} points (truncated?)")
+    return _reference_mm(path, np.array(pts, dtype=np.float64).reshape(-1, 3), voxel_size_mm)
+
+
+def load_reference(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """A reference mid-line in mm: a GCA path file (``.jsn`` / ``.json``, :func:`load_reference_json`) or a CSV
+    with ``x,y,z`` columns (:func:`load_reference_csv`)."""
+    if Path(path).suffix.lower() in (".jsn", ".json"):
+        return load_reference_json(path, voxel_size_mm)
+    return load_reference_csv(path, voxel_size_mm)
+
+
+def _read_json(path: Path):
+    import json
+
     try:
-        a = np.array([[float(ln.split(",")[c]) for c in cols] for ln in lines[1:]])
-    except (ValueError, IndexError) as exc:
-        raise InputError(f"{path}: malformed row ({exc})") from None
-    return a * np.asarray(voxel_size_mm, dtype=np.float64)
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not JSON ({exc})") from None
+
+
+def _reference_mm(path: Path, pts: np.ndarray, voxel_size_mm) -> np.ndarray:
+    if len(pts) < 2:
+        raise InputError(f"{path}: a mid-line needs at least 2 points, found {len(pts)}")
+    if not np.all(np.isfinite(pts)):
+        raise InputError(f"{path}: point {int(np.nonzero(~np.isfinite(pts).all(axis=1))[0][0])} is not finite")
+    return pts * np.asarray(voxel_size_mm, dtype=np.float64)
+
+
+def voxel_size_from_config(path: str | Path) -> tuple[float, float, float]:
+    """The mm per mesh unit of a GCA model, from its config file (``EdinGCA_3D_*.json``: the ``voxel_size`` of its
+    ``MODEL_PROP`` entry in ``model_objects``, or a top-level ``voxel_size``)."""
+    path = Path(path)
+    doc = _read_json(path)
+    doc = doc if isinstance(doc, dict) else {}
+    objs = doc.get("model_objects")
+    found = [o["voxel_size"] for o in (objs if isinstance(objs, list) else [])
+             if isinstance(o, dict) and "voxel_size" in o] + ([doc["voxel_size"]] if "voxel_size" in doc else [])
+    if not found:
+        raise InputError(f"{path}: no voxel_size (a GCA model config has one in its MODEL_PROP model object); "
+                         "give --voxel-size X Y Z instead")
+    vs = found[0]
+    if not (isinstance(vs, list) and len(vs) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                          and v > 0 for v in vs)):
+        raise InputError(f"{path}: voxel_size must be three positive numbers (mm), found {vs!r}")
+    if any(f != vs for f in found[1:]):
+        raise InputError(f"{path}: holds different voxel sizes {found}; give --voxel-size X Y Z instead")
+    return float(vs[0]), float(vs[1]), float(vs[2])
 
 
 def score_centerline(ours_mm: np.ndarray, ref_mm: np.ndarray, tol_mm: float = 5.0) -> dict[str, float]:

@@ -4,7 +4,7 @@ Subcommands
 -----------
 simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--force]
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
-centerline MESH --out centerline.csv [--voxel-size X Y Z] [--pitch-mm P] [--reference CSV]
+centerline MESH --out centerline.csv [--voxel-size X Y Z | --model-config JSON] [--pitch-mm P] [--reference CSV|JSN]
 real-clip FRAME --out DIR [--frames K] [--step-mm S] [--roll-deg R] [--radius-cm C] [--lobes N --lobe-depth A]
           [--offset-frac F] [--light capsule|baked]   a clip of known motion made from one real frame
 score-motion SEQDIR motion.csv [--json report.json]   Table 4.1 and the path travelled against the truth
@@ -96,13 +96,19 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--jobs", type=jobs_count, default=None,
                     help="seeds run in parallel, one per core by default (1: one seed at a time on every core)")
 
-    e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY)")
+    e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY/OFF/GLB, or "
+                                          "legacy VTK as the GCA gut models ship their surfaces)")
     e.add_argument("mesh")
     e.add_argument("--out", required=True, help="centre line CSV (s_m,x_m,y_m,z_m,radius_m)")
-    e.add_argument("--voxel-size", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("X", "Y", "Z"),
-                   help="mm per mesh unit along x, y, z (the CT voxel size when the mesh is in grid units)")
+    units = e.add_mutually_exclusive_group()
+    units.add_argument("--voxel-size", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                       help="mm per mesh unit along x, y, z (the CT voxel size when the mesh is in grid units; "
+                            "default 1 1 1: a mesh in mm)")
+    units.add_argument("--model-config", metavar="JSON",
+                       help="a GCA model's config (EdinGCA_3D_*.json): its voxel_size is the mm per mesh unit")
     e.add_argument("--pitch-mm", type=float, default=1.0, help="voxelisation pitch in mm (default 1)")
-    e.add_argument("--reference", help="expert mid-line CSV (x,y,z columns in mesh units) to score against")
+    e.add_argument("--reference", help="expert mid-line to score against, in mesh units: a CSV with x,y,z columns "
+                                       "or a GCA path file (Paths/*.jsn)")
     e.add_argument("--repair", action="store_true",
                    help="fill a mesh's small holes first (trimesh fill_holes); without it, and for what stays open, "
                         "every open boundary is capped and the pieces' centre lines chained (testbed.anatomy)")
@@ -268,15 +274,20 @@ def _score_motion(args) -> int:
 
 
 def _centerline(args) -> int:
-    from testbed.anatomy import extract_centerline, load_reference_csv, score_centerline
+    from testbed.anatomy import extract_centerline, load_reference, score_centerline, voxel_size_from_config
 
-    cl = extract_centerline(args.mesh, voxel_size_mm=tuple(args.voxel_size), pitch_mm=args.pitch_mm,
-                            repair=args.repair)
+    if args.model_config:
+        voxel_mm = voxel_size_from_config(args.model_config)
+        print(f"mesh units: {' x '.join(f'{v:g}' for v in voxel_mm)} mm (voxel_size of {args.model_config})")
+    else:
+        voxel_mm = tuple(args.voxel_size) if args.voxel_size else (1.0, 1.0, 1.0)
+    if args.reference:  # read before the minutes of extraction, so a bad file is told at once
+        ref_mm = load_reference(args.reference, voxel_mm)
+    cl = extract_centerline(args.mesh, voxel_size_mm=voxel_mm, pitch_mm=args.pitch_mm, repair=args.repair)
     cl.write_csv(args.out)
     print(f"{args.out}: {cl.length_m:.3f} m, {len(cl.s_m)} points, radius "
           f"{cl.radius_m.min() * 1000:.1f}-{cl.radius_m.max() * 1000:.1f} mm")
     if args.reference:
-        ref_mm = load_reference_csv(args.reference, tuple(args.voxel_size))
         sc = score_centerline(cl.points_w * 1000.0, ref_mm)
         print("score vs reference: " + ", ".join(f"{k} {v:.2f}" for k, v in sc.items()))
     return 0
