@@ -145,9 +145,19 @@ def extract_centerline(
     min_piece_mm: float = 20.0,
     max_gap_mm: float = 80.0,
 ) -> Centerline:
-    """Centre line of a tubular mesh, closed or in open pieces (see module docstring)."""
-    mesh = (load_mesh(mesh_or_path, repair, allow_open=True) if isinstance(mesh_or_path, (str, Path))
-            else mesh_or_path.copy())
+    """Centre line of a tubular mesh, closed or in open pieces (see module docstring). ``mesh_or_path``: a trimesh,
+    a mesh file, or a list of mesh files taken as one mesh (a model's segmented surfaces, one file per region)."""
+    if isinstance(mesh_or_path, (str, Path)):
+        mesh = load_mesh(mesh_or_path, repair, allow_open=True)
+    elif isinstance(mesh_or_path, (list, tuple)):
+        import trimesh
+
+        if not mesh_or_path:
+            raise InputError("no mesh file given")
+        parts = [load_mesh(p, repair, allow_open=True) for p in mesh_or_path]
+        mesh = parts[0] if len(parts) == 1 else trimesh.util.concatenate(parts)
+    else:
+        mesh = mesh_or_path.copy()
     if not pitch_mm > 0:
         raise InputError(f"pitch must be positive, got {pitch_mm} mm")
     mesh.vertices = mesh.vertices * np.asarray(voxel_size_mm, dtype=np.float64)

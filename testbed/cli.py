@@ -4,7 +4,8 @@ Subcommands
 -----------
 simulate SCENARIO --seed N [--frames K] --out DIR [--set k=v ...] [--jobs J] [--force]
 contact-sheet SEQDIR --out sheet.png [--count N] [--cols C]
-centerline MESH --out centerline.csv [--voxel-size X Y Z | --model-config JSON] [--pitch-mm P] [--reference CSV|JSN]
+centerline MESH [MESH ...] --out centerline.csv [--voxel-size X Y Z | --model-config JSON] [--pitch-mm P]
+           [--reference CSV|JSN]
 real-clip FRAME --out DIR [--frames K] [--step-mm S] [--roll-deg R] [--radius-cm C] [--lobes N --lobe-depth A]
           [--offset-frac F] [--light capsule|baked]   a clip of known motion made from one real frame
 score-motion SEQDIR motion.csv [--json report.json]   Table 4.1 and the path travelled against the truth
@@ -98,7 +99,8 @@ def _parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("centerline", help="extract the centre line of an anatomical mesh (OBJ/STL/PLY/OFF/GLB, or "
                                           "legacy VTK as the GCA gut models ship their surfaces)")
-    e.add_argument("mesh")
+    e.add_argument("mesh", nargs="+", help="mesh file; several: one mesh in pieces (a model's segmented surfaces, "
+                                           "one file per region), in the same units")
     e.add_argument("--out", required=True, help="centre line CSV (s_m,x_m,y_m,z_m,radius_m)")
     units = e.add_mutually_exclusive_group()
     units.add_argument("--voxel-size", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
