@@ -91,6 +91,14 @@ RESCUE_FEATURES, RESCUE_MATCHES = MODE_DEFAULTS["sift"][1:]
 # pairs with fewer than 60 verified tracks, 25.0 / 27.8 / 31.8% on the brightness, were 5.2 / - / - % at 6 px,
 # - / 4.7 / 13.0% at 8, 3.5 / 4.3 / 10.7% at 12, - / 5.7 / 10.4% at 16 and - / 6.7 / 11.4% at 24
 TRACK_CONTRAST_SIGMA_RAD = 0.1
+# fast mode tracks on frames no wider than this (pixels; wider ones shrunk, their aspect kept): the tracking's window,
+# pyramid reach, corner spacing and forward-backward check are in pixels, so a frame's size changed what they meant.
+# Chosen on realistic_exam tuning renders (`bodyslam batch` on its defaults, 300-400 frames; per-step distance error,
+# the mean over runs): 587-593 at 320 px 0.0197 cm tracked at the frame's own size, 0.0176 at 240, 0.0170 at 200;
+# 588-590 rendered at 576 px 0.0272 / 0.0180 / 0.0168 cm (tilt 0.39 / 0.28 / 0.25 deg; ~20% less time). The ideal
+# `exam` look at 576 px (tuning 595-596) keeps 0.0022-0.0024 cm, its roll 0.010 / 0.017 / 0.032 deg. 240 is the
+# compromise between the two looks (docs/RESULTS.md, session 57)
+TRACK_WORK_PX = 240
 # A pair whose essential matrix keeps fewer than this share of its matches is also checked against a pure
 # rotation (rotation_ransac), and verifies with the rotation's inliers where they are more: two frames without
 # parallax (a capsule at rest, a frame repeated by the export) have no essential matrix, and OpenCV's USAC then
@@ -276,6 +284,9 @@ class Matcher:
         self.lk_corners, self.lk_fb_px, self.lk_min_matches = 300, 0.5, 60
         # 11 x 11 windows, 2 pyramid levels: 3.3 ms per exam pair instead of 5.0 (15 x 15, 3 levels); pairs
         # verified: 272 of 300 exam and 40 of 150 thesis pairs against 274 and 43, step errors the same (README)
+        # frames wider than TRACK_WORK_PX are tracked shrunk to it (_track_size)
+        self._track_scale = min(1.0, TRACK_WORK_PX / camera.width)
+        self._track_wh = self._scaled_mask(self._track_scale).shape[::-1]
         self._lk = dict(winSize=(11, 11), maxLevel=2,
                         criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
@@ -405,14 +416,16 @@ class Matcher:
     def _track(self, f1: FrameFeatures, f2: FrameFeatures) -> Matches:
         """Pyramidal Lucas-Kanade tracking of frame 1's corners into frame 2, kept when the track back lands
         within ``lk_fb_px`` of its start, then verified like descriptor matches. Corners avoid specular
-        highlights (they move with the capsule's light, not with the wall)."""
+        highlights (they move with the capsule's light, not with the wall). Frames wider than
+        :data:`TRACK_WORK_PX` are tracked shrunk to it; the tracks come back in the frame's pixels."""
         if f1.corners is None:
             mask = self.mask
             spec = f1.raw_gray >= 245
             if spec.any():
                 mask = mask.copy()
                 mask[cv2.dilate(spec.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0] = 0
-            c = cv2.goodFeaturesToTrack(f1.gray, self.lk_corners, 0.005, 7, mask=mask)
+            c = cv2.goodFeaturesToTrack(self._track_size(f1.gray, cv2.INTER_AREA), self.lk_corners, 0.005, 7,
+                                        mask=self._track_size(mask, cv2.INTER_NEAREST))
             f1.corners = np.zeros((0, 1, 2), np.float32) if c is None else c
         p0 = f1.corners
         empty = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0, "lk")
@@ -423,6 +436,8 @@ class Matcher:
         pb, st2, _ = cv2.calcOpticalFlowPyrLK(g2, g1, p1, None, **self._lk)
         a, b = p0.reshape(-1, 2).astype(np.float64), p1.reshape(-1, 2).astype(np.float64)
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb.reshape(-1, 2) - a, axis=1) < self.lk_fb_px)
+        if self._track_scale != 1.0:  # tracked on the smaller image: back to the frame's pixel centres
+            a, b = (a + 0.5) / self._track_scale - 0.5, (b + 0.5) / self._track_scale - 0.5
         h, w = self.mask.shape
         ij = np.rint(b).astype(int)
         ok &= (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
@@ -434,11 +449,19 @@ class Matcher:
         inl = self._verify(a, b)
         return Matches(a[inl], b[inl], len(a), "lk")
 
+    def _track_size(self, img: np.ndarray, interpolation: int) -> np.ndarray:
+        """``img`` at the size tracking works at (:data:`TRACK_WORK_PX`)."""
+        if self._track_scale == 1.0:
+            return img
+        return cv2.resize(img, self._track_wh, interpolation=interpolation)
+
     def _track_image(self, f: FrameFeatures) -> np.ndarray:
         """The image Lucas-Kanade tracks on: :func:`local_contrast` of the frame's gray image, at
-        :data:`TRACK_CONTRAST_SIGMA_RAD` (x the camera's focal length in pixels), computed once per frame."""
+        :data:`TRACK_CONTRAST_SIGMA_RAD` (x the camera's focal length in pixels), at the tracking size, computed
+        once per frame."""
         if f.track is None:
-            f.track = local_contrast(f.gray, TRACK_CONTRAST_SIGMA_RAD * float(self.camera.fx))
+            f.track = local_contrast(self._track_size(f.gray, cv2.INTER_AREA),
+                                     TRACK_CONTRAST_SIGMA_RAD * float(self.camera.fx) * self._track_scale)
         return f.track
 
     def _ratio_matches(self, d1: np.ndarray, d2: np.ndarray, pts2: np.ndarray, k: int = 4,

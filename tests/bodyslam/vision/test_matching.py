@@ -258,6 +258,21 @@ def test_tracking_holds_under_a_light_that_stays_in_the_image(monkeypatch):
     assert len(before) < mt.lk_min_matches
 
 
+def test_a_frame_wider_than_the_tracking_size_is_tracked_shrunk_and_answered_in_its_own_pixels():
+    # the same lit pair at twice the size (480 px, moved by twice as many pixels) is tracked at TRACK_WORK_PX (240)
+    # and its tracks come back in the 480-px frame's pixels: the shift is the 480-px one, not the shrunk image's
+    from bodyslam.vision.matching import TRACK_WORK_PX
+
+    f1, f2 = _lit_pair(size=480, shift=(20.0, 12.0))
+    mt = Matcher(FisheyeCamera.equidistant(480, 480, 156.0), "fast")
+    assert mt._track_scale == TRACK_WORK_PX / 480
+    m = mt._track(mt.features(f1), mt.features(f2))
+    assert m.method == "lk" and len(m) >= mt.lk_min_matches  # enough to be used (measured: 95 of 120 candidates)
+    # the tracks' shift to a tenth of a shrunk pixel (0.2 px here), as the 240-px pair above holds 0.1
+    assert np.allclose(np.median(m.pts2_px - m.pts1_px, axis=0), (20.0, 12.0), atol=0.2)
+    assert m.pts1_px.max() > TRACK_WORK_PX  # in the frame's pixels (measured: up to 390), not the shrunk image's
+
+
 def test_a_repeated_frame_verifies_all_its_matches_in_every_mode():
     # two frames without parallax (a capsule at rest, a frame an export repeats) have no essential matrix: USAC then
     # kept all or none of the matches by chance (demo frames 0-5 repeated: 12 of 18 pairs verified none before the
