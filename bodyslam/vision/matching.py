@@ -13,7 +13,8 @@ Modes
 - ``fast`` (whole exams): pyramidal Lucas-Kanade tracking of up to 300 corners (forward-backward check,
   specular highlights masked) first, on the frames' local contrast (:func:`local_contrast`: a capsule's light
   stays where it is in the image while the wall moves, and on the brightness itself the pyramid's coarse levels
-  lock on to it: 25% of a realistic exam's pairs lost their tracks, 3.5% on the local contrast; session 51);
+  lock on to it: 25% of a realistic exam's pairs lost their tracks, 3.5% on the local contrast; session 51), on
+  frames shrunk to at most :data:`TRACK_WORK_PX` wide (its numbers are pixels; session 57);
   when fewer than 60 tracks verify, or the step's fit fails on them, SIFT
   detected on the frame scaled by :data:`COARSE_SCALE` = 0.5, and when the fit fails on those too, by
   ``detect_scale`` = 0.7 (SIFT doubles its input, so most of its cost is the first octave: 0.7 halves the
