@@ -8,7 +8,7 @@ its workers, from /proc every 0.2 s). Prints frames/s (wall time of the whole pr
 the peak tree memory per length, and the ratio of the longest to the shortest.
 
     .venv/bin/python benchmarks/bench_batch.py [--frames 2000,10000] [--scenario exam|realistic_exam] [--mode fast]
-        [--keep /tmp/bench_batch] [--rf]
+        [--keep /tmp/bench_batch] [--rf] [--size PX]
         [--rss-bias-states] [--jobs 1,2] [--jobs-rf 1,2] [--jobs-only] [--dask 2] [--repeat 3]
 
 ``--scenario realistic_exam``: the realistic testbed's look (collapsed, folded, contracting lumen; fluid, debris and
@@ -156,6 +156,8 @@ def main() -> None:
                     help="the stand-in rendered: exam (ideal frames, default) or realistic_exam (the realistic "
                          "testbed's look at the same pace: a real exam's frames are more like these)")
     ap.add_argument("--mode", default="fast")
+    ap.add_argument("--size", type=int, default=None, metavar="PX",
+                    help="render the frames PX x PX (default: the scenario's 320; a PillCam frame is 576)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--keep", type=Path, default=Path("/tmp/bench_batch"))
     ap.add_argument("--json", type=Path, default=None)
@@ -192,16 +194,21 @@ def main() -> None:
     if args.jobs_only and not (args.jobs or args.jobs_rf):
         raise SystemExit("--jobs-only: give the counts to run (--jobs and/or --jobs-rf)")
     lengths = [int(x) for x in args.frames.split(",")]
+    if args.size is not None and args.size < 64:
+        raise SystemExit(f"--size {args.size}: give the frame's width and height in pixels (64 or more)")
+    size = ["--set", f"camera.width={args.size}", "--set", f"camera.height={args.size}"] if args.size else []
+    px = args.size or 320
     args.keep.mkdir(parents=True, exist_ok=True)
     res = {}
     for n in lengths:
-        tag = "" if args.scenario == "exam" else f"{args.scenario}_"  # (the exam's caches keep their names)
+        # (the exam's caches keep their names)
+        tag = ("" if args.scenario == "exam" else f"{args.scenario}_") + (f"{args.size}px_" if args.size else "")
         seq = args.keep / (f"exam_{args.seed}_{n}" if not tag else f"{tag}{args.seed}_{n}")
         if not (seq / "meta.json").exists():
             t0 = time.perf_counter()
             longer = long_exam_settings(n) if args.scenario == "exam" else long_realistic_exam_settings(n)
             subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", args.scenario, "--seed", str(args.seed),
-                            "--frames", str(n), "--out", str(seq), "--force", *longer], check=True)
+                            "--frames", str(n), "--out", str(seq), "--force", *longer, *size], check=True)
             print(f"rendered {n} frames in {time.perf_counter() - t0:.0f} s", flush=True)
         # the frames only (a plain folder + the calibration): no RF, so memory is the streaming path's
         folder = args.keep / f"{tag}frames_{args.seed}_{n}"
@@ -253,7 +260,7 @@ def main() -> None:
             if rep == 0:
                 res.setdefault(n, {}).update({"seconds": el, "frames_per_s": n / el, "peak_tree_rss_mib": peak / 2**20,
                                               "rc": rc, "steps": summ["steps"], "path_m": summ["path_travelled_m"]})
-            print(f"bodyslam batch --mode {args.mode}: {n} frames 320x320 in {el:.1f} s = {n / el:.1f} frames/s "
+            print(f"bodyslam batch --mode {args.mode}: {n} frames {px}x{px} in {el:.1f} s = {n / el:.1f} frames/s "
                   f"(whole process, 2 cores){run_tag}; peak memory (process tree) {peak / 2**20:.0f} MiB; steps "
                   f"{summ['steps']}", flush=True)
             if args.dask and rep == 0:
