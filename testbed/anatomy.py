@@ -577,11 +577,11 @@ def load_reference_json(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.n
     if not isinstance(doc, dict) or "points" not in doc:
         raise InputError(f"{path}: expected a mid-line path object with a 'points' list ([[x, y, z], ...])")
     pts = doc["points"]
-    bad = next((i for i, p in enumerate(pts) if not (isinstance(p, list) and len(p) == 3 and all(
-        isinstance(c, (int, float)) and not isinstance(c, bool) for c in p))), None) if isinstance(pts, list) else -1
+    if not isinstance(pts, list):
+        raise InputError(f"{path}: 'points' must be a list of [x, y, z] numbers")
+    bad = next((i for i, p in enumerate(pts) if not _three_numbers(p)), None)
     if bad is not None:
-        raise InputError(f"{path}: 'points' must be a list of [x, y, z] numbers"
-                         + ("" if bad < 0 else f"; point {bad} is {pts[bad]!r}"))
+        raise InputError(f"{path}: 'points' must be a list of [x, y, z] numbers; point {bad} is {pts[bad]!r}")
     if "n" in doc and doc["n"] != len(pts):
         raise InputError(f"{path}: says n = {doc['n']} but holds {len(pts)} points (truncated?)")
     return _reference_mm(path, np.array(pts, dtype=np.float64).reshape(-1, 3), voxel_size_mm)
@@ -593,6 +593,12 @@ def load_reference(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.ndarra
     if Path(path).suffix.lower() in (".jsn", ".json"):
         return load_reference_json(path, voxel_size_mm)
     return load_reference_csv(path, voxel_size_mm)
+
+
+def _three_numbers(v) -> bool:
+    """A JSON ``[x, y, z]`` of numbers (not booleans, which JSON parsing turns into ints)."""
+    return isinstance(v, list) and len(v) == 3 and all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                                                       for c in v)
 
 
 def _read_json(path: Path):
@@ -627,8 +633,7 @@ def voxel_size_from_config(path: str | Path) -> tuple[float, float, float]:
         raise InputError(f"{path}: no voxel_size (a GCA model config has one in its MODEL_PROP model object); "
                          "give --voxel-size X Y Z instead")
     vs = found[0]
-    if not (isinstance(vs, list) and len(vs) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                          and v > 0 for v in vs)):
+    if not (_three_numbers(vs) and all(v > 0 for v in vs)):
         raise InputError(f"{path}: voxel_size must be three positive numbers (mm), found {vs!r}")
     if any(f != vs for f in found[1:]):
         raise InputError(f"{path}: holds different voxel sizes {found}; give --voxel-size X Y Z instead")

@@ -11,7 +11,7 @@ keep every surface as an ASCII legacy VTK file, which trimesh does not read. Thi
   that all keep the strip's winding).
 - ``ASCII`` and ``BINARY`` (big-endian, as the format defines it).
 
-``VERTICES`` and ``LINES`` cells and a ``METADATA`` block are read past; ``POINT_DATA``, ``CELL_DATA`` and
+``VERTICES`` and ``LINES`` cells, ``METADATA`` blocks and a dataset's ``FIELD`` arrays are read past; ``POINT_DATA``, ``CELL_DATA`` and
 anything after them (attributes: normals, scalars) end the reading, since the geometry is complete by then. Any
 other dataset (``UNSTRUCTURED_GRID``, ``STRUCTURED_POINTS``...) is refused: it is not a surface. Every refusal
 names the file, the line (ASCII: the section's line; binary: its byte offset) and what is wrong.
@@ -38,6 +38,7 @@ _CELLS = ("VERTICES", "LINES", "POLYGONS", "TRIANGLE_STRIPS")
 _SECTIONS = ("POINTS", "METADATA", "FIELD", "POINT_DATA", "CELL_DATA") + _CELLS
 _KEYWORD_LINE = re.compile(rb"^[ \t]*[A-Za-z]", re.M)
 _OFFSETS_NEXT = re.compile(rb"\s*OFFSETS\b", re.I)
+_METADATA_NEXT = re.compile(rb"\s*METADATA\b", re.I)
 _BLANK_LINE = re.compile(rb"\n[ \t]*\r?\n|\Z")
 _NL = b"\n"
 
@@ -63,7 +64,7 @@ class _Reader:
         n = len(self.data)
         while self.pos < n:
             start = self.pos
-            end = self.data.find(b"\n", start)
+            end = self.data.find(_NL, start)
             end = n if end < 0 else end
             self.pos = end + 1
             raw = self.data[start:end].strip()
@@ -188,9 +189,14 @@ def _skip_field(r: _Reader, words: list[str], at: int) -> None:
         if len(a) < 4:
             r.fail(f"FIELD array {' '.join(a)!r}: expected 'name components tuples type'", a_at)
         r.values(_int(a, 1, r, a_at) * _int(a, 2, r, a_at), a[3], f"FIELD array {a[0]}", a_at)
-        if re.compile(rb"\s*METADATA\b").match(r.data, r.pos):
+        if _METADATA_NEXT.match(r.data, r.pos):
             r.line()
             _skip_metadata(r)
+
+
+def _starts(counts: np.ndarray) -> np.ndarray:
+    """Where each cell's ids begin in the flat id array."""
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
 
 
 def _triangles(polys: list[tuple[np.ndarray, np.ndarray]], strips: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -198,15 +204,14 @@ def _triangles(polys: list[tuple[np.ndarray, np.ndarray]], strips: list[tuple[np
     every other one turned to keep the strip's winding."""
     tri = []
     for counts, ids in polys:
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        starts = _starts(counts)
         for k in np.unique(counts[counts >= 3]):
             cell = ids[starts[counts == k][:, None] + np.arange(k)]  # (cells of k points, k)
             j = np.arange(1, k - 1)
             tri.append(np.stack([np.repeat(cell[:, :1], k - 2, axis=1), cell[:, j], cell[:, j + 1]], axis=-1)
                        .reshape(-1, 3))
     for counts, ids in strips:
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        for s0, k in zip(starts, counts):
+        for s0, k in zip(_starts(counts), counts):
             c = ids[s0:s0 + k]
             for j in range(k - 2):
                 tri.append((c[[j, j + 1, j + 2]] if j % 2 == 0 else c[[j + 1, j, j + 2]])[None])

@@ -287,7 +287,7 @@ class Matcher:
         # verified: 272 of 300 exam and 40 of 150 thesis pairs against 274 and 43, step errors the same (README)
         # frames wider than TRACK_WORK_PX are tracked shrunk to it (_track_size)
         self._track_scale = min(1.0, TRACK_WORK_PX / camera.width)
-        self._track_wh = self._scaled_mask(self._track_scale).shape[::-1]
+        self._track_wh = self._scaled_size(self._track_scale)
         self._lk = dict(winSize=(11, 11), maxLevel=2,
                         criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
@@ -305,12 +305,15 @@ class Matcher:
             self.keypoints(f)
         return f
 
+    def _scaled_size(self, scale: float) -> tuple[int, int]:
+        """``(width, height)`` of a frame scaled by ``scale`` (at most 1)."""
+        h, w = self.mask.shape
+        return (w, h) if scale >= 1.0 else (max(1, round(w * scale)), max(1, round(h * scale)))
+
     def _scaled_mask(self, scale: float) -> np.ndarray:
         if scale >= 1.0:
             return self.mask
-        m8 = self.mask
-        size = (max(1, round(m8.shape[1] * scale)), max(1, round(m8.shape[0] * scale)))
-        return cv2.resize(m8, size, interpolation=cv2.INTER_NEAREST)
+        return cv2.resize(self.mask, self._scaled_size(scale), interpolation=cv2.INTER_NEAREST)
 
     def keypoints(self, f: "FrameFeatures", level: str = "default") -> tuple[np.ndarray, np.ndarray | None]:
         """``(pts_px (n, 2), descriptors)`` of a frame, detected once per level: ``default``, on the frame scaled
