@@ -6,12 +6,12 @@ on the same matches, write each as motion.csv and score it with the code behind 
 Prints per-seed lines, the mean over seeds, and the same errors restricted to off-centre steps (the capsule
 more than 0.3 radii from the centre line, from the truth; scoring only).
 
-Throughput: the whole `bodyslam motion` process (spawned as a user would run it) on 320x320 sequences: thesis
-motion (0.41 cm, 7.8 deg roll per frame) in every matcher mode, whole-exam motion (`exam`: 0.06 cm, 3 deg) in
-fast and ASIFT mode.
+Throughput: the whole `bodyslam motion` process (spawned as a user would run it) on 320x320 sequences (``--size
+576``: a PillCam COLON frame's size): thesis motion (0.41 cm, 7.8 deg roll per frame) in every matcher mode,
+whole-exam motion (`exam`: 0.06 cm, 3 deg) in fast and ASIFT mode.
 
     .venv/bin/python benchmarks/bench_motion.py --seeds 100-119 [--mode sift] [--frames 200] [--keep DIR]
-    .venv/bin/python benchmarks/bench_motion.py --speed-only      (or --accuracy-only)
+    .venv/bin/python benchmarks/bench_motion.py --speed-only      (or --accuracy-only) [--size 576]
 
 Seeds 100+ are used by no test (tests use the demo sequence and seeds 11-13).
 """
@@ -121,12 +121,13 @@ def accuracy(seeds: list[int], mode: str, frames: int, keep: Path | None) -> dic
     return out
 
 
-def speed(runs: list[tuple[str, str, int]]) -> dict:
-    """``bodyslam motion`` as a user runs it, per ``(scenario, mode, frames)``: 320x320 frames (``thesis`` is
-    rendered at that size; ``exam`` is 320x320 PillCam-SB-sized already), seed 7, classifier on. Enough frames
-    that the workers' start (~1.5 s) is a small part, as on a real exam of 50,000 frames."""
+def speed(runs: list[tuple[str, str, int]], px: int = 320) -> dict:
+    """``bodyslam motion`` as a user runs it, per ``(scenario, mode, frames)``: ``px`` x ``px`` frames (default
+    320: ``thesis`` is rendered at that size; ``exam`` is 320x320 PillCam-SB-sized already; 576 is a PillCam COLON
+    frame's size), seed 7, classifier on. Enough frames that the workers' start (~1.5 s) is a small part, as on a
+    real exam of 50,000 frames."""
     res = {}
-    size = ["camera.width=320", "camera.height=320"]
+    size = [f"camera.width={px}", f"camera.height={px}"]
     with tempfile.TemporaryDirectory() as tmp:
         for scenario, mode, frames in runs:
             d = Path(tmp) / f"{scenario}_{frames}"
@@ -142,7 +143,7 @@ def speed(runs: list[tuple[str, str, int]]) -> dict:
             rep = score_motion(d, out)
             res[f"{scenario}/{mode}"] = {"frames": frames, "frames_per_s": frames / el, "seconds": el,
                                          "coverage": rep["coverage"], **{k: rep["all"][k] for k in KEYS[:3]}}
-            print(f"bodyslam motion --mode {mode} on {scenario} motion: {frames} frames 320x320 in {el:.1f} s = "
+            print(f"bodyslam motion --mode {mode} on {scenario} motion: {frames} frames {px}x{px} in {el:.1f} s = "
                   f"{frames / el:.1f} frames/s (whole process, 2 cores); dist {rep['all']['mae_distance_cm']:.4f} cm "
                   f"roll {rep['all']['mae_roll_deg']:.3f} deg tilt {rep['all']['mae_tilt_deg']:.3f} deg, coverage "
                   f"{rep['coverage']:.3f}", flush=True)
@@ -162,6 +163,8 @@ def main() -> None:
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--accuracy-only", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--size", type=int, default=320, metavar="PX",
+                    help="throughput runs' frame size, PX x PX (default 320; a PillCam COLON frame is 576)")
     ap.add_argument("--speed-runs", default=None,
                     help="SCENARIO/MODE/FRAMES,... (default: " + ",".join("/".join(map(str, r)) for r in SPEED_RUNS) + ")")
     args = ap.parse_args()
@@ -188,7 +191,9 @@ def main() -> None:
         print(f"mean true per step: distance {m0['mean_true_distance_cm']:.3f} cm, roll "
               f"{m0['mean_true_roll_deg']:.2f} deg, tilt {m0['mean_true_tilt_deg']:.2f} deg")
     if not args.accuracy_only:
-        report["speed"] = speed(runs)
+        if args.size < 64:
+            raise SystemExit(f"--size {args.size}: frames must be at least 64 px")
+        report["speed"] = speed(runs, args.size)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 

@@ -109,6 +109,16 @@ ROTATION_CHECK_SHARE = 0.5
 # rotations tried (each from two random matches): with half the matches outliers, one of 64 pairs is clean but for
 # (3/4)^64 ~ 1e-8
 ROTATION_HYPOTHESES = 64
+# SIFT's descriptors are ~2/3 of its time. Where a level that detects on a shrunk frame (fast mode's coarse and
+# default tries) found more keypoints on the last frame than it keeps by over SPLIT_EXTRA_PER_PX per pixel of the
+# shrunk image, the next frame's are detected first and only the kept ones described: the same descriptors (tested),
+# for a second scale space. Measured per frame, one thread, the field of view detected (session 58; the excess per
+# pixel in brackets): thesis at 576 px, 0.7 scale (1/66) 83 -> 62 ms, 0.5 scale (1/126) 29 -> 24; realistic_exam
+# at 576 px (1/72, 1/154) 78 -> 62 and 27 -> 25; thesis at 420 px, 0.7 scale (1/99) 35 -> 27. On the full frame
+# (`sift` mode, fast mode's rescue) it gained nothing at 576 px (1/119-1/156: 156 -> 151-159 and 151 -> 160 ms),
+# so full-size detection is never split; at 320 px few or none are left out. Not for ASIFT: cv2.AffineFeature
+# describes given keypoints by warping every view again (120 -> 202 ms).
+SPLIT_EXTRA_PER_PX = 1.0 / 180.0
 # keypoint levels and where a frame keeps each (:meth:`Matcher.keypoints`)
 LEVELS = {"default": "kp", "coarse": "kp_coarse", "full": "kp_full"}
 
@@ -136,6 +146,7 @@ class FrameFeatures:
     kp_coarse: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's first SIFT try (COARSE_SCALE)
     kp_full: tuple[np.ndarray, np.ndarray | None] | None = None  # fast mode's last try (full size, RESCUE_FEATURES)
     track: np.ndarray | None = None  # fast mode's tracking image (local_contrast of gray), computed on first use
+    track_gray: np.ndarray | None = None  # gray at the tracking size (Matcher._track_gray), computed on first use
 
 
 MIN_OVERLAY_PIXELS = 16  # a constant blob inside the field smaller than this is a speck, not burned-in text
@@ -280,6 +291,7 @@ class Matcher:
         # fast mode's last try (:data:`RESCUE_FEATURES`), where tracking and the smaller detections fail
         self.rescue = mode == "fast" and rescue
         self._flann = mode == "asift"
+        self._split: dict[str, bool] = {}  # per keypoint level: describe only the kept keypoints (keypoints())
         self._flann_matcher = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
         # fast mode tracks first (module docstring): at most lk_corners corners, forward-backward check
         self.lk_corners, self.lk_fb_px, self.lk_min_matches = 300, 0.5, 60
@@ -288,6 +300,7 @@ class Matcher:
         # frames wider than TRACK_WORK_PX are tracked shrunk to it (_track_size)
         self._track_scale = min(1.0, TRACK_WORK_PX / camera.width)
         self._track_wh = self._scaled_size(self._track_scale)
+        self._track_mask = self._track_size(self.mask, cv2.INTER_NEAREST)
         self._lk = dict(winSize=(11, 11), maxLevel=2,
                         criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
@@ -331,29 +344,52 @@ class Matcher:
         small_mask = {"coarse": self._mask_coarse, "full": self.mask}.get(level, self._mask_small)
         if small_mask.shape != self.mask.shape:
             small = cv2.resize(gray, small_mask.shape[::-1], interpolation=cv2.INTER_AREA)
-            kp, desc = self._det.detectAndCompute(small, small_mask)
             s_xy = np.array([self.mask.shape[1] / small.shape[1], self.mask.shape[0] / small.shape[0]])
         else:
-            kp, desc = self._det.detectAndCompute(gray, self.mask)
-            s_xy = None
+            small, s_xy = gray, None
+        cap = RESCUE_FEATURES if level == "full" else self.max_features
+        # describe only the kept keypoints where a level finds many more than it keeps (SPLIT_EXTRA_PER_PX)
+        may_split = s_xy is not None and self.mode != "asift"  # a shrunk frame's SIFT (SPLIT_EXTRA_PER_PX)
+        split = may_split and self._split.get(level, False)
+        if split:
+            kp, desc = self._det.detect(small, small_mask), None
+        else:
+            kp, desc = self._det.detectAndCompute(small, small_mask)
+        # the next frame's choice (time only: the outputs are the same either way)
+        self._split[level] = may_split and len(kp) - cap > SPLIT_EXTRA_PER_PX * small.shape[0] * small.shape[1]
         # positions as one array (a rescaled KeyPoint object per point cost ~1 us: ~3 ms a frame at 3000 points)
         pts = _keypoint_xy(kp)
         if s_xy is not None:  # pixel centres: full = (small + 0.5) * s - 0.5, kept in float32 as a KeyPoint keeps it
             pts = ((pts.astype(np.float64) + 0.5) * s_xy - 0.5).astype(np.float32)
         pts = pts.astype(np.float64).reshape(-1, 2)
-        cap = RESCUE_FEATURES if level == "full" else self.max_features
         resp = np.array([k.response for k in kp], np.float32) if len(kp) > cap else None
+        keep = None  # the kept keypoints' indices, in their order of detection or of strength (None: all, in order)
         if len(pts):  # ASIFT detects in warped views and may land a point on the mask's edge: enforce the mask
             ij = np.rint(pts).astype(int)
             h, w = self.mask.shape
             inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
             inside[inside] &= self.mask[ij[inside, 1], ij[inside, 0]] > 0
             if not inside.all():
-                pts, desc = pts[inside], desc[inside]
-                resp = None if resp is None else resp[inside]
-        if len(pts) > cap:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
-            keep = np.argsort(-resp, kind="stable")[:cap]
-            pts, desc = pts[keep], desc[keep]
+                keep = np.nonzero(inside)[0]
+        if (len(pts) if keep is None else len(keep)) > cap:  # ASIFT finds ~12k on a 420x420 frame: the strongest
+            keep = np.arange(len(pts)) if keep is None else keep
+            keep = keep[np.argsort(-resp[keep], kind="stable")[:cap]]
+        if keep is not None:
+            pts = pts[keep]
+        if not split:
+            desc = desc[keep] if keep is not None else desc
+        elif len(kp):
+            chosen = list(kp) if keep is None else [kp[i] for i in keep]
+            if not chosen:  # all outside the field: no rows, as detectAndCompute's subset
+                desc = np.zeros((0, self._det.descriptorSize()), np.float32)
+            else:
+                computed, desc = self._det.compute(small, chosen)
+            if chosen and (desc is None or len(computed) != len(chosen) or len(desc) != len(chosen)):
+                # SIFT describes every keypoint it is given; should it not, never pair points with the wrong rows
+                log.warning("SIFT described %s of %d keypoints: detecting again",
+                            0 if desc is None else len(desc), len(chosen))
+                self._split[level] = False
+                return self.keypoints(f, level)
         out = (pts, desc)
         setattr(f, attr, out)
         return out
@@ -423,13 +459,13 @@ class Matcher:
         highlights (they move with the capsule's light, not with the wall). Frames wider than
         :data:`TRACK_WORK_PX` are tracked shrunk to it; the tracks come back in the frame's pixels."""
         if f1.corners is None:
-            mask = self.mask
+            mask = self._track_mask
             spec = f1.raw_gray >= 245
             if spec.any():
-                mask = mask.copy()
+                mask = self.mask.copy()
                 mask[cv2.dilate(spec.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0] = 0
-            c = cv2.goodFeaturesToTrack(self._track_size(f1.gray, cv2.INTER_AREA), self.lk_corners, 0.005, 7,
-                                        mask=self._track_size(mask, cv2.INTER_NEAREST))
+                mask = self._track_size(mask, cv2.INTER_NEAREST)
+            c = cv2.goodFeaturesToTrack(self._track_gray(f1), self.lk_corners, 0.005, 7, mask=mask)
             f1.corners = np.zeros((0, 1, 2), np.float32) if c is None else c
         p0 = f1.corners
         empty = Matches(np.zeros((0, 2)), np.zeros((0, 2)), 0, "lk")
@@ -464,9 +500,16 @@ class Matcher:
         :data:`TRACK_CONTRAST_SIGMA_RAD` (x the camera's focal length in pixels), at the tracking size, computed
         once per frame."""
         if f.track is None:
-            f.track = local_contrast(self._track_size(f.gray, cv2.INTER_AREA),
+            f.track = local_contrast(self._track_gray(f),
                                      TRACK_CONTRAST_SIGMA_RAD * float(self.camera.fx) * self._track_scale)
         return f.track
+
+    def _track_gray(self, f: FrameFeatures) -> np.ndarray:
+        """The frame's gray image at the tracking size (corners are found on it, :meth:`_track_image` is made from
+        it), shrunk once per frame."""
+        if f.track_gray is None:
+            f.track_gray = self._track_size(f.gray, cv2.INTER_AREA)
+        return f.track_gray
 
     def _ratio_matches(self, d1: np.ndarray, d2: np.ndarray, pts2: np.ndarray, k: int = 4,
                        min_sep_px: float = 2.0, flann: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -312,3 +312,48 @@ def test_rotation_ransac_finds_the_rotation_among_outliers_and_says_none_without
     valid[:2] = True
     R_none, none = rotation_ransac(r1, r2, np.radians(0.5), valid)
     assert R_none is None and not none.any()
+
+
+def test_describing_only_the_kept_keypoints_gives_the_same_keypoints_and_descriptors(monkeypatch):
+    # fast mode's shrunk tries may detect first and describe only the keypoints they keep (SPLIT_EXTRA_PER_PX, a
+    # matter of time): the points, their order (by strength where capped) and their descriptors must be the
+    # joint detectAndCompute's exactly, or steps would change with the choice
+    f1, f2 = _lit_pair(size=480, texture=0.3, noise=3.0)
+    cam = FisheyeCamera.equidistant(480, 480, 156.0)
+    joint, split = Matcher(cam, "fast"), Matcher(cam, "fast")
+    joint.max_features = split.max_features = 150  # well under what each level finds: the cap's choice is tested
+    described = []
+
+    class Counting:  # the split matcher's SIFT, counting the keypoints it is asked to describe
+        sift = split._det
+
+        def detect(self, img, mask):
+            return self.sift.detect(img, mask)
+
+        def detectAndCompute(self, img, mask):  # noqa: N802 (OpenCV's name)
+            return self.sift.detectAndCompute(img, mask)
+
+        def compute(self, img, kp):
+            described.append(len(kp))
+            return self.sift.compute(img, kp)
+
+        def descriptorSize(self):  # noqa: N802
+            return self.sift.descriptorSize()
+
+    monkeypatch.setattr(split, "_det", Counting())
+    for img in (f1, f2):
+        a, b = joint.features(img), split.features(img)
+        for level in ("coarse", "default"):
+            split._split[level] = True  # forced (the rule would choose it from the frame before)
+            (pa, da), (pb, db) = joint.keypoints(a, level), split.keypoints(b, level)
+            assert len(pa) == 150 and np.array_equal(pa, pb) and np.array_equal(da, db), level
+            assert split._split[level]  # the frame found many more than it keeps: the next one splits too
+    assert described == [150] * 4  # each level described only what it kept
+    # detection on the full frame is never split (it gained nothing at 576 px), and ASIFT never
+    full = Matcher(cam, "fast")
+    full.keypoints(full.features(f1), "full")
+    assert full._split["full"] is False
+    asift = Matcher(cam, "asift")
+    asift.max_features = 150
+    asift.features(f1)
+    assert not asift._split.get("default", False)
