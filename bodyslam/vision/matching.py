@@ -113,11 +113,11 @@ ROTATION_HYPOTHESES = 64
 # default tries) found more keypoints on the last frame than it keeps by over SPLIT_EXTRA_PER_PX per pixel of the
 # shrunk image, the next frame's are detected first and only the kept ones described: the same descriptors (tested),
 # for a second scale space. Measured per frame, one thread, the field of view detected (session 58; the excess per
-# pixel in brackets): thesis at 576 px, 0.7 scale (1/66) 83 -> 62 ms, 0.5 scale (1/126) 29 -> 24; realistic_exam
-# at 576 px (1/72, 1/154) 78 -> 62 and 27 -> 25; thesis at 420 px, 0.7 scale (1/99) 35 -> 27. On the full frame
-# (`sift` mode, fast mode's rescue) it gained nothing at 576 px (1/119-1/156: 156 -> 151-159 and 151 -> 160 ms),
-# so full-size detection is never split; at 320 px few or none are left out. Not for ASIFT: cv2.AffineFeature
-# describes given keypoints by warping every view again (120 -> 202 ms).
+# pixel in brackets): thesis at 576 px, 0.7 scale (1/66) 83 -> 62-66 ms, 0.5 scale (1/126) 29 -> 24-27;
+# realistic_exam at 576 px (1/72, 1/154) 78 -> 60-68 and 27 -> 24-26; thesis at 420 px, 0.7 scale (1/99) 35 -> 26-27
+# (docs/RESULTS.md, session 58). On the full frame (`sift` mode, fast mode's rescue) it gained nothing at 576 px
+# (1/119-1/156: 156 -> 151-159 and 151 -> 160 ms), so full-size detection is never split; at 320 px few or none are
+# left out. Not for ASIFT: cv2.AffineFeature describes given keypoints by warping every view again (120 -> 202 ms).
 SPLIT_EXTRA_PER_PX = 1.0 / 180.0
 # keypoint levels and where a frame keeps each (:meth:`Matcher.keypoints`)
 LEVELS = {"default": "kp", "coarse": "kp_coarse", "full": "kp_full"}
@@ -348,8 +348,8 @@ class Matcher:
         else:
             small, s_xy = gray, None
         cap = RESCUE_FEATURES if level == "full" else self.max_features
-        # describe only the kept keypoints where a level finds many more than it keeps (SPLIT_EXTRA_PER_PX)
-        may_split = s_xy is not None and self.mode != "asift"  # a shrunk frame's SIFT (SPLIT_EXTRA_PER_PX)
+        # a shrunk frame's SIFT describes only the keypoints it keeps where it finds many more (SPLIT_EXTRA_PER_PX)
+        may_split = s_xy is not None and self.mode != "asift"
         split = may_split and self._split.get(level, False)
         if split:
             kp, desc = self._det.detect(small, small_mask), None
