@@ -168,6 +168,8 @@ def main() -> None:
     ap.add_argument("--speed-runs", default=None,
                     help="SCENARIO/MODE/FRAMES,... (default: " + ",".join("/".join(map(str, r)) for r in SPEED_RUNS) + ")")
     args = ap.parse_args()
+    if args.size < 64:
+        raise SystemExit(f"--size {args.size}: frames must be at least 64 px")
     runs = SPEED_RUNS
     if args.speed_runs:
         try:
@@ -191,8 +193,6 @@ def main() -> None:
         print(f"mean true per step: distance {m0['mean_true_distance_cm']:.3f} cm, roll "
               f"{m0['mean_true_roll_deg']:.2f} deg, tilt {m0['mean_true_tilt_deg']:.2f} deg")
     if not args.accuracy_only:
-        if args.size < 64:
-            raise SystemExit(f"--size {args.size}: frames must be at least 64 px")
         report["speed"] = speed(runs, args.size)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
