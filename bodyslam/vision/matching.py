@@ -363,33 +363,29 @@ class Matcher:
             pts = ((pts.astype(np.float64) + 0.5) * s_xy - 0.5).astype(np.float32)
         pts = pts.astype(np.float64).reshape(-1, 2)
         resp = np.array([k.response for k in kp], np.float32) if len(kp) > cap else None
-        keep = None  # the kept keypoints' indices, in their order of detection or of strength (None: all, in order)
+        keep = np.arange(len(pts))  # the kept keypoints' indices, in their order of detection or of strength
         if len(pts):  # ASIFT detects in warped views and may land a point on the mask's edge: enforce the mask
             ij = np.rint(pts).astype(int)
             h, w = self.mask.shape
             inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
             inside[inside] &= self.mask[ij[inside, 1], ij[inside, 0]] > 0
-            if not inside.all():
-                keep = np.nonzero(inside)[0]
-        if (len(pts) if keep is None else len(keep)) > cap:  # ASIFT finds ~12k on a 420x420 frame: the strongest
-            keep = np.arange(len(pts)) if keep is None else keep
+            keep = keep[inside]
+        if len(keep) > cap:  # ASIFT finds ~12k on a 420x420 frame: keep the strongest
             keep = keep[np.argsort(-resp[keep], kind="stable")[:cap]]
-        if keep is not None:
-            pts = pts[keep]
+        pts = pts[keep]
         if not split:
-            desc = desc[keep] if keep is not None else desc
-        elif len(kp):
-            chosen = list(kp) if keep is None else [kp[i] for i in keep]
-            if not chosen:  # all outside the field: no rows, as detectAndCompute's subset
-                desc = np.zeros((0, self._det.descriptorSize()), np.float32)
-            else:
-                computed, desc = self._det.compute(small, chosen)
-            if chosen and (desc is None or len(computed) != len(chosen) or len(desc) != len(chosen)):
+            desc = None if desc is None else desc[keep]
+        elif len(keep):
+            chosen = [kp[i] for i in keep]
+            computed, desc = self._det.compute(small, chosen)
+            if desc is None or len(computed) != len(chosen) or len(desc) != len(chosen):
                 # SIFT describes every keypoint it is given; should it not, never pair points with the wrong rows
                 log.warning("SIFT described %s of %d keypoints: detecting again",
                             0 if desc is None else len(desc), len(chosen))
                 self._split[level] = False
                 return self.keypoints(f, level)
+        elif len(kp):  # all outside the field: no rows, as detectAndCompute's subset has
+            desc = np.zeros((0, self._det.descriptorSize()), np.float32)
         out = (pts, desc)
         setattr(f, attr, out)
         return out
