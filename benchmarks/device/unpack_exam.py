@@ -1,10 +1,11 @@
 """Device side of the 16-core table: the exam's H.264 copy back into a sequence directory.
 
-    python3 benchmarks/device/unpack_exam.py CARRY/exam.mp4 /tmp/bb/exam_1_10000
+    python3 benchmarks/device/unpack_exam.py CARRY/exam.mp4 /tmp/bb/exam_1_10000 [CARRY/side]
 
-Writes ``frames/NNNNNN.png`` (every frame of the video, in order) and the sidecars found in ``CARRY/side``
-(``*.gz`` unzipped: rf.csv travels gzipped) beside them, so ``bench_batch.py --keep /tmp/bb`` finds the exam as if
-rendered there. See docs/RESULTS.md, "Whole exams on 16 cores", for how the copy is made and what it changes.
+Writes ``frames/NNNNNN.png`` (every frame of the video, in order) and the sidecars found in the sidecar folder
+(default ``CARRY/side``; ``*.gz`` unzipped: rf.csv travels gzipped) beside them, so ``bench_batch.py --keep
+/tmp/bb`` finds the exam as if rendered there. See docs/RESULTS.md, "Whole exams on 16 cores", for how the copy is
+made and what it changes.
 """
 
 import gzip
@@ -18,6 +19,7 @@ from pathlib import Path
 import cv2
 
 SRC, DST = Path(sys.argv[1]), Path(sys.argv[2])
+SIDE = Path(sys.argv[3]) if len(sys.argv) > 3 else SRC.parent / "side"
 
 
 def _put(item):
@@ -39,7 +41,7 @@ def _frames():
 
 if __name__ == "__main__":
     (DST / "frames").mkdir(parents=True, exist_ok=True)
-    for f in (SRC.parent / "side").iterdir():
+    for f in SIDE.iterdir():
         if f.suffix == ".gz":
             with gzip.open(f, "rb") as a, open(DST / f.stem, "wb") as b:
                 shutil.copyfileobj(a, b)
