@@ -210,19 +210,19 @@ def main() -> None:
             subprocess.run([sys.executable, "-m", "testbed.cli", "simulate", args.scenario, "--seed", str(args.seed),
                             "--frames", str(n), "--out", str(seq), "--force", *longer, *size], check=True)
             print(f"rendered {n} frames in {time.perf_counter() - t0:.0f} s", flush=True)
-        # the frames only (a plain folder + the calibration): no RF, so memory is the streaming path's
-        folder = args.keep / f"{tag}frames_{args.seed}_{n}"
-        if not folder.exists():
-            folder.symlink_to(seq / "frames")
         meta = json.loads((seq / "meta.json").read_text())
-        calib = args.keep / f"{tag}calib.json"
-        calib.write_text(json.dumps(meta["camera"]))
+        # the same exam without its RF: a sequence directory whose meta.json is the exam's less its "rf" entry and
+        # whose frames are the exam's (a link), so both runs' vision reads the same radius, radius prior, camera and
+        # rate and they differ by the RF alone (a plain frame folder took the population radius prior where the
+        # exam's meta.json states its own: its runs without RF measured other vision work; session 59)
+        folder = args.keep / f"{tag}norf_{args.seed}_{n}"
+        folder.mkdir(exist_ok=True)
+        if not (folder / "frames").exists():
+            (folder / "frames").symlink_to(seq / "frames")
+        (folder / "meta.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "rf"}))
         out = args.keep / f"{tag}out_{args.mode}_{n}"
         shutil.rmtree(out, ignore_errors=True)
-        # a radius the scenario tells is given; a prior (realistic) is left to batch's own, the one meta.json states
-        told = [] if meta.get("tube_radius_sd_m") else ["--radius-m", str(meta["tube_radius_m"])]
-        cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode,
-               "--calib", str(calib), "--fps", "2", *told]
+        cmd = [sys.executable, "-m", "bodyslam.cli", "batch", str(folder), "--out", str(out), "--mode", args.mode]
         # the same exam with its RF (the sequence directory); item 6, the output, is set per run
         cmd_rf = [sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", "OUT", "--mode", args.mode,
                   *(["--rss-bias-states"] if args.rss_bias_states else [])]
@@ -231,6 +231,7 @@ def main() -> None:
             if not counts:
                 continue
             scaling, ref = {}, None
+            other = res.get(n, {}).get("jobs_rf")  # the table with RF, before this one without
             for j in [int(x) for x in counts.split(",")]:
                 out_j = args.keep / f"{tag}out_{args.mode}_{n}_{key}{j}"
                 shutil.rmtree(out_j, ignore_errors=True)
@@ -249,6 +250,11 @@ def main() -> None:
                       f"{el_j - ph.get('exams', el_j):.1f} s before): "
                       + ", ".join(f"{k} {v:.1f}" for k, v in ph.items()), flush=True)
             res.setdefault(n, {})[key] = scaling
+            if other is not None:  # the same vision either way: only the RF differs between the two tables
+                same_vision = (args.keep / f"{tag}out_{args.mode}_{n}_jobs_rf{next(iter(other))}" / seq.name
+                               / "motion.csv").read_bytes() == ref[0]
+                res[n]["motion_same_with_and_without_rf"] = same_vision
+                print(f"  motion.csv the same with and without RF: {same_vision}", flush=True)
         if args.jobs_only:
             continue
         runs = []  # (seconds without RF, seconds with RF or None), alternated --repeat times
