@@ -277,11 +277,15 @@ def main() -> None:
                 shutil.rmtree(out_rf, ignore_errors=True)
                 el_rf, peak_rf, rc_rf = run_measured([*cmd_rf[:6], str(out_rf), *cmd_rf[7:]])
                 traj = json.loads((out_rf / "summary.json").read_text())["exams"][0]["trajectory"]
+                # a like-for-like ratio: the same vision either way
+                same_vision = ((out_rf / seq.name / "motion.csv").read_bytes()
+                               == (out / folder.name / "motion.csv").read_bytes())
                 if rep == 0:
                     res[n].update(rf_seconds=el_rf, rf_frames_per_s=n / el_rf, rf_peak_tree_rss_mib=peak_rf / 2**20,
-                                  rf_rc=rc_rf, rf_over_no_rf=el / el_rf)
+                                  rf_rc=rc_rf, rf_over_no_rf=el / el_rf, motion_same_with_and_without_rf=same_vision)
                 print(f"  with RF ({traj}){run_tag}: {el_rf:.1f} s = {n / el_rf:.1f} frames/s, peak "
-                      f"{peak_rf / 2**20:.0f} MiB; throughput with RF / without: {el / el_rf:.2f}", flush=True)
+                      f"{peak_rf / 2**20:.0f} MiB; throughput with RF / without: {el / el_rf:.2f}; motion.csv the "
+                      f"same with and without RF: {same_vision}", flush=True)
             runs.append((el, el_rf))
         if args.repeat > 1:  # a machine whose speed drifts: the spread says how far one run can be trusted
             fps = np.array([n / a for a, _ in runs])
