@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Device side of the 16-core table (docs/RESULTS.md, "Whole exams on 16 cores"): packed here by
 # benchmarks/device/pack_exam.sh into .devrun/ (as .devrun/run.sh) and run there from the checkout:
-#   bash .devrun/run.sh   (device tool, carry [".devrun", ".whl"], timeout_s 590; ~9 minutes)
-# In order, each only while time is left (a lease is 15 minutes of device time, its start included): with RF 16 and
-# 1 jobs (issue 17's 10x), without RF 16 jobs; the realistic 2,000-frame exam (when packed) with RF 16 and 1 jobs,
-# without RF 16; with RF 8 and 4 jobs, with RF 2 jobs. Every run's log line, the summaries and the outputs'
-# checksums land in $OUT as they finish, so a run cut short still brings back the rest. Either exam may be left out
-# of .devrun/ (the realistic one at a higher quality then fits: session 59).
+#   bash .devrun/run.sh   (device tool, carry [".devrun", ".whl"], timeout_s 590; ~8 minutes with the 10,000-frame
+#   exam, ~2.5 with the realistic one; BUDGET=S for a shorter timeout_s, JOBS_REAL=16,1,8,4,2 for the whole table)
+# pack_exam.sh packs one of the two exams per call (both do not fit in 64 MiB); this runs what is packed, in order,
+# each only while time is left (a lease is 15 minutes of device time, its start included): `exam` with RF 16 and 1
+# jobs (issue 17's 10x), without RF 16 jobs; `realistic_exam` (2,000 frames) with RF 16 and 1 jobs, without RF 16;
+# `exam` with RF 8 and 4 jobs, then 2. Every run's log line, the summaries and the outputs' checksums land in $OUT
+# as they finish, so a run cut short still brings back the rest.
 # Locally (a test of this script):
 #   OUT=/tmp/x JOBS_FIRST=2 JOBS_FIRST_NORF= JOBS_REAL=2 JOBS_REAL_NORF= JOBS_MORE= JOBS_LAST= bash .devrun/run.sh
 export PYTHONUNBUFFERED=1
