@@ -24,7 +24,7 @@ fi
 tools=/tmp/bodyslam-device-tools
 [ -d "$tools/imageio_ffmpeg" ] || .venv/bin/python -m pip install -q --target "$tools" imageio-ffmpeg  # has libx264
 ffmpeg="$(PYTHONPATH=$tools .venv/bin/python -c 'import imageio_ffmpeg; print(imageio_ffmpeg.get_ffmpeg_exe())')"
-rm -f .devrun/exam.mp4 .devrun/realistic.mp4
+rm -rf .devrun/exam.mp4 .devrun/realistic.mp4 .devrun/side .devrun/side_realistic  # the other exam's too: 64 MiB
 mkdir -p ".devrun/$side" .whl
 "$ffmpeg" -y -loglevel error -framerate 2 -start_number 0 -i "$seq/frames/%06d.png" -c:v libx264 -preset slow \
   -crf "$crf" -pix_fmt yuv420p ".devrun/$video"

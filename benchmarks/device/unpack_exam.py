@@ -18,6 +18,8 @@ from pathlib import Path
 
 import cv2
 
+if len(sys.argv) not in (3, 4):
+    sys.exit("usage: unpack_exam.py VIDEO SEQUENCE_DIR [SIDECAR_DIR]")
 SRC, DST = Path(sys.argv[1]), Path(sys.argv[2])
 SIDE = Path(sys.argv[3]) if len(sys.argv) > 3 else SRC.parent / "side"
 
@@ -40,6 +42,8 @@ def _frames():
 
 
 if __name__ == "__main__":
+    if not SRC.is_file() or not SIDE.is_dir():
+        sys.exit(f"unpack_exam.py: {SRC if not SRC.is_file() else SIDE} not found")
     (DST / "frames").mkdir(parents=True, exist_ok=True)
     for f in SIDE.iterdir():
         if f.suffix == ".gz":
@@ -50,4 +54,7 @@ if __name__ == "__main__":
     t0 = time.time()
     with Pool(max(1, (os.cpu_count() or 2) - 1)) as p:
         n = sum(1 for _ in p.imap_unordered(_put, _frames(), chunksize=16))
+    if n == 0:  # an empty frames folder would pass for an unpacked exam on the next try
+        shutil.rmtree(DST / "frames")
+        sys.exit(f"unpack_exam.py: {SRC}: no frame could be decoded")
     print(f"unpacked {n} frames in {time.time() - t0:.1f} s", flush=True)
