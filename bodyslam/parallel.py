@@ -130,14 +130,17 @@ def shared_pool(jobs: int | None = None) -> Iterator[None]:
 
 def imap_tasks(func: Callable[..., T], tasks: Sequence, jobs: int | None = None, ordered: bool = True) -> Iterator[T]:
     """``func(task)`` for every task, in order (or as they finish with ``ordered=False``); in this process when
-    one job suffices, else in a spawned pool of ``jobs`` (default: one per available core) workers, closed when
-    the iteration ends -- or the enclosing :func:`shared_pool`'s when it has that many workers."""
-    jobs = available_cores() if jobs is None else int(jobs)
-    jobs = max(1, min(jobs, len(tasks)))
+    one job or one task suffices, else in a spawned pool of ``jobs`` (default: one per available core) workers,
+    closed when the iteration ends -- or the enclosing :func:`shared_pool`'s when it has ``jobs`` workers, however
+    few the tasks."""
+    want = available_cores() if jobs is None else int(jobs)
+    jobs = max(1, min(want, len(tasks)))
     if jobs == 1:
         yield from map(func, tasks)
         return
-    if _SHARED and _SHARED[-1].jobs == jobs:
+    # the block's pool serves fewer tasks than it has workers too: a pool of their number, spawned for them, took
+    # 0.5 s more of a 4-job batch's gap bridging on this 2-core machine (3 gaps; docs/RESULTS.md, session 60)
+    if _SHARED and _SHARED[-1].jobs == want:
         pool = _SHARED[-1].get()
         yield from (pool.imap if ordered else pool.imap_unordered)(func, tasks)
         return
