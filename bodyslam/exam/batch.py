@@ -48,16 +48,19 @@ frame and step tables; at most two exams' at once (the next exam's fusion starts
 
 Gaps, dead reckoning and path length
 ------------------------------------
-Once an exam's chunks are in, its short gaps are bridged as ``bodyslam motion`` bridges them
-(:func:`bodyslam.vision.odometry.bridge_gaps`; the result is a checkpoint too, ``bridges.json``), so both write the
-same ``motion.csv``. The k-step check of the per-step 1-sigma (``consistency.json``) then runs on the workers
-while the coordinator finalizes the exam (the serial end is what limits many workers). Without RF, steps are
-accumulated with the fusion's process model (:class:`bodyslam.fusion.body_slam.DeadReckoner`: a step without an estimate repeats the last estimated one -- a step
-lost to motion stretched to the estimated steps so far at their 90th percentile -- with a
-1-sigma as large as that step); once the exam is read, those steps are stretched along their direction to the
-lengths the path travelled gives them (below), so the trajectory's length is the path travelled. The path
-travelled -- the "how far along the gut" figure -- is :func:`bodyslam.vision.tracking.path_travelled`'s:
-estimated step lengths, and for a step without an estimate a length from the speed around it (:func:`bodyslam.vision.tracking.missing_step_lengths`: a model of the capsule's
+An exam's short gaps are bridged as ``bodyslam motion`` bridges them, so both write the same ``motion.csv``: a
+gap that lies wholly inside a chunk by that chunk's worker, right after its steps
+(:func:`bodyslam.vision.odometry.bridge_inside`: part of the chunk's checkpoint, counted in its progress), the
+others (gaps across a seam) once all its chunks are in (:func:`bodyslam.vision.odometry.bridge_gaps`); all of
+them are then a checkpoint too, ``bridges.json``. The k-step check of the per-step 1-sigma (``consistency.json``)
+then runs on the workers while the coordinator finalizes the exam (the serial end is what limits many workers).
+Without RF, steps are accumulated with the fusion's process model (:class:`bodyslam.fusion.body_slam.DeadReckoner`:
+a step without an estimate repeats the last estimated one -- a step lost to motion stretched to the estimated steps
+so far at their 90th percentile -- with a 1-sigma as large as that step); once the exam is read, those steps are
+stretched along their direction to the lengths the path travelled gives them (below), so the trajectory's length is
+the path travelled. The path travelled -- the "how far along the gut" figure -- is
+:func:`bodyslam.vision.tracking.path_travelled`'s: estimated step lengths, and for a step without an estimate a
+length from the speed around it (:func:`bodyslam.vision.tracking.missing_step_lengths`: a model of the capsule's
 speed, which a step lost to motion says was beyond the matcher's reach; symmetric in time, so the path does not
 depend on the frame order), with the steps' variances summed (a run of missing steps' 1-sigmas added: one speed).
 """
@@ -616,12 +619,19 @@ def process_chunk(task: dict) -> dict:
     status per frame, the motion of every step into them. Pure and deterministic (the result depends only on
     the frames and settings), so chunks can run anywhere, in any order. Returns a JSON-serialisable dict, which
     is the chunk's checkpoint file."""
-    from bodyslam.vision.odometry import chunk_task
+    from bodyslam.vision.odometry import bridge_inside, chunk_task, engine_for
 
     res = chunk_task(task)
+    # the gaps inside the chunk, bridged here (the rest once all chunks are in: _bridge_exam); the same engine
+    vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
+    gaps, shares = bridge_inside(vo, task["source"], [s for *_, s in res.steps], task["first"], task["settings"],
+                                 task["radius_m"])
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"],
             "frames": res.frames, "steps": [motion_row(idx, t, s) for _, idx, t, s in res.steps],
             "problems": res.problems, "eof": res.eof,
+            # the gaps inside it, as positions (a, b), and their bridged shares by step item (as bridges.json)
+            "gaps": [list(g) for g in gaps],
+            "bridged": {str(i): motion_row(0, 0.0, sh) for i, sh in sorted(shares.items())},
             # the points of the first and last steps, for the seams' scale links (bodyslam.vision.scale_chain)
             "seam_in": res.seam_in.to_json() if res.seam_in is not None else None,
             "seam_out": res.seam_out.to_json() if res.seam_out is not None else None}
@@ -944,19 +954,27 @@ def _engine_base(exam: Exam, settings: BatchSettings, mask) -> dict:
 
 def _bridge_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
     """Bridge the exam's gaps (:func:`bodyslam.vision.odometry.bridge_gaps`, the rule ``bodyslam motion`` follows)
-    once all its chunks are done; the result is a checkpoint too (``bridges.json``: ``{step item: row}``)."""
+    once all its chunks are done: those across a seam here, those inside a chunk taken from its file (bridged by
+    its worker, :func:`process_chunk`); the result is a checkpoint too (``bridges.json``: ``{step item: row}``)."""
     from bodyslam.vision.odometry import bridge_gaps
     from bodyslam.steps import StepStatus
 
     f = d / "bridges.json"
     if _checkpoint(f, "bridged") is not None:
         return
-    statuses = [StepStatus(row[8]) for row in _step_rows(d)]
+    statuses, done, rows = [], [], {}
+    for ch in _iter_chunks(d):  # (as _step_rows: up to the end of a video)
+        statuses.extend(StepStatus(row[8]) for row in ch["steps"])
+        done.extend(tuple(g) for g in ch.get("gaps", ()))
+        rows.update(ch.get("bridged", {}))
+        if ch["eof"] is not None:
+            break
     shares = bridge_gaps(statuses, settings.motion, _engine_base(exam, settings, mask), jobs,
-                         run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
+                         run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True),
+                         done=done)
+    rows.update((str(i), motion_row(0, 0.0, s)) for i, s in shares.items())
     with atomic_path(f) as tmp:
-        tmp.write_text(json.dumps({"bridged": {str(i): motion_row(0, 0.0, s) for i, s in sorted(shares.items())}}),
-                       encoding="utf-8")
+        tmp.write_text(json.dumps({"bridged": {k: rows[k] for k in sorted(rows, key=int)}}), encoding="utf-8")
 
 
 def _ring_every(exam: Exam, settings: BatchSettings) -> int:

@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 __all__ = ["MotionSettings", "VisualOdometry", "ChunkResult", "Sequence", "sequence_motion", "with_lumen_uncertainty",
            "pair_motions", "consistency_pairs", "consistency_diagnostic", "step_consistency", "find_gaps",
            "split_motion", "resolve_mask", "fov_from_frames", "write_mask", "classify_work_px", "bridge_gaps",
+           "bridged_shares", "bridge_inside",
            "WALL_SIGMA_FACTOR", "WALL_STEPS", "BESIDE_WALL_RADII", "ACROSS_TILT_RAD", "BESIDE_WALL_SIGMA_RADII",
            "BESIDE_WALL_ROTATION_FACTOR", "BESIDE_WALL_HELD_AXIS",
            "LOST_MIN_KEYPOINTS_FRAC", "LOST_MAX_MATCHES", "BRIDGE_MIN_LOST_SHARE"]
@@ -516,18 +517,29 @@ def pair_motions(pairs: list[tuple[int, int]], task_base: dict, jobs: int | None
 
 
 def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
-                jobs: int | None = None, run_tasks=None) -> dict[int, StepMotion]:
+                jobs: int | None = None, run_tasks=None,
+                done: Iterable[tuple[int, int]] = ()) -> dict[int, StepMotion]:
     """Bridge the gaps of ``steps`` (StepMotions or their statuses; list item ``i`` = the step into position
-    ``i + 1``): returns ``{list item: bridged share}``. ``task_base``: the engine's task fields (source, camera, settings, radius, mask);
-    ``run_tasks(func, tasks)``: how to run them (default: local worker processes)."""
+    ``i + 1``): returns ``{list item: bridged share}``. ``task_base``: the engine's task fields (source, camera,
+    settings, radius, mask); ``run_tasks(func, tasks)``: how to run them (default: local worker processes);
+    ``done``: gaps ``(a, b)`` already bridged elsewhere (a batch chunk's own, :func:`bridge_inside`), left out."""
     if not settings.bridge_gaps or settings.estimator != "tube":
         return {}
-    gaps = find_gaps(steps, settings.bridge_gaps)
+    skip = set(map(tuple, done))
+    gaps = [g for g in find_gaps(steps, settings.bridge_gaps) if g not in skip]
     if not gaps:
         return {}
+    return bridged_shares(steps, gaps, pair_motions(gaps, task_base, jobs, run_tasks), task_base["radius_m"])
+
+
+def bridged_shares(steps: list, gaps: list[tuple[int, int]], totals: Iterable[StepMotion | None],
+                   radius_m: float) -> dict[int, StepMotion]:
+    """``{list item: share}`` of the gaps whose end-to-end motion ``totals`` (in the gaps' order; None: not
+    matched) is long enough for the steps it holds that were lost to motion (:data:`BRIDGE_MIN_LOST_SHARE` of the
+    least length of each, :func:`bodyslam.steps.lost_step_floor_m`), split into equal shares."""
     out = {}
-    floor = lost_step_floor_m(task_base["radius_m"])
-    for (a, b), total in zip(gaps, pair_motions(gaps, task_base, jobs, run_tasks)):
+    floor = lost_step_floor_m(radius_m)
+    for (a, b), total in zip(gaps, totals):
         if total is None:
             continue
         n_lost = sum(getattr(s, "status", s) in LOST_TO_MOTION for s in steps[a:b])
@@ -539,6 +551,21 @@ def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
         for i, s in zip(range(a, b), split_motion(total, b - a)):
             out[i] = s
     return out
+
+
+def bridge_inside(vo: "VisualOdometry", source: FrameSource, statuses: list, first: int,
+                  settings: MotionSettings, radius_m: float) -> tuple[list[tuple[int, int]], dict[int, StepMotion]]:
+    """The gaps that lie wholly inside a chunk of steps into positions ``first + 1 ..`` (``statuses``: theirs, in
+    order), bridged by the chunk's own worker: ``(gaps (a, b), {list item: share})`` in the exam's positions and
+    items. A gap with an estimated step on both sides inside the chunk is the same gap in the whole exam
+    (:func:`find_gaps`), bridged from the same two frames by the same rule as :func:`bridge_gaps`, so the result
+    is the same as bridging it after all chunks; gaps at the chunk's ends are left for then."""
+    if not settings.bridge_gaps or settings.estimator != "tube":
+        return [], {}
+    gaps = [(first + a, first + b) for a, b in find_gaps(statuses, settings.bridge_gaps)]
+    totals = [vo.bridge(source.read_one(a).image, source.read_one(b).image) for a, b in gaps]
+    shares = bridged_shares(statuses, [(a - first, b - first) for a, b in gaps], totals, radius_m)
+    return gaps, {first + i: s for i, s in shares.items()}
 
 
 # -- does the per-step 1-sigma hold? ---------------------------------------------------------------------------

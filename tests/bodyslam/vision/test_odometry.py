@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import shutil
 import subprocess
 import sys
@@ -72,8 +73,15 @@ def test_motion_and_batch_write_identical_motion_csv(tmp_path, opts, radius_sd_m
         assert np.isfinite([links[k - 1] for k in (8, 22) if status[k] == "ok" and status[k - 1] == "ok"]).all()
     else:  # a known radius is the scale: nothing chained
         assert not any(map(np.isfinite, chained))
+    chunks = [json.loads(f.read_text()) for f in sorted((tmp_path / "batch" / "seq" / "chunks").glob("*.json"))]
     if "--estimator" not in opts:
         assert [status[k] for k in (14, 15, 30, 31, 32)] == ["bridged"] * 5
+        # the gap of steps 30-32 lies inside the chunk of positions 28-35: its worker bridged it; the gap of steps
+        # 14-15 spans the seam at position 14: bridged once all chunks were in
+        inside = [tuple(g) for c in chunks for g in c["gaps"]]
+        by_worker = {int(k) for c in chunks for k in c["bridged"]}
+        assert (29, 32) in inside and (13, 15) not in inside
+        assert {29, 30, 31} <= by_worker and not {13, 14} & by_worker
     else:  # the thesis estimator gives no full pose to bridge with: the gaps stay gaps
         assert [status[k] for k in (14, 15, 30, 31, 32)] == ["no_lumen"] * 5
 
