@@ -6,7 +6,7 @@
    (ErrorStateEkf.predict), the RSS update in its information form with the per-reading 99.9% gate, the
    divergence guard and the Woodbury step over the position block (ErrorStateEkf.update), Rodrigues with its series
    below 1e-4 rad (bodyslam/_rodrigues.h). It agrees with the numpy path to rounding (sums in another order:
-   measured 5e-15 m, 2e-15 on covariances; tests/bodyslam/fusion/test_fusion.py runs both). Not covered (numpy
+   measured 5e-15 m, 2e-15 on covariances; tests/bodyslam/fusion/test_ekf.py runs both). Not covered (numpy
    runs them): several candidates at once, fix mode, the RSS bias states.
 
    run(state, steps, rss, sensors, normals, params, out, a, b, predict_first, n_scale, keep) -> None

@@ -4,7 +4,7 @@ import numpy as np
 
 from bodyslam.fusion.body_slam import fuse, rts_smooth
 from bodyslam.fusion.channel import causal_inflation, inflate, normalised_residuals, residual_correlation
-from tests.bodyslam.fusion.test_fusion import synthetic_run
+from tests.bodyslam.fusion.test_body_slam import synthetic_run
 
 
 def ar1(rho, n=400, m=16, seed=0):

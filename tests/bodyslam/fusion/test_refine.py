@@ -9,10 +9,10 @@ from bodyslam.fusion.ekf import Z_GATE_999
 from bodyslam.fusion.refine import MapProblem, marginal_covariances, refine_map
 from bodyslam.geometry import rotvec_to_matrix
 
-from tests.bodyslam.fusion import test_fusion
-from tests.bodyslam.fusion.test_fusion import DEMO, synthetic_run
+from tests.bodyslam.fusion import test_body_slam
+from tests.bodyslam.fusion.test_body_slam import DEMO, synthetic_run
 
-demo = test_fusion.demo  # the demo's true steps with noise, and its RF (a fixture of test_fusion)
+demo = test_body_slam.demo  # the demo's true steps with noise, and its RF (a fixture of test_body_slam)
 
 R0_TRUE = Rotation.from_rotvec([0.4, -0.3, 0.2])  # synthetic_run's first orientation
 
