@@ -7,6 +7,7 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -376,3 +377,56 @@ def test_fast_mode_rescue_fits_a_step_the_cheaper_tries_lose_and_can_be_turned_o
         args = _parser().parse_args([cmd, str(DEMO), "--out", "x", "--no-rescue"])
         assert _motion_settings(args).rescue is False
         assert _motion_settings(_parser().parse_args([cmd, str(DEMO), "--out", "x"])).rescue is True
+
+
+def test_gaps_are_found_between_estimated_steps_and_split_exactly():
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.vision.odometry import find_gaps, split_motion
+    from bodyslam.steps import StepMotion, motion_from_transform
+    from bodyslam.vision.tracking import dead_reckon
+
+    ok = motion_from_transform(Rotation.from_rotvec([0.01, 0.0, 0.1]), np.array([0.0, 0.001, 0.004]), 50)
+    no = StepMotion(status="no_lumen")
+    bad = StepMotion(status="bad_frame")
+    steps = [no, ok, no, no, ok, ok, no, no, no, ok, bad, ok, no]
+    # step index i is the move into frame i+1: the gap frames 2..4 (steps 2,3 missing) and 6..9; not the leading
+    # gap (no estimated step before it), not the bad frame's, not the trailing one
+    assert find_gaps(steps, 15) == [(2, 4), (6, 9)]
+    assert find_gaps(steps, 2) == [(2, 4)]
+    total = motion_from_transform(Rotation.from_rotvec([0.3, -0.2, 0.6]), np.array([0.002, -0.001, 0.012]), 40)
+    total = replace(total, sigma_distance_m=4e-4, sigma_rotation_rad=0.02)
+    parts = split_motion(total, 4)
+    assert [p.status for p in parts] == ["bridged"] * 4 and all(p.has_estimate for p in parts)
+    pos, rot = dead_reckon(parts)
+    assert np.allclose(pos[-1], total.t_c1_c2_m, atol=1e-12)
+    assert np.allclose(rot[-1].as_matrix(), total.R_c1_c2, atol=1e-12)
+    assert parts[0].sigma_distance_m == pytest.approx(2e-4)  # 4e-4 / sqrt(4): four independent shares
+
+
+def test_bridged_shares_split_what_matched_and_decline_a_total_too_short_for_its_lost_steps():
+    """The rule a gap is bridged by, in ``bodyslam motion`` and in a batch chunk's worker alike: a gap whose ends
+    did not match stays a gap; one whose end-to-end motion is shorter than half the least length of the steps it
+    lost to motion is declined (a wrong match); the others are split into equal shares."""
+    from scipy.spatial.transform import Rotation
+
+    from bodyslam.steps import StepMotion, StepStatus, lost_step_floor_m, motion_from_transform
+    from bodyslam.vision.odometry import BRIDGE_MIN_LOST_SHARE, bridged_shares
+
+    radius_m = 0.0125
+    floor = lost_step_floor_m(radius_m)
+    ok = motion_from_transform(Rotation.identity(), np.array([0.0, 0.0, 0.004]), 50)
+    lost, unlit = StepMotion(status=StepStatus.LOST), StepMotion(status=StepStatus.NO_LUMEN)
+    steps = [ok, lost, lost, ok, lost, lost, ok, unlit, ok]
+    gaps = [(1, 3), (4, 6), (7, 8)]
+
+    def forward(length_m):
+        return motion_from_transform(Rotation.identity(), np.array([0.0, 0.0, length_m]), 40)
+
+    limit = BRIDGE_MIN_LOST_SHARE * 2 * floor  # two steps lost to motion in each of the first two gaps
+    out = bridged_shares(steps, gaps, [forward(1.01 * limit), forward(0.99 * limit), None], radius_m)
+    assert sorted(out) == [1, 2]  # the first gap bridged; the second declined; the third did not match
+    assert all(s.status == StepStatus.BRIDGED for s in out.values())
+    assert out[1].distance_m == pytest.approx(1.01 * limit / 2, rel=1e-9)  # two equal shares of a straight move
+    # a gap of steps without an estimate that were not lost to motion (frames facing no lumen) has no floor
+    assert sorted(bridged_shares(steps, [(7, 8)], [forward(1e-5)], radius_m)) == [7]

@@ -3,7 +3,6 @@
 import json
 import subprocess
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -120,63 +119,6 @@ def test_rear_camera_steps_are_reported_in_the_body_frame(tmp_path):
     assert got.distance_m == pytest.approx(want.distance_m, abs=1e-12)
     assert got.roll_rad == pytest.approx(want.roll_rad, abs=1e-12)
     assert got.tilt_rad == pytest.approx(want.tilt_rad, abs=1e-12)
-
-
-def test_speed_statistics_drive_the_testbed(tmp_path):
-    """motion.csv -> speed PDF/CDF + model file -> testbed simulate --speed-model (the thesis's loop)."""
-    import shutil
-
-    mcsv = tmp_path / "motion.csv"
-    shutil.copy(DEMO / "motion_truth.csv", tmp_path / "truth.csv")
-    # a motion.csv from the truth (the speed statistics code only reads the SPEC columns)
-    lines = (tmp_path / "truth.csv").read_text().splitlines()
-    out = ["frame,t,distance_m,roll_rad,pitch_rad,yaw_rad,tilt_rad,n_matches,status"]
-    out += [",".join(ln.split(",")[:7] + ["100", "ok"]) for ln in lines[1:]]
-    mcsv.write_text("\n".join(out) + "\n")
-    p = run("bodyslam.cli", "speed-stats", str(mcsv), "--out", str(tmp_path / "speed"))
-    assert p.returncode == 0, p.stderr
-    model = json.loads((tmp_path / "speed" / "speed_model.json").read_text())
-    assert model["motion"]["mean_step_m"] == pytest.approx(0.0041, rel=0.01)
-    assert abs(sum(model["motion"]["phase_probs"]) - 1) < 1e-9
-    for png in ("speed_pdf.png", "speed_cdf.png"):
-        assert read_image(tmp_path / "speed" / png).shape == (420, 640, 3)
-    # a second run into the same (now non-empty) directory is refused in one line, then allowed with --force
-    p = run("bodyslam.cli", "speed-stats", str(mcsv), "--out", str(tmp_path / "speed"))
-    assert p.returncode == 1 and "not empty" in p.stderr and len(p.stderr.strip().splitlines()) == 1
-    assert run("bodyslam.cli", "speed-stats", str(mcsv), "--out", str(tmp_path / "speed"), "--force").returncode == 0
-    # the model drives a new sequence: its mean step, roll and tilt are the model's
-    p = run("testbed.cli", "simulate", "demo", "--seed", "3", "--frames", "12", "--out", str(tmp_path / "sim"),
-            "--speed-model", str(tmp_path / "speed" / "speed_model.json"))
-    assert p.returncode == 0, p.stderr
-    truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
-    assert truth["mean_step_cm"] == pytest.approx(model["motion"]["mean_step_m"] * 100, rel=0.02)
-    assert truth["mean_roll_deg"] == pytest.approx(model["motion"]["mean_roll_deg"], rel=0.05)
-
-
-def test_gaps_are_found_between_estimated_steps_and_split_exactly():
-    from scipy.spatial.transform import Rotation
-
-    from bodyslam.vision.odometry import find_gaps, split_motion
-    from bodyslam.steps import StepMotion, motion_from_transform
-    from bodyslam.vision.tracking import dead_reckon
-
-    ok = motion_from_transform(Rotation.from_rotvec([0.01, 0.0, 0.1]), np.array([0.0, 0.001, 0.004]), 50)
-    no = StepMotion(status="no_lumen")
-    bad = StepMotion(status="bad_frame")
-    steps = [no, ok, no, no, ok, ok, no, no, no, ok, bad, ok, no]
-    # step index i is the move into frame i+1: the gap frames 2..4 (steps 2,3 missing) and 6..9; not the leading
-    # gap (no estimated step before it), not the bad frame's, not the trailing one
-    assert find_gaps(steps, 15) == [(2, 4), (6, 9)]
-    assert find_gaps(steps, 2) == [(2, 4)]
-    total = motion_from_transform(Rotation.from_rotvec([0.3, -0.2, 0.6]), np.array([0.002, -0.001, 0.012]), 40)
-    total = replace(total, sigma_distance_m=4e-4, sigma_rotation_rad=0.02)
-    parts = split_motion(total, 4)
-    assert [p.status for p in parts] == ["bridged"] * 4 and all(p.has_estimate for p in parts)
-    pos, rot = dead_reckon(parts)
-    assert np.allclose(pos[-1], total.t_c1_c2_m, atol=1e-12)
-    assert np.allclose(rot[-1].as_matrix(), total.R_c1_c2, atol=1e-12)
-    assert parts[0].sigma_distance_m == pytest.approx(2e-4)  # 4e-4 / sqrt(4): four independent shares
-
 
 def test_a_bridge_that_contradicts_its_steps_lost_to_motion_is_not_taken():
     """A gap of six steps, four of them lost to motion (each at least 0.4 radii: 2 cm in all at a 1.25 cm radius):
