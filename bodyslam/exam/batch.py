@@ -625,7 +625,7 @@ def process_chunk(task: dict) -> dict:
     # the gaps inside the chunk, bridged here (the rest once all chunks are in: _bridge_exam); the same engine
     vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
     gaps, shares = bridge_inside(vo, task["source"], [s for *_, s in res.steps], task["first"], task["settings"],
-                                 task["radius_m"])
+                                 task["radius_m"], res.gap_totals)
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"],
             "frames": res.frames, "steps": [motion_row(idx, t, s) for _, idx, t, s in res.steps],
             "problems": res.problems, "eof": res.eof,
@@ -792,7 +792,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                 continue
             tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "source": src.subset(a, b),
                           "camera": e.camera, "radius_m": e.radius_m, "settings": settings.motion, "mask": mask,
-                          "ring_every": _ring_every(e, settings)})
+                          "ring_every": _ring_every(e, settings), "bridge_inside": True})
     if not usable:
         raise InputError(f"no exam of the study could be processed: {study_problems[-1][-1]}")
     if reused:

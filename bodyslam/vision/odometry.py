@@ -27,7 +27,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -197,6 +197,9 @@ class ChunkResult:
     # has no fit), so whoever joins the chunks links the seams (bodyslam.vision.scale_chain)
     seam_in: object = None
     seam_out: object = None
+    # with ``run(..., bridge=True)``: each gap closed inside the chunk (:func:`find_gaps`' rule), ``(a, b)`` in
+    # positions, and its end-to-end motion (None where it did not match), from the features the run had made
+    gap_totals: dict = field(default_factory=dict)
 
 
 class VisualOdometry:
@@ -368,16 +371,22 @@ class VisualOdometry:
         return str(self.classifier.predict(frame_features(img, self.fov, work_px=self.work_px)[None])[0]), status
 
     # -- a range of frames ------------------------------------------------------------------------------------
-    def run(self, frames: Iterable[Frame], first: int, ring_every: int = 0) -> ChunkResult:
+    def run(self, frames: Iterable[Frame], first: int, ring_every: int = 0, bridge: bool = False) -> ChunkResult:
         """Records and steps of the frames at positions ``first ..`` (module docstring). ``ring_every``: the
         fitted steps into positions divisible by it get their ``ring_ratio`` (the exam's lumen scale sample,
-        :func:`bodyslam.vision.lumen_scale.ring_every`; 0: none)."""
+        :func:`bodyslam.vision.lumen_scale.ring_every`; 0: none). ``bridge``: also match the ends of every gap
+        that closes inside the chunk as it closes (``gap_totals``; :func:`bridge_inside`), from the features the
+        steps beside it made -- the same motion :meth:`bridge` finds from the frames (features are a function of
+        the frame), without reading and detecting them again."""
         from bodyslam.vision.scale_chain import linked
 
         cam = self.camera
         out = ChunkResult([], [], [])
         prev = None  # (features or None, class, frame status)
         prev_points = None  # the previous step's points in its last frame (this step's first), None: no fit
+        max_gap = self.settings.bridge_gaps if bridge and self.settings.estimator == "tube" else 0
+        prev_measured = False  # the step into the previous frame was measured (inside this chunk)
+        gap = None  # an open gap: [its first frame's position, that frame's features, steps in it, a bad frame in it]
         for fr in frames:
             if fr.end_of_video:  # a container's frame count is an estimate: every decodable frame was read
                 out.eof = fr.pos
@@ -414,9 +423,31 @@ class VisualOdometry:
                     s = linked(s, prev_points, points[0])
                 prev_points = points[1] if points else None
                 out.steps.append((fr.pos, fr.index, fr.t_s, s))
+                if max_gap:  # after the step's own points are read: the bridge's estimate_pair sets them again
+                    gap, prev_measured = self._follow_gap(gap, prev_measured, s, fr.pos, prev[0] if prev else None,
+                                                          max_gap, out.gap_totals)
             prev = (feats, cls, status)
         out.seam_out = prev_points
         return out
+
+    def _follow_gap(self, gap, prev_measured: bool, s: StepMotion, pos: int, prev_feats, max_gap: int,
+                    totals: dict):
+        """One step of :meth:`run`'s gap tracking (the rule of :func:`find_gaps`): a step without an estimate after
+        a measured one opens a gap at its first frame (``pos - 1``, whose features ``prev_feats`` it keeps); a
+        measured step closes the open gap at its own first frame, whose ends are matched then (``totals``) when the
+        gap holds at most ``max_gap`` steps and no unreadable frame. Returns the open gap and whether ``s`` was
+        measured."""
+        measured = s.status in MEASURED
+        if measured:
+            if gap is not None and gap[2] <= max_gap and not gap[3]:
+                b = self.estimate_pair(gap[1], prev_feats, "tube", rotation=False)  # as bridge() does
+                totals[(gap[0], pos - 1)] = b if b.ok else None
+            return None, True
+        if gap is None:
+            return ([pos - 1, prev_feats, 1, s.status == StepStatus.BAD_FRAME] if prev_measured else None), False
+        gap[2] += 1
+        gap[3] |= s.status == StepStatus.BAD_FRAME
+        return (gap if gap[2] <= max_gap else None), False
 
     def bridge(self, img_a: np.ndarray | None, img_b: np.ndarray | None) -> StepMotion | None:
         """The motion from frame ``a`` straight to frame ``b`` (a gap's ends, tube estimator), or None."""
@@ -454,7 +485,8 @@ def chunk_task(task: dict) -> ChunkResult:
     set_worker_threads()
     vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
     src: FrameSource = task["source"]
-    return vo.run(src.read(task["first"], task["last"]), task["first"], task.get("ring_every", 0))
+    return vo.run(src.read(task["first"], task["last"]), task["first"], task.get("ring_every", 0),
+                  bridge=task.get("bridge_inside", False))
 
 
 def bridge_task(task: dict) -> StepMotion | None:
@@ -554,16 +586,21 @@ def bridged_shares(steps: list, gaps: list[tuple[int, int]], totals: Iterable[St
 
 
 def bridge_inside(vo: "VisualOdometry", source: FrameSource, statuses: list, first: int,
-                  settings: MotionSettings, radius_m: float) -> tuple[list[tuple[int, int]], dict[int, StepMotion]]:
+                  settings: MotionSettings, radius_m: float,
+                  totals_seen: dict | None = None) -> tuple[list[tuple[int, int]], dict[int, StepMotion]]:
     """The gaps that lie wholly inside a chunk of steps into positions ``first + 1 ..`` (``statuses``: theirs, in
     order), bridged by the chunk's own worker: ``(gaps (a, b), {list item: share})`` in the exam's positions and
     items. A gap with an estimated step on both sides inside the chunk is the same gap in the whole exam
     (:func:`find_gaps`), bridged from the same two frames by the same rule as :func:`bridge_gaps`, so the result
-    is the same as bridging it after all chunks; gaps at the chunk's ends are left for then."""
+    is the same as bridging it after all chunks; gaps at the chunk's ends are left for then. ``totals_seen``: the
+    gaps' end-to-end motions the chunk's run already matched (``ChunkResult.gap_totals``); a gap without one is
+    matched here, from its frames read again."""
     if not settings.bridge_gaps or settings.estimator != "tube":
         return [], {}
     gaps = [(first + a, first + b) for a, b in find_gaps(statuses, settings.bridge_gaps)]
-    totals = [vo.bridge(source.read_one(a).image, source.read_one(b).image) for a, b in gaps]
+    seen = totals_seen or {}
+    totals = [seen[g] if g in seen else vo.bridge(source.read_one(g[0]).image, source.read_one(g[1]).image)
+              for g in gaps]
     shares = bridged_shares(statuses, [(a - first, b - first) for a, b in gaps], totals, radius_m)
     return gaps, {first + i: s for i, s in shares.items()}
 

@@ -430,3 +430,34 @@ def test_bridged_shares_split_what_matched_and_decline_a_total_too_short_for_its
     assert out[1].distance_m == pytest.approx(1.01 * limit / 2, rel=1e-9)  # two equal shares of a straight move
     # a gap of steps without an estimate that were not lost to motion (frames facing no lumen) has no floor
     assert sorted(bridged_shares(steps, [(7, 8)], [forward(1e-5)], radius_m)) == [7]
+
+
+def test_a_gap_is_matched_as_it_closes_from_the_features_the_run_made(tmp_path, monkeypatch):
+    """``run(..., bridge=True)`` (a batch chunk's worker) matches the ends of each gap that closes inside its
+    frames as it closes, from the features its steps made: the same motion ``bridge`` finds from the two frames
+    read again, for the same gaps ``find_gaps`` finds; ``bridge_inside`` then reads no frame again."""
+    from bodyslam.vision.odometry import MotionSettings, Sequence, VisualOdometry, bridge_inside, find_gaps
+
+    seq = Sequence.open(_with_wall_frames(tmp_path / "seq", dark=(30, 31), insert_dark_after=13))
+    settings = MotionSettings("fast")
+    vo = VisualOdometry(seq.camera, settings, seq.radius_m)
+    res = vo.run(seq.source.read(5, 40), 5, bridge=True)
+    statuses = [s for *_, s in res.steps]
+    gaps = [(5 + a, 5 + b) for a, b in find_gaps(statuses, settings.bridge_gaps)]
+    assert gaps == sorted(res.gap_totals) and (29, 32) in gaps and (13, 15) in gaps  # FL frames; a dark frame
+    fresh = VisualOdometry(seq.camera, settings, seq.radius_m)
+    for (a, b), total in res.gap_totals.items():
+        want = fresh.bridge(seq.source.read_one(a).image, seq.source.read_one(b).image)
+        assert (total is None) == (want is None), (a, b)
+        if want is not None:
+            assert np.array_equal(total.t_c1_c2_m, want.t_c1_c2_m) and np.array_equal(total.R_c1_c2, want.R_c1_c2)
+            assert total.sigma_distance_m == want.sigma_distance_m and total.n_matches == want.n_matches
+    # the chunk's bridges take the run's totals: no frame is read again
+    monkeypatch.setattr(type(seq.source), "read_one", lambda *a: pytest.fail("a frame read again"))
+    got, shares = bridge_inside(vo, seq.source, statuses, 5, settings, seq.radius_m, res.gap_totals)
+    assert got == gaps and {29, 30, 31} <= set(shares)
+    # without the run's totals the same shares come from the frames (the rule is the same)
+    monkeypatch.undo()
+    again = bridge_inside(fresh, seq.source, statuses, 5, settings, seq.radius_m)[1]
+    assert sorted(again) == sorted(shares)
+    assert all(np.array_equal(again[i].t_c1_c2_m, shares[i].t_c1_c2_m) for i in shares)
