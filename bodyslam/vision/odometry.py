@@ -550,18 +550,23 @@ def pair_motions(pairs: list[tuple[int, int]], task_base: dict, jobs: int | None
 
 def bridge_gaps(steps: list, settings: MotionSettings, task_base: dict,
                 jobs: int | None = None, run_tasks=None,
-                done: Iterable[tuple[int, int]] = ()) -> dict[int, StepMotion]:
+                done: Iterable[tuple[int, int]] = (), totals_seen: dict | None = None) -> dict[int, StepMotion]:
     """Bridge the gaps of ``steps`` (StepMotions or their statuses; list item ``i`` = the step into position
     ``i + 1``): returns ``{list item: bridged share}``. ``task_base``: the engine's task fields (source, camera,
     settings, radius, mask); ``run_tasks(func, tasks)``: how to run them (default: local worker processes);
-    ``done``: gaps ``(a, b)`` already bridged elsewhere (a batch chunk's own, :func:`bridge_inside`), left out."""
+    ``done``: gaps ``(a, b)`` already bridged elsewhere (a batch chunk's own, :func:`bridge_inside`), left out;
+    ``totals_seen``: gaps' end-to-end motions already matched as a run's chunks went (``ChunkResult.gap_totals``),
+    not matched again."""
     if not settings.bridge_gaps or settings.estimator != "tube":
         return {}
     skip = set(map(tuple, done))
     gaps = [g for g in find_gaps(steps, settings.bridge_gaps) if g not in skip]
     if not gaps:
         return {}
-    return bridged_shares(steps, gaps, pair_motions(gaps, task_base, jobs, run_tasks), task_base["radius_m"])
+    seen = totals_seen or {}
+    todo = [g for g in gaps if g not in seen]
+    matched = dict(zip(todo, pair_motions(todo, task_base, jobs, run_tasks))) if todo else {}
+    return bridged_shares(steps, gaps, [seen[g] if g in seen else matched[g] for g in gaps], task_base["radius_m"])
 
 
 def bridged_shares(steps: list, gaps: list[tuple[int, int]], totals: Iterable[StepMotion | None],
@@ -822,13 +827,15 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
     base = seq.task_base(settings, mask)
     measure = lumen_scale_measured(settings, seq.radius_sd_rel)
     every = sample_every(n) if measure else 0
-    tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b, ring_every=every)
+    tasks = [dict(base, source=seq.source.subset(a, b), first=a, last=b, ring_every=every, bridge_inside=True)
              for a, b in chunk_bounds(n, chunk_frames)]
     from bodyslam.vision.scale_chain import chained, linked
 
     steps: list[StepMotion] = []
     seam = None  # the previous chunk's last step's points in its last frame
+    seen: dict = {}  # the gaps matched inside their chunk as they closed (VisualOdometry.run's gap_totals)
     for res in imap_tasks(chunk_task, tasks, jobs):
+        seen.update(res.gap_totals)
         for j, (_, _, _, s) in enumerate(res.steps):
             if j == 0 and seam is not None and res.seam_in is not None:  # the seam's link, as one chunk gives it
                 s = linked(s, seam, res.seam_in)
@@ -840,7 +847,7 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
                 problems.append(p)
         if progress:
             progress(len(steps), n - 1)
-    for i, s in bridge_gaps(steps, settings, base, jobs).items():
+    for i, s in bridge_gaps(steps, settings, base, jobs, totals_seen=seen).items():
         steps[i] = s
     if measure:
         chain = None
