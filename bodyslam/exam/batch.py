@@ -619,13 +619,12 @@ def process_chunk(task: dict) -> dict:
     status per frame, the motion of every step into them. Pure and deterministic (the result depends only on
     the frames and settings), so chunks can run anywhere, in any order. Returns a JSON-serialisable dict, which
     is the chunk's checkpoint file."""
-    from bodyslam.vision.odometry import bridge_inside, chunk_task, engine_for
+    from bodyslam.vision.odometry import bridge_inside, chunk_task
 
-    res = chunk_task(task)
-    # the gaps inside the chunk, bridged here (the rest once all chunks are in: _bridge_exam); the same engine
-    vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
-    gaps, shares = bridge_inside(vo, task["source"], [s for *_, s in res.steps], task["first"], task["settings"],
-                                 task["radius_m"], res.gap_totals)
+    res = chunk_task(task)  # its run matched the ends of each gap inside the chunk as the gap closed
+    # the gaps inside the chunk, bridged here (the rest once all chunks are in: _bridge_exam)
+    gaps, shares = bridge_inside([s for *_, s in res.steps], task["first"], task["settings"], task["radius_m"],
+                                 res.gap_totals)
     return {"exam": task["exam"], "chunk": task["chunk"], "first": task["first"], "last": task["last"],
             "frames": res.frames, "steps": [motion_row(idx, t, s) for _, idx, t, s in res.steps],
             "problems": res.problems, "eof": res.eof,

@@ -590,23 +590,18 @@ def bridged_shares(steps: list, gaps: list[tuple[int, int]], totals: Iterable[St
     return out
 
 
-def bridge_inside(vo: "VisualOdometry", source: FrameSource, statuses: list, first: int,
-                  settings: MotionSettings, radius_m: float,
-                  totals_seen: dict | None = None) -> tuple[list[tuple[int, int]], dict[int, StepMotion]]:
+def bridge_inside(statuses: list, first: int, settings: MotionSettings, radius_m: float,
+                  totals: dict) -> tuple[list[tuple[int, int]], dict[int, StepMotion]]:
     """The gaps that lie wholly inside a chunk of steps into positions ``first + 1 ..`` (``statuses``: theirs, in
     order), bridged by the chunk's own worker: ``(gaps (a, b), {list item: share})`` in the exam's positions and
     items. A gap with an estimated step on both sides inside the chunk is the same gap in the whole exam
     (:func:`find_gaps`), bridged from the same two frames by the same rule as :func:`bridge_gaps`, so the result
-    is the same as bridging it after all chunks; gaps at the chunk's ends are left for then. ``totals_seen``: the
-    gaps' end-to-end motions the chunk's run already matched (``ChunkResult.gap_totals``); a gap without one is
-    matched here, from its frames read again."""
+    is the same as bridging it after all chunks; gaps at the chunk's ends are left for then. ``totals``: the gaps'
+    end-to-end motions, matched by the chunk's run as each gap closed (``ChunkResult.gap_totals``, the same rule)."""
     if not settings.bridge_gaps or settings.estimator != "tube":
         return [], {}
     gaps = [(first + a, first + b) for a, b in find_gaps(statuses, settings.bridge_gaps)]
-    seen = totals_seen or {}
-    totals = [seen[g] if g in seen else vo.bridge(source.read_one(g[0]).image, source.read_one(g[1]).image)
-              for g in gaps]
-    shares = bridged_shares(statuses, [(a - first, b - first) for a, b in gaps], totals, radius_m)
+    shares = bridged_shares(statuses, [(a - first, b - first) for a, b in gaps], [totals[g] for g in gaps], radius_m)
     return gaps, {first + i: s for i, s in shares.items()}
 
 
