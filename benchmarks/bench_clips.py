@@ -11,6 +11,7 @@ sequence keeps (scoring only):
 - the share of steps with a full estimate, and the share of those that point forward (camera +z).
 
     .venv/bin/python benchmarks/bench_clips.py SEQ_DIR [SEQ_DIR ...] --starts 0,30,60,90,120,150,180 --out DIR
+        [--batch-args "--mode asift"]
 
 Use tuning seeds to choose anything and reporting seeds to report (README, "Seeds").
 """
@@ -65,7 +66,10 @@ def main() -> None:
     ap.add_argument("--starts", default="0,30,60,90,120,150,180", help="first frame of each clip")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--batch-args", default="", help="options for every `bodyslam batch` run, as one string "
+                    "(e.g. \"--mode asift\"; default: none, batch's defaults)")
     args = ap.parse_args()
+    extra = args.batch_args.split()
     L, starts = args.frames, [int(x) for x in args.starts.split(",")]
     results = []
     for seq in args.seqdirs:
@@ -78,7 +82,7 @@ def main() -> None:
             if a + L > len(frames):
                 continue
             d = args.out / f"{seq.name}_{a}"
-            (rc_f, sf, mf), (rc_r, sr, mr) = both_ways(frames[a:a + L], d)
+            (rc_f, sf, mf), (rc_r, sr, mr) = both_ways(frames[a:a + L], d, extra)
             true_m = sum(abs(float(truth[a + i]["distance_m"])) for i in range(L - 1))
             pf, pr = sf["path_travelled_m"], sr["path_travelled_m"]
             full_f, fwd_f = full_and_forward(mf)
