@@ -347,14 +347,18 @@ def lumen_scale_text(sc: dict | None) -> str:
     tried = sc.get("steps_tried")
     sampled = f" of {tried} sampled" if tried is not None else ""
     if not sc["applied"]:
+        hint = ""
         if not sc["every_nth_step"]:
             why = "; too few frames to sample"
+            # a clip: how it takes its exam's scale (docs/RESULTS.md, "Short clips: ... their scale", session 61)
+            hint = (" (a clip cut from an exam can take the whole exam's measured radius: --radius-m its summary.json "
+                    "lumen_scale.effective_radius_m)")
         elif sc["samples"] < sc["min_samples"]:
             why = f", {sc['min_samples']} needed"
         else:  # enough rings, but no more of them than a lumen without rings lets through
             why = f", no more than the ~{sc.get('null_share', RING_NULL_SHARE):.0%} a lumen without rings shows"
         return (f"not applied ({sc['samples']}{sampled} step(s) showed a ring{why}): the steps keep the radius "
-                "prior's scale" + _chain_text(sc.get("scale_chain")))
+                "prior's scale" + hint + _chain_text(sc.get("scale_chain")))
     return (f"steps x{sc['factor']:.3f}, the median over the {sc['samples']}{sampled} steps that showed a ring "
             f"({'every' if sc['every_nth_step'] == 1 else 'every ' + _ordinal(sc['every_nth_step'])} step sampled) "
             "of a tube with one contraction ring against the "
