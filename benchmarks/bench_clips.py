@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import shlex
 import shutil
 import subprocess
 import sys
@@ -69,7 +70,7 @@ def main() -> None:
     ap.add_argument("--batch-args", default="", help="options for every `bodyslam batch` run, as one string "
                     "(e.g. \"--mode asift\"; default: none, batch's defaults)")
     args = ap.parse_args()
-    extra = args.batch_args.split()
+    extra = shlex.split(args.batch_args)
     L, starts = args.frames, [int(x) for x in args.starts.split(",")]
     results = []
     for seq in args.seqdirs:
