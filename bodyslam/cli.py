@@ -222,6 +222,10 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--fusion", default="rss", choices=FUSION_MODES, help="with RF: EKF on RSS (default) or fixes")
     ba.add_argument("--rss-bias-states", action="store_true", help=RSS_BIAS_HELP)
     ba.add_argument("--force", action="store_true", help="overwrite an output directory holding another run")
+    ba.add_argument("--radius-from", default=None, metavar="SUMMARY",
+                    help="take the lumen radius an earlier batch run measured for its exam (its summary.json, or "
+                         "its output directory): for a clip cut from that exam, too short to measure its own; "
+                         "instead of --radius-m")
     frame_opts(ba)
     motion_opts(ba, default_mode="fast")
     ss = cmd("speed-stats")
@@ -614,12 +618,18 @@ def _localize(args) -> int:
 
 
 def _batch(args) -> int:
-    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, read_marks,
-                                     run_batch, unlit_text)
+    from bodyslam.errors import ConfigError
+    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range,
+                                     radius_from_summary, read_marks, run_batch, unlit_text)
     from bodyslam.vision.tracking import path_share_text
     from bodyslam.steps import WITH_ESTIMATE
 
     _check_bias_states(args)
+    if args.radius_from is not None:
+        if args.radius_m is not None:
+            raise ConfigError("give the lumen radius by --radius-m or by --radius-from, not both")
+        args.radius_m = radius_from_summary(args.radius_from)
+        print(f"lumen radius {args.radius_m * 100:.3f} cm, as {args.radius_from} measured it")
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
     frame_range = parse_frame_range(args.frame_range) if args.frame_range else None

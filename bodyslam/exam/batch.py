@@ -95,7 +95,7 @@ from bodyslam.vision.odometry import MotionSettings, chunk_bounds, write_mask
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchSettings", "Exam", "open_exams", "read_calibration", "run_batch", "BatchReport",
+__all__ = ["BatchSettings", "Exam", "open_exams", "read_calibration", "run_batch", "BatchReport", "radius_from_summary",
            "parse_frame_list", "read_marks", "process_chunk"]
 
 FRAME_COLUMNS = ["frame", "file", "t", "class", "status"]
@@ -378,6 +378,39 @@ def _unique_name(name: str, taken: set[str]) -> str:
         out, i = f"{name}_{i}", i + 1
     taken.add(out)
     return out
+
+
+def radius_from_summary(path: str | os.PathLike) -> float:
+    """The lumen radius (m) an earlier `bodyslam batch` run measured for its exam: the ``effective_radius_m`` of its
+    lumen scale (:func:`bodyslam.vision.lumen_scale.lumen_scale_summary`), for a clip cut from that exam, too short to
+    measure its own (``--radius-from``; docs/RESULTS.md, "Short clips: ... their scale", session 61: 18-frame clips
+    of the realistic testbed at a real exam's pace read +45% with the radius prior, +9% with their exam's radius).
+    ``path``: the exam's ``summary.json``, the study's (one exam), or the directory holding either.
+
+    Raises
+    ------
+    InputError
+        The file is missing or not such a summary, holds several exams, or its lumen scale was not applied."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "summary.json"
+    d = read_json(p)
+    if isinstance(d, dict) and isinstance(d.get("exams"), list):  # the study's summary
+        if len(d["exams"]) != 1:
+            raise InputError(f"{p}: a study of {len(d['exams'])} exams; give the exam's own summary.json "
+                             "(OUT/<exam>/summary.json)")
+        d = d["exams"][0]
+    if not isinstance(d, dict) or "lumen_scale" not in d:
+        raise InputError(f"{p}: not a bodyslam batch summary (no lumen_scale)")
+    sc = d["lumen_scale"]
+    if not isinstance(sc, dict) or not sc.get("applied"):
+        why = "not measured" if not isinstance(sc, dict) else f"not applied: {sc.get('samples')} ring(s) seen"
+        raise InputError(f"{p}: that exam's lumen scale was {why}, so it has no radius of its own to give; "
+                         "give --radius-m instead")
+    r = sc.get("effective_radius_m")
+    if not (isinstance(r, (int, float)) and math.isfinite(r) and r > 0):
+        raise InputError(f"{p}: lumen_scale.effective_radius_m is not a positive number of metres: {r!r}")
+    return float(r)
 
 
 def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = None,

@@ -351,7 +351,8 @@ def lumen_scale_text(sc: dict | None) -> str:
         if not sc["every_nth_step"]:
             why = "; too few frames to sample"
             # a clip: how it takes its exam's scale (docs/RESULTS.md, "Short clips: ... their scale", session 61)
-            hint = (" (a clip cut from an exam can take the whole exam's measured radius: --radius-m its summary.json "
+            hint = (" (a clip cut from an exam can take the whole exam's measured radius: bodyslam batch "
+                    "--radius-from the exam's batch output, or --radius-m its summary.json "
                     "lumen_scale.effective_radius_m)")
         elif sc["samples"] < sc["min_samples"]:
             why = f", {sc['min_samples']} needed"

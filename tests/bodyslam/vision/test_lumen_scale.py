@@ -176,7 +176,7 @@ def test_what_a_run_says_of_its_lumen_scale():
     assert "not measured" in lumen_scale_text(None)
     short = lumen_scale_text(lumen_scale_summary(1.0, 0, 0, 0.0125))
     assert "not applied" in short and "too few frames" in short
-    assert "--radius-m" in short and "effective_radius_m" in short  # how a clip takes its exam's scale
+    assert "--radius-from" in short and "effective_radius_m" in short  # how a clip takes its exam's scale
     few = lumen_scale_text(lumen_scale_summary(1.0, RING_MIN_SAMPLES - 3, 2, 0.0125, tried=40))
     assert (f"{RING_MIN_SAMPLES - 3} of 40 sampled step(s) showed a ring, {RING_MIN_SAMPLES} needed" in few
             and "frames" not in few)
