@@ -29,6 +29,13 @@ features, the best on validation failed it). Other real clips are kept aside to 
         # --exam-look: the `realistic_exam` scenario (the realistic gut at a whole exam's pace) in training
         #   (tuning seeds 546-549, 554-557), validation (558-559) and test (reporting seeds 740-743); session 47
 
+Photometric variety (session 62). A user's exam differs from every training look in exposure and colour
+response. Each candidate is trained with and without the photometric normalisation
+(:func:`bodyslam.vision.classify.normalise_photometric`; ``--photometric``), and every validation and test set is
+also classified after each change of :data:`PERTURBATIONS` (gains of 0.6-1.3, gamma 0.7 and 1.4, saturation 0.6 and
+1.3, three colour casts). Validation chooses by the mean over those (the unchanged frames among them) of each set's
+balanced accuracy; the tables print each change and the worst.
+
 Throughput: the whole `bodyslam classify` process on a 200-frame 320x320 sequence, 2 cores.
 """
 
@@ -48,8 +55,9 @@ from bodyslam.camera import FisheyeCamera
 from bodyslam.frames import list_frames
 from bodyslam.io import frame_name, read_image
 from bodyslam.meta import read_meta
-from bodyslam.vision.classify import (FEATURES_9, FEATURES_RICH, TunnelClassifier, features_of_frames, frame_features,
-                                      train)
+from bodyslam.parallel import imap_tasks
+from bodyslam.vision.classify import (FEATURES_9, FEATURES_RICH, PHOTOMETRIC_MODES, TunnelClassifier, frame_features,
+                                      frame_status, train)
 from bodyslam.vision.odometry import Sequence, fov_from_frames, resolve_mask
 from testbed.scenario import load_scenario
 from testbed.simulate import simulate
@@ -110,6 +118,36 @@ EXAM_VALID = [("realistic_exam", s, {}) for s in (558, 559)]
 EXAM_TEST = [("realistic_exam", s, {}) for s in range(740, 744)]
 
 
+def _gain(rgb: np.ndarray, gains) -> np.ndarray:
+    return np.clip(rgb.astype(np.float32) * np.asarray(gains, np.float32), 0, 255).astype(np.uint8)
+
+
+def _gamma(rgb: np.ndarray, g: float) -> np.ndarray:
+    return (255.0 * (rgb / 255.0) ** g).astype(np.uint8)
+
+
+def _saturation(rgb: np.ndarray, f: float) -> np.ndarray:
+    grey = (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
+    return np.clip(grey + f * (rgb.astype(np.float32) - grey), 0, 255).astype(np.uint8)
+
+
+# photometric changes of a whole exam (RGB frames): exposure, tone curve, saturation and colour casts of the size
+# that differ between capsules, their light control and the testbed's looks. "none" is the frames as rendered
+PERTURBATIONS = {
+    "none": lambda im: im,
+    "gain 0.6": lambda im: _gain(im, [0.6] * 3),
+    "gain 0.8": lambda im: _gain(im, [0.8] * 3),
+    "gain 1.3": lambda im: _gain(im, [1.3] * 3),
+    "gamma 0.7": lambda im: _gamma(im, 0.7),
+    "gamma 1.4": lambda im: _gamma(im, 1.4),
+    "saturation 0.6": lambda im: _saturation(im, 0.6),
+    "saturation 1.3": lambda im: _saturation(im, 1.3),
+    "red cast": lambda im: _gain(im, [1.05, 0.85, 0.85]),
+    "yellow cast": lambda im: _gain(im, [1.0, 1.0, 0.7]),
+    "blue cast": lambda im: _gain(im, [0.85, 0.95, 1.1]),
+}
+
+
 def fmt_sets(sets: dict) -> str:
     return " ".join(f"{k.split('.')[-1]}={v}" for k, v in sets.items())
 
@@ -132,19 +170,40 @@ def sequence_mask(d: Path) -> np.ndarray:
     return seq.camera.fov_mask() if m is None else m
 
 
-def dataset(dirs: list[Path], masks: dict[Path, np.ndarray], work_px: int,
-            ft_every: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Features and labels of every frame of ``dirs`` (of FT frames only every ``ft_every``-th)."""
-    X, y = [], []
+def _features_task(args) -> list[np.ndarray | None]:
+    """Features of frames read from ``paths`` after the change ``perturbation`` (None where a frame is dark or
+    saturated after it: the pipeline does not classify those)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    paths, mask, work_px, photometric, perturbation = args
+    out = []
+    for p in paths:
+        im = PERTURBATIONS[perturbation](read_image(p))
+        out.append(frame_features(im, mask, work_px=work_px, photometric=photometric)
+                   if frame_status(im, mask) == "ok" else None)
+    return out
+
+
+def dataset(dirs: list[Path], masks: dict[Path, np.ndarray], work_px: int, ft_every: int = 1,
+            photometric: str = "none", perturbation: str = "none") -> tuple[np.ndarray, np.ndarray]:
+    """Features and labels of every frame of ``dirs`` (of FT frames only every ``ft_every``-th), after the
+    change ``perturbation`` (:data:`PERTURBATIONS`) and the normalisation ``photometric``."""
+    tasks, labs = [], []
     for d in dirs:
         meta = read_meta(d)
         labels = np.loadtxt(d / "labels.csv", delimiter=",", skiprows=1, usecols=2, dtype=str)
         keep = [k for k in range(meta.n_frames) if labels[k] == "FL" or k % ft_every == 0]
         paths = [d / meta.frames_dir / frame_name(k) for k in keep]
-        for (st, _, f), lab in zip(features_of_frames(paths, masks[d], work_px=work_px), labels[keep]):
-            if st == "ok":
+        for i in range(0, len(paths), 40):
+            tasks.append((paths[i:i + 40], masks[d], work_px, photometric, perturbation))
+            labs.append(labels[keep][i:i + 40])
+    X, y = [], []
+    for feats, lab in zip(imap_tasks(_features_task, tasks), labs):
+        for f, lb in zip(feats, lab):
+            if f is not None:
                 X.append(f)
-                y.append(lab)
+                y.append(lb)
     return np.array(X), np.array(y)
 
 
@@ -186,7 +245,12 @@ def main() -> None:
     ap.add_argument("--exam-look", action="store_true",
                     help="also train, validate and test on the realistic_exam scenario (the realistic gut at a whole "
                          "exam's pace)")
+    ap.add_argument("--photometric", default=",".join(PHOTOMETRIC_MODES),
+                    help="photometric normalisations to train candidates with (comma-separated; default: all)")
     args = ap.parse_args()
+    photometric = args.photometric.split(",")
+    if not photometric or any(m not in PHOTOMETRIC_MODES for m in photometric):
+        ap.error(f"--photometric {args.photometric!r}: expected some of {', '.join(PHOTOMETRIC_MODES)}")
     try:
         work_sizes = [int(v) for v in args.work_px.split(",")]
     except ValueError:
@@ -216,42 +280,65 @@ def main() -> None:
     reals = real_frames(args.real) if args.real.is_dir() else []
     masks = {d: sequence_mask(d) for dirs in sets.values() for d in dirs}  # once, not once per working size
     shipped = TunnelClassifier.default()  # the comparison: what the pipeline uses now
-    cands = []  # (valid score, work_px, feature name, model)
+    cands = []  # (valid score, work_px, "features photometric", model, passes the real frames' check)
+
+    def scores(model, data) -> tuple[list[str], list[float]]:
+        """Per set: balanced accuracy on the frames as rendered, the worst and the mean over PERTURBATIONS; and
+        the validation sets' means."""
+        lines, valid = [], []
+        for name, per in data.items():
+            bal = {pn: balanced(y, model.predict(X)) for pn, (X, y) in per.items()}
+            worst = min(bal, key=bal.get)
+            X, y = per["none"]
+            lines.append(f"  {name}: {len(y)} frames, balanced {bal['none']:.3f} ({confusion(y, model.predict(X))}); "
+                         f"over the photometric changes mean {np.mean(list(bal.values())):.3f}, worst "
+                         f"{bal[worst]:.3f} ({worst})")
+            if name.startswith("valid"):
+                valid.append(float(np.mean(list(bal.values()))))
+        return lines, valid
+
+    def real_check(model, px, mode) -> tuple[str, bool]:
+        dec = [(n, what, float(model.decision(frame_features(im, m, work_px=px, photometric=mode)[None])[0]))
+               for n, im, m, what in reals]
+        passes = all((d > 0) == (w == "lumen") for _, w, d in dec)
+        right = {pn: sum((float(model.decision(frame_features(f(im), m, work_px=px, photometric=mode)[None])[0]) > 0)
+                         == (what == "lumen") for _, im, m, what in reals) for pn, f in PERTURBATIONS.items()}
+        return ("  real frames (issue 16's check): " + ", ".join(f"{n} ({w}) {d:+.2f}" for n, w, d in dec)
+                + ("" if passes else "  -- fails") + "\n  real frames right after each photometric change: "
+                + ", ".join(f"{pn} {v}/{len(reals)}" for pn, v in right.items())), passes
+
     for px in work_sizes:
-        data = {name: dataset(dirs, masks, px, SCN_TRAIN_FT_EVERY if name == "train scenario" else 1)
-                for name, dirs in sets.items()}
-        Xtr, ytr = (np.concatenate(v) for v in zip(data.pop("train"), data.pop("train scenario")))
-        print(f"\n== SRM at {px} px: train {len(ytr)} frames ({np.sum(ytr == 'FT')} FT, {np.sum(ytr == 'FL')} FL)",
-              flush=True)
-        print(f"shipped model (at {px} px): " + "; ".join(
-            f"{name} balanced {balanced(y, shipped.predict(X)):.3f}" for name, (X, y) in data.items()), flush=True)
-        for fname, feats, bal in (("nine", FEATURES_9, False), ("rich", FEATURES_RICH, False),
-                                  ("nine balanced", FEATURES_9, True), ("rich balanced", FEATURES_RICH, True)):
-            t = time.perf_counter()
-            model = train(Xtr, ytr, feats, balanced=bal, info={
-                "work_px": px, "trained_on": [f"{n} seed {s} {fmt_sets(o)}".strip()
-                                              for n, s, o in IDEAL_TRAIN + REAL_TRAIN + SCN_TRAIN + exam_train]})
-            line = [f"{fname}: C {model.info['C']:g} gamma {model.gamma:g}, {len(model.support_vectors)} SVs, "
-                    f"cv {model.info['cv_accuracy']:.3f} ({time.perf_counter() - t:.0f} s)"]
-            score = []
-            for name in data:
-                X, y = data[name]
-                p = model.predict(X)
-                if name.startswith("valid"):
-                    score.append(balanced(y, p))
-                line.append(f"  {name}: {len(y)} frames, accuracy {np.mean(p == y):.3f}, balanced {balanced(y, p):.3f}"
-                            f" ({confusion(y, p)})")
-            passes = True
-            if reals:
-                dec = [(n, what, float(model.decision(frame_features(im, m, work_px=px)[None])[0]))
-                       for n, im, m, what in reals]
-                passes = all((d > 0) == (w == "lumen") for _, w, d in dec)
-                line.append("  real frames (issue 16's check): " + ", ".join(f"{n} ({w}) {d:+.2f}" for n, w, d in dec)
-                            + ("" if passes else "  -- fails"))
-            vs = float(np.mean(score))
-            line.insert(1, f"  VALIDATION balanced accuracy (chooses): {vs:.3f}")
-            print("\n".join(line), flush=True)
-            cands.append((vs, px, fname, model, passes))
+        for mode in photometric:
+            train_sets = {name: dataset(sets[name], masks, px, SCN_TRAIN_FT_EVERY if name == "train scenario" else 1,
+                                        photometric=mode) for name in ("train", "train scenario")}
+            data = {name: {pn: dataset(dirs, masks, px, photometric=mode, perturbation=pn) for pn in PERTURBATIONS}
+                    for name, dirs in sets.items() if not name.startswith("train")}
+            Xtr, ytr = (np.concatenate(v) for v in zip(*train_sets.values()))
+            print(f"\n== SRM at {px} px, photometric normalisation {mode}: train {len(ytr)} frames "
+                  f"({np.sum(ytr == 'FT')} FT, {np.sum(ytr == 'FL')} FL)", flush=True)
+            if shipped.photometric == mode:
+                lines, valid = scores(shipped, data)
+                print(f"shipped model (at {px} px, {mode}): validation {np.mean(valid):.3f}\n" + "\n".join(lines)
+                      + ("\n" + real_check(shipped, px, mode)[0] if reals else ""), flush=True)
+            for fname, feats, bal in (("nine", FEATURES_9, False), ("rich", FEATURES_RICH, False),
+                                      ("nine balanced", FEATURES_9, True), ("rich balanced", FEATURES_RICH, True)):
+                t = time.perf_counter()
+                model = train(Xtr, ytr, feats, balanced=bal, info={
+                    "work_px": px, "photometric": mode,
+                    "trained_on": [f"{n} seed {s} {fmt_sets(o)}".strip()
+                                   for n, s, o in IDEAL_TRAIN + REAL_TRAIN + SCN_TRAIN + exam_train]})
+                line = [f"{fname}, {mode}: C {model.info['C']:g} gamma {model.gamma:g}, {len(model.support_vectors)} "
+                        f"SVs, cv {model.info['cv_accuracy']:.3f} ({time.perf_counter() - t:.0f} s)"]
+                lines, valid = scores(model, data)
+                line += lines
+                passes = True
+                if reals:
+                    text, passes = real_check(model, px, mode)
+                    line.append(text)
+                vs = float(np.mean(valid))
+                line.insert(1, f"  VALIDATION balanced accuracy over the photometric changes (chooses): {vs:.3f}")
+                print("\n".join(line), flush=True)
+                cands.append((vs, px, f"{fname} features, {mode}", model, passes))
     # Validation chooses among the candidates that pass issue 16's check on the real frames (the lumen-facing ones
     # FT, the wall-facing one FL): the check only vetoes, it ranks nothing. None passing: validation alone, said.
     def rank(c):  # validation, ties to the smaller (faster) working size
@@ -262,9 +349,9 @@ def main() -> None:
         print("\nno candidate passes the real frames' check: chosen on validation alone")
     best, top = max(ok or cands, key=rank), max(cands, key=rank)
     if best is not top:
-        print(f"\nbest on validation: {top[2]} features at {top[1]} px (balanced {top[0]:.3f}), which fails the real "
+        print(f"\nbest on validation: {top[2]} at {top[1]} px (balanced {top[0]:.3f}), which fails the real "
               f"frames' check")
-    print(f"\nchosen on validation: {best[2]} features at {best[1]} px (balanced {best[0]:.3f})")
+    print(f"\nchosen on validation: {best[2]} at {best[1]} px (balanced {best[0]:.3f})")
     if args.save_default:
         out = ROOT / "bodyslam" / "vision" / "models" / "tunnel_svm.npz"
         best[3].save(out)

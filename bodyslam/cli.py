@@ -150,6 +150,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="nine: the dissertation's features; rich: nine + five (default)")
     tc.add_argument("--work-px", type=int, default=96,
                     help="SRM working size (px) of the features, recorded in the model and used wherever it classifies")
+    tc.add_argument("--photometric", default="none", choices=("none", "channel_p90", "exposure_p90"),
+                    help="normalisation before segmentation, recorded in the model and applied wherever it classifies: "
+                         "none (default: the frames as they are, as the shipped model), channel_p90 (each colour "
+                         "channel's 90th percentile in the field of view scaled to 200: exposure and colour cast do "
+                         "not move the features) or exposure_p90 (each pixel's brightest channel's, one factor: "
+                         "exposure does not)")
     tc.add_argument("--jobs", type=jobs_count, default=None)
     cl = cmd("classify")
     cl.add_argument("input", help="a sequence directory (meta.json), a folder of frames, or one image")
@@ -342,14 +348,15 @@ def _train_classifier(args) -> int:
             raise InputError(f"{sd}: no labels.csv (training needs testbed sequences with FT/FL labels)")
         labels = {int(r.split(",")[0]): r.split(",")[2] for r in lab_path.read_text().splitlines()[1:] if r}
         fov = _fov_of(_sample_frames(paths), cam, "auto")  # the field the pipeline will use on such frames
-        res = features_of_frames(paths, fov, work_px=args.work_px, jobs=args.jobs, progress=Progress(f"features {sd}"))
+        res = features_of_frames(paths, fov, work_px=args.work_px, jobs=args.jobs, progress=Progress(f"features {sd}"),
+                                 photometric=args.photometric)
         for k, (st, _, f) in enumerate(res):
             if st == "ok" and k in labels:
                 X.append(f)
                 y.append(labels[k])
         names.append(str(sd))
     model = train(np.array(X), np.array(y), FEATURES_9 if args.features == "nine" else FEATURES_RICH,
-                  info={"trained_on": names, "work_px": args.work_px})
+                  info={"trained_on": names, "work_px": args.work_px, "photometric": args.photometric})
     model.save(args.out)
     print(f"{args.out}: {args.features} features, {len(y)} frames ({model.info['n_train_ft']} FT, "
           f"{model.info['n_train_fl']} FL), cross-validated accuracy {model.info['cv_accuracy']:.4f}, "
@@ -375,7 +382,8 @@ def _classify(args) -> int:
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
     fov = _fov_of(_sample_frames(paths), cam, args.mask)
     work_px = classify_work_px(MotionSettings(), model)  # the pipeline's rule: the size the model was trained at
-    res = features_of_frames(paths, fov, work_px=work_px, jobs=args.jobs, progress=Progress("classify"))
+    res = features_of_frames(paths, fov, work_px=work_px, jobs=args.jobs, progress=Progress("classify"),
+                             photometric=model.photometric)
     rows = []
     for p, (st, msg, f) in zip(paths, res):
         if st == "ok":

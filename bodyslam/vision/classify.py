@@ -12,6 +12,16 @@ Features (:func:`region_features`), from the segmentation inside the valid field
   pixels on the field's rim (both fractions), its luminance over the rest's, its fill of the ellipse of its
   moments, and log(1 + number of regions).
 
+Photometric normalisation (:func:`normalise_photometric`, the model's ``photometric`` entry), before segmentation:
+``channel_p90`` scales each colour channel so that its 90th percentile inside the field of view reaches
+:data:`P90_TARGET`; ``exposure_p90`` scales all three by one factor, so that the 90th percentile of each pixel's
+brightest channel (HSV's value) does (the colour cast is kept, and the red of mucosa is not clipped). A capsule's
+exposure (its light control, the distance to the wall) and colour response differ from exam to exam and from
+capsule to capsule, and features of absolute colour learnt on one look mis-call another (session 62: the real
+PillCam frames made 40% darker turned the shipped model's four lumen-facing frames FL). ``channel_p90`` makes the
+features the same under any gain per channel (up to clipping), ``exposure_p90`` under any common gain. Models that
+record no ``photometric`` entry (those trained before) are used without it (``none``).
+
 Model files are numpy ``.npz`` archives loaded with ``allow_pickle=False``: support vectors, dual coefficients,
 intercept, RBF gamma, scaler mean and scale, and a JSON header (feature list, format, versions, training
 summary) stored as bytes. Loading cannot run code; a tampered or foreign file gets an :class:`InputError`. The
@@ -37,12 +47,20 @@ from bodyslam.vision.segmentation import Segmentation, srm
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FEATURES_9", "FEATURES_RICH", "region_features", "frame_features", "TunnelClassifier", "train"]
+__all__ = ["FEATURES_9", "FEATURES_RICH", "PHOTOMETRIC_MODES", "normalise_photometric", "region_features",
+           "frame_features", "TunnelClassifier", "train"]
 
 FEATURES_9 = ("dark_size", "dark_length", "dark_width", "dark_r", "dark_g", "dark_b", "rest_r", "rest_g", "rest_b")
 FEATURES_RICH = FEATURES_9 + ("dark_offset", "dark_rim_share", "dark_contrast", "dark_fill", "log_regions")
 FORMAT = "bodyslam-tunnel-svm/1"
 LABELS = ("FL", "FT")  # decision < 0: FL, > 0: FT
+# photometric normalisation before segmentation (normalise_photometric): none; each channel's 90th percentile inside
+# the field of view scaled to P90_TARGET (8-bit); or that of each pixel's brightest channel, all channels by the
+# same factor. The 90th percentile is the lit wall on every frame with the lumen in view (the dark tunnel holds
+# 1-40% of the field), below the specular spots (a few percent); 200 leaves headroom under 255 for the brighter
+# tenth
+PHOTOMETRIC_MODES = ("none", "channel_p90", "exposure_p90")
+P90_TARGET = 200.0
 
 
 # the least width (working pixels: the minor axis of a region's second moments, 4 standard deviations) of a region
@@ -99,8 +117,35 @@ def region_features(seg: Segmentation, min_region_frac: float = 0.01) -> np.ndar
     ])
 
 
-def frame_features(rgb: np.ndarray, mask: np.ndarray, Q: float = 16.0, work_px: int = 96) -> np.ndarray:
-    """Features of one frame. Frames that cannot be segmented meaningfully raise :class:`InputError`."""
+def normalise_photometric(rgb: np.ndarray, mask: np.ndarray, mode: str = "channel_p90") -> np.ndarray:
+    """``rgb`` (8-bit, h x w x 3) scaled so that the 90th percentile inside ``mask`` of each channel
+    (``channel_p90``) or of each pixel's brightest channel (``exposure_p90``, one factor for all three) is
+    :data:`P90_TARGET`, clipped at 255 (module docstring); ``none``: ``rgb`` itself."""
+    if mode == "none":
+        return rgb
+    if mode == "channel_p90":
+        gains = np.array([P90_TARGET / max(_masked_p90_u8(rgb[:, :, c], mask), 1.0) for c in range(3)], np.float32)
+    elif mode == "exposure_p90":
+        value = np.max(rgb, axis=2)  # HSV's value
+        gains = np.full(3, P90_TARGET / max(_masked_p90_u8(value, mask), 1.0), np.float32)
+    else:
+        raise ConfigError(f"photometric normalisation must be one of {PHOTOMETRIC_MODES}, got {mode!r}")
+    return cv2.convertScaleAbs(rgb.astype(np.float32) * gains)  # rounds and saturates to 0-255
+
+
+def _masked_p90_u8(channel: np.ndarray, mask: np.ndarray) -> float:
+    """``np.percentile(channel[mask], 90)`` of an 8-bit channel (its linear method), from the masked histogram."""
+    from bodyslam.vision.matching import _masked_percentiles_u8
+
+    v = _masked_percentiles_u8(np.ascontiguousarray(channel), mask.astype(np.uint8), (90,))
+    return 0.0 if v is None else float(v[0])
+
+
+def frame_features(rgb: np.ndarray, mask: np.ndarray, Q: float = 16.0, work_px: int = 96,
+                   photometric: str = "none") -> np.ndarray:
+    """Features of one frame, after the photometric normalisation ``photometric`` (:data:`PHOTOMETRIC_MODES`; a
+    model's :attr:`TunnelClassifier.photometric`). Frames that cannot be segmented meaningfully raise
+    :class:`InputError`."""
     if rgb.ndim == 2:
         rgb = cv2.cvtColor(rgb, cv2.COLOR_GRAY2RGB)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
@@ -110,7 +155,7 @@ def frame_features(rgb: np.ndarray, mask: np.ndarray, Q: float = 16.0, work_px: 
                          f"{mask.shape[1]}x{mask.shape[0]}")
     if min(rgb.shape[:2]) < 16:
         raise InputError(f"frame of {rgb.shape[1]}x{rgb.shape[0]} is too small to classify")
-    return region_features(srm(rgb, mask, Q=Q, work_px=work_px))
+    return region_features(srm(normalise_photometric(rgb, mask, photometric), mask, Q=Q, work_px=work_px))
 
 
 @dataclass
@@ -135,6 +180,12 @@ class TunnelClassifier:
         """The SRM working size the model was trained at (its features are measured at that size), if recorded."""
         v = self.info.get("work_px")
         return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 16 else None
+
+    @property
+    def photometric(self) -> str:
+        """The photometric normalisation the model's features were measured after (:data:`PHOTOMETRIC_MODES`;
+        ``none`` for a model that does not record it)."""
+        return str(self.info.get("photometric", "none"))
 
     def decision(self, X_rich: np.ndarray) -> np.ndarray:
         """Decision values for rows of ``FEATURES_RICH`` vectors (the model picks its own columns)."""
@@ -195,6 +246,9 @@ class TunnelClassifier:
                 and np.isfinite(sc).all() and (sc > 0).all() and math.isfinite(gamma) and gamma > 0):
             raise InputError(f"{path}: model contains non-finite or invalid values")
         info = {k: v for k, v in header.items() if k not in ("format", "features", "gamma", "intercept")}
+        if info.get("photometric", "none") not in PHOTOMETRIC_MODES:
+            raise InputError(f"{path}: unknown photometric normalisation {info.get('photometric')!r} "
+                             f"(known: {', '.join(PHOTOMETRIC_MODES)})")
         return cls(feats, sv, dc, intercept, gamma, mu, sc, info)
 
     @classmethod
@@ -258,7 +312,7 @@ def frame_status(rgb: np.ndarray, mask: np.ndarray) -> str:
 
 
 def _features_chunk(args):
-    paths, mask, Q, work_px = args
+    paths, mask, Q, work_px, photometric = args
     from bodyslam.io import read_image
 
     cv2.setNumThreads(1)  # one worker per core
@@ -277,16 +331,20 @@ def _features_chunk(args):
         if st != "ok":
             out.append((st, "", None))
             continue
-        out.append(("ok", "", frame_features(img, mask, Q, work_px)))
+        out.append(("ok", "", frame_features(img, mask, Q, work_px, photometric)))
     return out
 
 
 def features_of_frames(paths: list[Path], mask: np.ndarray, jobs: int | None = None, Q: float = 16.0,
-                       work_px: int = 96, chunk: int = 32, progress=None) -> list[tuple[str, str, np.ndarray | None]]:
-    """``(status, message, features)`` per frame path, in order, over ``jobs`` processes (streamed in chunks)."""
+                       work_px: int = 96, chunk: int = 32, progress=None,
+                       photometric: str = "none") -> list[tuple[str, str, np.ndarray | None]]:
+    """``(status, message, features)`` per frame path, in order, over ``jobs`` processes (streamed in chunks);
+    ``photometric``: :func:`frame_features`'."""
     from bodyslam.parallel import imap_tasks
 
-    tasks = [(paths[i:i + chunk], mask, Q, work_px) for i in range(0, len(paths), chunk)]
+    if photometric not in PHOTOMETRIC_MODES:
+        raise ConfigError(f"photometric normalisation must be one of {PHOTOMETRIC_MODES}, got {photometric!r}")
+    tasks = [(paths[i:i + chunk], mask, Q, work_px, photometric) for i in range(0, len(paths), chunk)]
     results = []
     for r in imap_tasks(_features_chunk, tasks, jobs):
         results.extend(r)

@@ -368,7 +368,8 @@ class VisualOdometry:
         status = frame_status(img, self.fov)
         if status != "ok":
             return "FL", status
-        return str(self.classifier.predict(frame_features(img, self.fov, work_px=self.work_px)[None])[0]), status
+        f = frame_features(img, self.fov, work_px=self.work_px, photometric=self.classifier.photometric)
+        return str(self.classifier.predict(f[None])[0]), status
 
     # -- a range of frames ------------------------------------------------------------------------------------
     def run(self, frames: Iterable[Frame], first: int, ring_every: int = 0, bridge: bool = False) -> ChunkResult:

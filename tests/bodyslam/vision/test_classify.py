@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from bodyslam.vision.classify import (FEATURES_9, FEATURES_RICH, TunnelClassifier, frame_features, frame_status,
-                               region_features, train)
-from bodyslam.errors import InputError
+from bodyslam.vision.classify import (FEATURES_9, FEATURES_RICH, P90_TARGET, TunnelClassifier, frame_features,
+                                      frame_status, normalise_photometric, region_features, train)
+from bodyslam.errors import ConfigError, InputError
 from bodyslam.vision.segmentation import paint_regions, srm
 
 
@@ -169,3 +169,74 @@ def test_balanced_training_weights_the_rare_class():
     recall = [np.mean(m.predict(X)[y == "FL"] == "FL") for m in (plain, bal)]
     assert 0.05 < np.mean(y == "FL") < 0.2 and recall[1] > recall[0]
     assert bal.info["class_weight"] == "balanced" and plain.info["class_weight"] == "none"
+
+
+def _cast(img, gains):
+    return np.clip(img.astype(np.float64) * np.asarray(gains), 0, 255).astype(np.uint8)
+
+
+def test_photometric_normalisation_takes_out_exposure_and_colour_cast():
+    """``channel_p90`` gives the same frame (to the rounding of the 8-bit levels: <= 1 on average, 3 at most) under
+    any gain per channel; ``exposure_p90`` under a common gain, and keeps the cast; features follow. Without it the
+    darker frame's features move (what made the shipped model call darker real lumen frames FL)."""
+    img, mask, _ = disc_frame(size=128, dark_radius=25, centre=(60, 58), seed=4)
+    img = np.clip(img.astype(np.float64) + 0.3 * np.random.default_rng(5).normal(0, 20, img.shape), 0, 255)
+    img = np.where(mask[..., None], img, 0).astype(np.uint8)
+    darker_cast = _cast(img, [0.55, 0.7, 0.9])
+    darker = _cast(img, [0.6, 0.6, 0.6])
+    a, b = normalise_photometric(img, mask, "channel_p90"), normalise_photometric(darker_cast, mask, "channel_p90")
+    diff = np.abs(a.astype(int) - b.astype(int))[mask]
+    assert diff.mean() <= 1.0 and diff.max() <= 3
+    assert np.allclose(np.percentile(a[mask], 90, axis=0), P90_TARGET, atol=1.0)
+    c, d = normalise_photometric(img, mask, "exposure_p90"), normalise_photometric(darker, mask, "exposure_p90")
+    diff = np.abs(c.astype(int) - d.astype(int))[mask]
+    assert diff.mean() <= 1.0 and diff.max() <= 3
+    # the cast is kept: the channels' means keep their order and ratio (red ~2.2x blue here)
+    m = c[mask].mean(axis=0)
+    assert m[0] > m[1] > m[2] and abs(m[0] / m[2] - img[mask].mean(axis=0)[0] / img[mask].mean(axis=0)[2]) < 0.1
+    assert normalise_photometric(img, mask, "none") is img
+    f = [frame_features(x, mask, photometric="channel_p90") for x in (img, darker_cast)]
+    raw = [frame_features(x, mask) for x in (img, darker_cast)]
+    colours = slice(3, 9)  # the RGB means of the darkest region and of the rest
+    assert np.abs(f[0][colours] - f[1][colours]).max() < 0.02 < np.abs(raw[0][colours] - raw[1][colours]).max()
+    with pytest.raises(ConfigError, match="photometric"):
+        normalise_photometric(img, mask, "histogram")
+
+
+def test_a_model_is_used_with_the_photometric_normalisation_it_was_trained_with(toy_model, tmp_path):
+    """The ``photometric`` entry survives the model file and the pipeline's frame classification applies it; a model
+    without it (trained before) is used on the frames as they are; an unknown one is refused on load."""
+    from dataclasses import replace
+
+    from bodyslam.camera import FisheyeCamera
+    from bodyslam.vision.odometry import MotionSettings, VisualOdometry
+
+    model = toy_model[0]
+    assert model.photometric == "none"
+    norm = replace(model, info={**model.info, "photometric": "channel_p90"})
+    norm.save(tmp_path / "m.npz")
+    back = TunnelClassifier.load(tmp_path / "m.npz")
+    assert back.photometric == "channel_p90"
+    img, mask, _ = disc_frame(size=128, dark_radius=25, centre=(60, 58), seed=4)
+    cam = FisheyeCamera.equidistant(128, 128, 156.0)
+    engine = VisualOdometry(cam, MotionSettings(model=str(tmp_path / "m.npz")), radius_m=0.0125, mask=mask)
+    assert engine.classifier.photometric == "channel_p90"
+    seen = []
+    import bodyslam.vision.classify as classify_mod
+
+    real = classify_mod.frame_features
+
+    def spy(rgb, m, Q=16.0, work_px=96, photometric="none"):
+        seen.append(photometric)
+        return real(rgb, m, Q, work_px, photometric)
+
+    classify_mod.frame_features = spy
+    try:
+        engine.classify(img)
+    finally:
+        classify_mod.frame_features = real
+    assert seen == ["channel_p90"]
+    bad = replace(model, info={**model.info, "photometric": "histogram"})
+    bad.save(tmp_path / "bad.npz")
+    with pytest.raises(InputError, match="photometric"):
+        TunnelClassifier.load(tmp_path / "bad.npz")
