@@ -143,6 +143,9 @@ def _parser() -> argparse.ArgumentParser:
     sg.add_argument("--q", type=float, default=16.0, help="SRM coarseness Q (dissertation: 16)")
     sg.add_argument("--full", action="store_true", help="segment at full resolution (slow) instead of 96 px")
     sg.add_argument("--mask", default="auto", help=FOV_HELP)
+    sg.add_argument("--photometric", default="none", choices=("none", "channel_p90", "exposure_p90"),
+                    help="normalise the frame before segmenting it, as a classifier model records (the shipped one: "
+                         "channel_p90, so this shows the regions it reads); default none: the frame as it is")
     tc = cmd("train-classifier")
     tc.add_argument("seqdirs", nargs="+")
     tc.add_argument("--out", required=True, help="model file (.npz)")
@@ -322,11 +325,13 @@ def _sample_frames(paths: list, n: int = 30) -> list:
 
 def _segment(args) -> int:
     from bodyslam.io import read_image, write_image
+    from bodyslam.vision.classify import normalise_photometric
     from bodyslam.vision.segmentation import paint_regions, srm
 
     img = read_image(args.frame)
     cam = _camera_for(img, args.meta)
-    seg = srm(img, _fov_of([img], cam, args.mask), Q=args.q, work_px=None if args.full else 96)
+    fov = _fov_of([img], cam, args.mask)
+    seg = srm(normalise_photometric(img, fov, args.photometric), fov, Q=args.q, work_px=None if args.full else 96)
     write_image(args.out, paint_regions(seg, img.shape[:2]))
     print(f"{seg.n_regions} regions (Q = {args.q:g}); wrote {args.out}")
     return 0

@@ -161,3 +161,28 @@ def test_progress_rates_only_the_work_of_this_run(monkeypatch):
     bar(9000, 10000)  # at 10 s: 9,000 reused, no rate yet
     bar(10000, 10000)  # at 20 s: 1,000 computed
     assert out.getvalue().splitlines() == ["batch: 9000/10000", "batch: 10000/10000 (100.0/s)"]
+
+
+def test_segment_shows_the_regions_a_normalised_classifier_reads(tmp_path):
+    """``bodyslam segment --photometric channel_p90``: a frame and the same frame 40% darker with a colour cast give
+    the same regions (what the shipped classifier segments); without it the darker frame's regions are painted in
+    its own, darker colours. A bad mode is refused by name."""
+    from bodyslam.io import read_image, write_image
+
+    img = read_image(DEMO / "frames" / "000010.png")
+    dark = np.clip(img.astype(float) * [0.6, 0.55, 0.5], 0, 255).astype(np.uint8)
+    write_image(tmp_path / "a.png", img)
+    write_image(tmp_path / "b.png", dark)
+    out = {}
+    for name in ("a", "b"):
+        for mode in ("none", "channel_p90"):
+            p = run("segment", str(tmp_path / f"{name}.png"), "--meta", str(DEMO), "--photometric", mode,
+                    "--out", str(tmp_path / f"{name}_{mode}.png"))
+            assert p.returncode == 0, p.stderr
+            out[name, mode] = read_image(tmp_path / f"{name}_{mode}.png").astype(int)
+    # the same regions, painted in the same normalised colours, to the rounding of the 8-bit levels
+    assert np.abs(out["a", "channel_p90"] - out["b", "channel_p90"]).mean() < 1.0
+    assert np.abs(out["a", "none"] - out["b", "none"]).mean() > 10.0
+    p = run("segment", str(tmp_path / "a.png"), "--meta", str(DEMO), "--photometric", "histogram",
+            "--out", str(tmp_path / "x.png"))
+    assert p.returncode == 2 and "--photometric" in p.stderr and not (tmp_path / "x.png").exists()
