@@ -25,6 +25,7 @@ wall-facing one FL (issue 16 asks that of the shipped model; session 29: with th
 features, the best on validation failed it). Other real clips are kept aside to check the project.
 
     .venv/bin/python benchmarks/bench_classifier.py [--keep DIR] [--save-default] [--exam-look]
+        [--work-px 48,64,96] [--photometric none,channel_p90,exposure_p90]
         # --save-default writes the chosen model as bodyslam/vision/models/tunnel_svm.npz
         # --exam-look: the `realistic_exam` scenario (the realistic gut at a whole exam's pace) in training
         #   (tuning seeds 546-549, 554-557), validation (558-559) and test (reporting seeds 740-743); session 47

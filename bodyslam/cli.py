@@ -153,12 +153,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="nine: the dissertation's features; rich: nine + five (default)")
     tc.add_argument("--work-px", type=int, default=96,
                     help="SRM working size (px) of the features, recorded in the model and used wherever it classifies")
-    tc.add_argument("--photometric", default="none", choices=("none", "channel_p90", "exposure_p90"),
+    tc.add_argument("--photometric", default="channel_p90", choices=("none", "channel_p90", "exposure_p90"),
                     help="normalisation before segmentation, recorded in the model and applied wherever it classifies: "
-                         "none (default: the frames as they are, as the shipped model), channel_p90 (each colour "
-                         "channel's 90th percentile in the field of view scaled to 200: exposure and colour cast do "
-                         "not move the features) or exposure_p90 (each pixel's brightest channel's, one factor: "
-                         "exposure does not)")
+                         "channel_p90 (default, as the shipped model: each colour channel's 90th percentile in the "
+                         "field of view scaled to 200, so exposure and colour cast do not move the features), "
+                         "exposure_p90 (each pixel's brightest channel's, one factor: exposure does not) or none (the "
+                         "frames as they are)")
     tc.add_argument("--jobs", type=jobs_count, default=None)
     cl = cmd("classify")
     cl.add_argument("input", help="a sequence directory (meta.json), a folder of frames, or one image")

@@ -203,7 +203,7 @@ def test_photometric_normalisation_takes_out_exposure_and_colour_cast():
         normalise_photometric(img, mask, "histogram")
 
 
-def test_a_model_is_used_with_the_photometric_normalisation_it_was_trained_with(toy_model, tmp_path):
+def test_a_model_is_used_with_the_photometric_normalisation_it_was_trained_with(toy_model, tmp_path, monkeypatch):
     """The ``photometric`` entry survives the model file and the pipeline's frame classification applies it; a model
     without it (trained before) is used on the frames as they are; an unknown one is refused on load."""
     from dataclasses import replace
@@ -230,11 +230,8 @@ def test_a_model_is_used_with_the_photometric_normalisation_it_was_trained_with(
         seen.append(photometric)
         return real(rgb, m, Q, work_px, photometric)
 
-    classify_mod.frame_features = spy
-    try:
-        engine.classify(img)
-    finally:
-        classify_mod.frame_features = real
+    monkeypatch.setattr(classify_mod, "frame_features", spy)
+    engine.classify(img)
     assert seen == ["channel_p90"]
     bad = replace(model, info={**model.info, "photometric": "histogram"})
     bad.save(tmp_path / "bad.npz")
