@@ -298,15 +298,20 @@ def main() -> None:
                 valid.append(float(np.mean(list(bal.values()))))
         return lines, valid
 
-    def real_check(model, px, mode) -> tuple[str, bool]:
-        dec = [(n, what, float(model.decision(frame_features(im, m, work_px=px, photometric=mode)[None])[0]))
-               for n, im, m, what in reals]
-        passes = all((d > 0) == (w == "lumen") for _, w, d in dec)
-        right = {pn: sum((float(model.decision(frame_features(f(im), m, work_px=px, photometric=mode)[None])[0]) > 0)
-                         == (what == "lumen") for _, im, m, what in reals) for pn, f in PERTURBATIONS.items()}
-        return ("  real frames (issue 16's check): " + ", ".join(f"{n} ({w}) {d:+.2f}" for n, w, d in dec)
+    def real_features(px, mode) -> dict[str, np.ndarray]:
+        """The real frames' features after each of PERTURBATIONS (rows in ``reals``' order), once per size and
+        normalisation: every candidate reads the same."""
+        return {pn: np.array([frame_features(f(im), m, work_px=px, photometric=mode) for _, im, m, _ in reals])
+                for pn, f in PERTURBATIONS.items()}
+
+    def real_check(model, feats) -> tuple[str, bool]:
+        lumen = np.array([what == "lumen" for *_, what in reals])
+        dec = {pn: model.decision(X) for pn, X in feats.items()}
+        passes = bool(np.all((dec["none"] > 0) == lumen))
+        return ("  real frames (issue 16's check): "
+                + ", ".join(f"{n} ({w}) {d:+.2f}" for (n, _, _, w), d in zip(reals, dec["none"]))
                 + ("" if passes else "  -- fails") + "\n  real frames right after each photometric change: "
-                + ", ".join(f"{pn} {v}/{len(reals)}" for pn, v in right.items())), passes
+                + ", ".join(f"{pn} {int(np.sum((d > 0) == lumen))}/{len(reals)}" for pn, d in dec.items())), passes
 
     for px in work_sizes:
         for mode in photometric:
@@ -315,12 +320,13 @@ def main() -> None:
             data = {name: {pn: dataset(dirs, masks, px, photometric=mode, perturbation=pn) for pn in PERTURBATIONS}
                     for name, dirs in sets.items() if not name.startswith("train")}
             Xtr, ytr = (np.concatenate(v) for v in zip(*train_sets.values()))
+            real_feats = real_features(px, mode) if reals else {}
             print(f"\n== SRM at {px} px, photometric normalisation {mode}: train {len(ytr)} frames "
                   f"({np.sum(ytr == 'FT')} FT, {np.sum(ytr == 'FL')} FL)", flush=True)
             if shipped.photometric == mode:
                 lines, valid = scores(shipped, data)
                 print(f"shipped model (at {px} px, {mode}): validation {np.mean(valid):.3f}\n" + "\n".join(lines)
-                      + ("\n" + real_check(shipped, px, mode)[0] if reals else ""), flush=True)
+                      + ("\n" + real_check(shipped, real_feats)[0] if reals else ""), flush=True)
             for fname, feats, bal in (("nine", FEATURES_9, False), ("rich", FEATURES_RICH, False),
                                       ("nine balanced", FEATURES_9, True), ("rich balanced", FEATURES_RICH, True)):
                 t = time.perf_counter()
@@ -334,7 +340,7 @@ def main() -> None:
                 line += lines
                 passes = True
                 if reals:
-                    text, passes = real_check(model, px, mode)
+                    text, passes = real_check(model, real_feats)
                     line.append(text)
                 vs = float(np.mean(valid))
                 line.insert(1, f"  VALIDATION balanced accuracy over the photometric changes (chooses): {vs:.3f}")

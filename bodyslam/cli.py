@@ -61,6 +61,11 @@ RSS_BIAS_HELP = ("rss fusion: estimate a slowly varying bias per sensor (3 cm co
                  "0.61, a conservative online 1-sigma, ~3x slower fusion (docs/RESULTS.md)")
 
 
+# bodyslam.vision.classify.PHOTOMETRIC_MODES, written out here: `--help` imports neither OpenCV nor scipy (a test says
+# they agree)
+PHOTOMETRIC_CHOICES = ("none", "channel_p90", "exposure_p90")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bodyslam", description="Body-SLAM capsule localization toolkit. Exit "
                                 "status: 0 done, 3 done with problems listed, 1 unusable input, 130 interrupted.")
@@ -143,7 +148,7 @@ def _parser() -> argparse.ArgumentParser:
     sg.add_argument("--q", type=float, default=16.0, help="SRM coarseness Q (dissertation: 16)")
     sg.add_argument("--full", action="store_true", help="segment at full resolution (slow) instead of 96 px")
     sg.add_argument("--mask", default="auto", help=FOV_HELP)
-    sg.add_argument("--photometric", default="none", choices=("none", "channel_p90", "exposure_p90"),
+    sg.add_argument("--photometric", default="none", choices=PHOTOMETRIC_CHOICES,
                     help="normalise the frame before segmenting it, as a classifier model records (the shipped one: "
                          "channel_p90, so this shows the regions it reads); default none: the frame as it is")
     tc = cmd("train-classifier")
@@ -153,7 +158,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="nine: the dissertation's features; rich: nine + five (default)")
     tc.add_argument("--work-px", type=int, default=96,
                     help="SRM working size (px) of the features, recorded in the model and used wherever it classifies")
-    tc.add_argument("--photometric", default="channel_p90", choices=("none", "channel_p90", "exposure_p90"),
+    tc.add_argument("--photometric", default="channel_p90", choices=PHOTOMETRIC_CHOICES,
                     help="normalisation before segmentation, recorded in the model and applied wherever it classifies: "
                          "channel_p90 (default, as the shipped model: each colour channel's 90th percentile in the "
                          "field of view scaled to 200, so exposure and colour cast do not move the features), "
