@@ -237,9 +237,9 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--rss-bias-states", action="store_true", help=RSS_BIAS_HELP)
     ba.add_argument("--force", action="store_true", help="overwrite an output directory holding another run")
     ba.add_argument("--radius-from", default=None, metavar="SUMMARY",
-                    help="take the lumen radius an earlier batch run measured for its exam (its summary.json, or "
-                         "its output directory): for a clip cut from that exam, too short to measure its own; "
-                         "instead of --radius-m")
+                    help="take the lumen radius an earlier batch run measured for its exam, with its 1-sigma (its "
+                         "summary.json, or its output directory): for a clip cut from that exam, too short to "
+                         "measure its own; instead of --radius-m")
     frame_opts(ba)
     motion_opts(ba, default_mode="fast")
     ss = cmd("speed-stats")
@@ -574,7 +574,8 @@ def _localize(args) -> int:
     from bodyslam.io import prepare_output_dir, read_motion_steps, write_motion_csv
     from bodyslam.fusion.localize import RfInput, localize, write_localization
     from bodyslam.meta import read_meta
-    from bodyslam.vision.odometry import Sequence, sequence_motion
+    from bodyslam.vision.lumen_scale import radius_sd_rel_after, scale_of_steps
+    from bodyslam.vision.odometry import Sequence, lumen_scale_measured, sequence_motion
 
     _check_bias_states(args)
     seq_dir = Path(args.seqdir)
@@ -595,12 +596,16 @@ def _localize(args) -> int:
         # a radius on the command line has no spread
         radius_sd_rel = meta.radius_sd_rel if args.radius_m is None else 0.0
         steps = read_motion_steps(args.motion, range(1, n))
+        # the lumen scale the motion stage applied, from the steps' ring ratios: its 1-sigma is the radius's now
+        applied = scale_of_steps(steps, lumen_scale_measured(_motion_settings(args), radius_sd_rel))
     else:
         seq = Sequence.open(seq_dir, args.radius_m)
         n, rate, radius_sd_rel, radius_m = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel, seq.radius_m
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
                                 progress=Progress("motion"), problems=problems, fov_used=fov,
                                 lumen_scale_used=scale)
+        applied = scale[0]
+    radius_sd_rel = radius_sd_rel_after(applied, radius_sd_rel)
     frames = np.arange(n)
     stamps = frames / rate
     loc = localize(steps, stamps, rf, rate, frames, mode=args.fusion, radius_sd_rel=radius_sd_rel,
@@ -646,15 +651,19 @@ def _batch(args) -> int:
     if args.radius_from is not None:
         if args.radius_m is not None:
             raise ConfigError("give the lumen radius by --radius-m or by --radius-from, not both")
-        args.radius_m = radius_from_summary(args.radius_from)
-        print(f"lumen radius {args.radius_m * 100:.3f} cm, as {args.radius_from} measured it")
+        args.radius_m, radius_sd_m = radius_from_summary(args.radius_from)
+        print(f"lumen radius {args.radius_m * 100:.3f}"
+              + (f" +- {radius_sd_m * 100:.3f}" if radius_sd_m is not None else "")
+              + f" cm, as {args.radius_from} measured it")
+    else:
+        radius_sd_m = None
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
     frame_range = parse_frame_range(args.frame_range) if args.frame_range else None
     skipped: list = []  # exams of a study that cannot be opened: listed, the others go on
     exams = open_exams(args.inputs, calib=args.calib, fps=args.fps, radius_m=args.radius_m, mask=args.mask,
                        rf=args.rf, sensors=args.sensors, marks=marks, landmarks=landmarks, problems=skipped,
-                       frame_range=frame_range)
+                       frame_range=frame_range, radius_sd_m=radius_sd_m)
     for p in skipped:
         print(f"  {p[3]}")  # "exam not processed: <file>: why"
     if args.mark_file:
@@ -788,6 +797,7 @@ def _motion_or_track(args) -> int:
     from pathlib import Path
 
     from bodyslam.io import check_writable, write_motion_csv, write_tum
+    from bodyslam.vision.lumen_scale import radius_sd_rel_after
     from bodyslam.vision.odometry import Sequence, sequence_motion, write_mask
     from bodyslam.vision.tracking import dead_reckon, path_travelled
 
@@ -809,7 +819,7 @@ def _motion_or_track(args) -> int:
         write_tum(args.out, stamps, pos, rot, world="first camera frame")
     out = Path(args.out)
     write_mask(out.with_name(out.stem + "_mask.png"), fov[0], seq.camera)  # the field of view used
-    path, var = path_travelled(steps, seq.radius_sd_rel, seq.radius_m)
+    path, var = path_travelled(steps, radius_sd_rel_after(scale[0], seq.radius_sd_rel), seq.radius_m)
     filled = _path_filled_text(path, steps)
     beside = sum(s.beside_wall for s in steps)
     print(f"{args.out}: {len(steps)} steps ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))}"

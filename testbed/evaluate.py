@@ -36,7 +36,7 @@ from bodyslam.meta import read_meta
 from bodyslam.plots import Figure
 from bodyslam.steps import MEASURED, WITH_ESTIMATE, WITH_ROTATION, lost_step_floor_m
 from bodyslam.fusion.rf import locate_nls
-from bodyslam.vision.lumen_scale import exam_scale, ring_every, ring_tried
+from bodyslam.vision.lumen_scale import radius_sd_rel_after, scale_of_steps
 from bodyslam.vision.odometry import MotionSettings, lumen_scale_measured
 from testbed.bound import channel_bounds, efficient_mean_error, position_bounds
 from testbed.score import CHI2_3_683, score_motion, score_path
@@ -61,7 +61,9 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
     _, gt, grot = read_tum(d / "groundtruth.tum")
     steps = read_motion_steps(d / "motion.csv", range(1, len(gt)))
     # the pipeline's one localization chain (bodyslam.fusion.localize), on the frames' time stamps
-    rel = meta.radius_sd_rel  # the radius prior's spread
+    # the radius's relative 1-sigma the steps carry: the measured lumen scale's where it applied, else the prior's
+    lumen = scale_of_steps(steps, lumen_scale_measured(MotionSettings(), meta.radius_sd_rel))
+    rel = radius_sd_rel_after(lumen, meta.radius_sd_rel)
     loc = localize(steps, np.arange(len(gt)) / meta.frame_rate_hz, rf, meta.frame_rate_hz, mode="rss",
                    radius_sd_rel=rel, radius_m=meta.tube_radius_m)
     ekf, fixes = loc.filtered, loc.fixes
@@ -122,22 +124,10 @@ def evaluate_sequence(d: Path, channel: ChannelModel | None = None) -> dict:
             "path_travelled": score_path(d, d / "motion.csv", rel, meta.tube_radius_m),
             # the scale the steps were rescaled by (bodyslam.vision.lumen_scale; 1 where not measured, too few rings,
             # or no more of them than a lumen without rings shows), the rings seen and the sampled steps fitted
-            "lumen_scale": _lumen_scale_of(steps, lumen_scale_measured(MotionSettings(), rel)),
+            "lumen_scale": lumen,
             # the readings' measured correlation that scales the stated covariances (bodyslam.fusion.channel)
             "kappa": {"smoothed": float(np.mean(loc.kappa_smoothed)), "whole_run": loc.channel.kappa,
                       "online_last_frame": float(loc.kappa_online[-1])}}
-
-
-def _lumen_scale_of(steps: list, measured: bool) -> dict:
-    """A run's lumen scale from its motion.csv steps (:func:`bodyslam.vision.lumen_scale.exam_scale`): ``factor``,
-    ``samples`` (rings seen), ``steps_tried`` (the sampled steps the ring was fitted to; 0 where the scale is not
-    ``measured``: :func:`bodyslam.vision.odometry.lumen_scale_measured` for ``bodyslam motion``'s defaults, which
-    :func:`_run_seed` runs) and ``steps_chained`` (steps whose scale
-    was tied to their neighbours', :mod:`bodyslam.vision.scale_chain`)."""
-    tried = ring_tried((s.status for s in steps), ring_every(len(steps) + 1)) if measured else 0
-    factor, samples = exam_scale((s.ring_ratio for s in steps), tried)
-    return {"factor": factor, "samples": samples, "steps_tried": tried,
-            "steps_chained": int(sum(math.isfinite(s.chain_factor) for s in steps))}
 
 
 def _write_trajectories(out: Path, stamps_s: np.ndarray, est: dict, with_cov: dict) -> None:
@@ -431,6 +421,8 @@ def evaluate(scenario: dict, seeds: list[int], out_dir: str | os.PathLike, n_fra
                          "lumen_scale": {"factor": round(lumen[-1]["factor"], 4), "samples": lumen[-1]["samples"],
                                          "steps_tried": lumen[-1]["steps_tried"],
                                          "steps_chained": lumen[-1]["steps_chained"],
+                                         "factor_sd_rel": (None if lumen[-1]["factor_sd_rel"] is None
+                                                           else round(lumen[-1]["factor_sd_rel"], 4)),
                                          "distance_scale_after": round(res["motion"]["all"].get("distance_scale",
                                                                                                 math.nan), 4)},
                          "orientation_error_deg": {a: {k: round(v, 2) for k, v in _orientation_stats(e).items()}
@@ -518,6 +510,9 @@ def _lumen_summary(lumen: list[dict]) -> dict:
     return {"runs": len(lumen), "runs_applied": int(len(f)),
             "factor_mean": float(f.mean()) if len(f) else None, "factor_min": float(f.min()) if len(f) else None,
             "factor_max": float(f.max()) if len(f) else None,
+            # the applied factors' stated relative 1-sigma (bodyslam.vision.lumen_scale.exam_scale_sd_rel)
+            "factor_sd_rel_mean": (float(np.mean(sds)) if (sds := [x["factor_sd_rel"] for x in lumen
+                                                                   if x.get("factor_sd_rel") is not None]) else None),
             "samples_mean": float(np.mean([x["samples"] for x in lumen])),
             # steps a run whose scale was tied to their neighbours' (bodyslam.vision.scale_chain)
             "steps_chained_mean": float(np.mean([x.get("steps_chained", 0) for x in lumen]))}
@@ -532,7 +527,8 @@ def _lumen_html(sc: dict | None, distance_scale: float | None) -> str:
             f"bodyslam.vision.lumen_scale): applied on {sc['runs_applied']} of {sc['runs']} runs")
     if sc["runs_applied"]:
         text += (f", the steps x{sc['factor_mean']:.3f} on average ({sc['factor_min']:.3f} to "
-                 f"{sc['factor_max']:.3f})")
+                 f"{sc['factor_max']:.3f}" + (f"; stated 1-sigma {100 * sc['factor_sd_rel_mean']:.0f}% on average"
+                                               if sc.get("factor_sd_rel_mean") else "") + ")")
     text += f", from {sc['samples_mean']:.0f} ratios a run on average"
     if sc.get("steps_chained_mean"):
         text += (f"; {sc['steps_chained_mean']:.0f} steps a run had their scale tied to their neighbours' "

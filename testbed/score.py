@@ -133,9 +133,10 @@ def score_path(seq_dir: str | os.PathLike, motion_csv: str | os.PathLike, scale_
                radius_m: float | None = None) -> dict:
     """How far along the gut, scored: the path travelled from the first frame
     (:func:`bodyslam.vision.tracking.path_travelled` on ``motion_csv``, the figure ``bodyslam`` writes for marks and
-    plots) against the true one (the summed lengths of the true steps), with the stated 1-sigma. ``scale_sd_rel``,
-    ``radius_m``: the lumen radius prior the steps assumed (its relative 1-sigma, and the radius: the floor of a lost
-    step's length; None: none).
+    plots) against the true one (the summed lengths of the true steps), with the stated 1-sigma. ``scale_sd_rel``:
+    the relative 1-sigma of the radius the steps amount to (the prior's, or where the motion stage applied a lumen
+    scale its factor's: :func:`bodyslam.vision.lumen_scale.radius_sd_rel_after`); ``radius_m``: the radius prior the
+    steps assumed (the floor of a lost step's length; None: none).
 
     Returns the run's end (``true_m``, ``estimated_m``, ``sigma_m``, ``error_rel``: (estimated - true) / true, and
     ``z``: the error over its 1-sigma) and over every frame the mean absolute error (``mean_abs_error_m``) and the

@@ -380,8 +380,9 @@ def _unique_name(name: str, taken: set[str]) -> str:
     return out
 
 
-def radius_from_summary(path: str | os.PathLike) -> float:
-    """The lumen radius (m) an earlier `bodyslam batch` run measured for its exam: the ``effective_radius_m`` of its
+def radius_from_summary(path: str | os.PathLike) -> tuple[float, float | None]:
+    """The lumen radius (m) an earlier `bodyslam batch` run measured for its exam, and its 1-sigma (m; None in a
+    summary written before session 63, which states none): the ``effective_radius_m`` and ``effective_radius_sd_m`` of its
     lumen scale (:func:`bodyslam.vision.lumen_scale.lumen_scale_summary`), for a clip cut from that exam, too short to
     measure its own (``--radius-from``; docs/RESULTS.md, "Short clips: ... their scale", session 61: 18-frame clips
     of the realistic testbed at a real exam's pace read +45% with the radius prior, +9% with their exam's radius).
@@ -410,15 +411,20 @@ def radius_from_summary(path: str | os.PathLike) -> float:
     r = sc.get("effective_radius_m")
     if not (isinstance(r, (int, float)) and math.isfinite(r) and r > 0):
         raise InputError(f"{p}: lumen_scale.effective_radius_m is not a positive number of metres: {r!r}")
-    return float(r)
+    sd = sc.get("effective_radius_sd_m")
+    if sd is not None and not (isinstance(sd, (int, float)) and math.isfinite(sd) and 0 <= sd < r):
+        raise InputError(f"{p}: lumen_scale.effective_radius_sd_m is not a 1-sigma in metres below the radius: {sd!r}")
+    return float(r), (None if sd is None else float(sd))
 
 
 def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = None,
                radius_m: float | None = None, mask: str | None = None, rf: str | None = None,
                sensors: str | None = None, marks: list[tuple[int, str]] | None = None,
                landmarks: list[int] | None = None, problems: list | None = None,
-               frame_range: tuple[int, int | None] | None = None) -> list[Exam]:
+               frame_range: tuple[int, int | None] | None = None, radius_sd_m: float | None = None) -> list[Exam]:
     """Exams from command-line inputs: frame folders, sequence directories, videos, manifests (CSV/JSON).
+    ``radius_sd_m``: the 1-sigma of ``radius_m`` (None or 0: the radius given is taken as known; a manifest row's own
+    radius always is).
 
     A manifest lists one exam per row (CSV with a header) or object (JSON list): ``input`` and optionally
     ``name, calib, fps, radius_m, mask, rf, sensors, marks, landmarks, frame_range`` (frame lists as
@@ -448,7 +454,8 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
             problems.append([str(source), "", "error", f"exam not processed: {exc}"])
 
     base = {"calib": calib, "fps": fps, "radius_m": radius_m, "mask": mask, "rf": rf, "sensors": sensors,
-            "marks": marks or [], "landmarks": landmarks or [], "frame_range": frame_range}
+            "marks": marks or [], "landmarks": landmarks or [], "frame_range": frame_range,
+            "radius_sd_m": radius_sd_m if radius_m is not None else None}
     for inp in inputs:
         p = Path(inp)
         if p.is_file() and p.suffix.lower() in (".csv", ".json") and p.name not in SIDECARS:
@@ -478,6 +485,8 @@ def _manifest_exam(p: Path, loc: str, row: dict, base: dict, taken: set[str]) ->
                     opts[k] = float(row[k])
                 except ValueError:
                     raise InputError(f"{k} {row[k]!r} is not a number") from None
+                if k == "radius_m":
+                    opts["radius_sd_m"] = None  # the row's own radius, taken as known
         if row.get("marks"):
             opts["marks"] = [(f, "") for f in parse_frame_list(row["marks"])]
         if row.get("landmarks"):
@@ -517,7 +526,7 @@ def _read_manifest(path: Path) -> list[tuple[str, dict]]:
 
 
 def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask, rf, sensors, marks,
-               landmarks, frame_range=None) -> Exam:
+               landmarks, frame_range=None, radius_sd_m=None) -> Exam:
     from bodyslam.meta import read_meta
 
     assumed: list[str] = []
@@ -592,7 +601,8 @@ def _open_exam(src: Path, name: str, taken: set[str], calib, fps, radius_m, mask
                                       DEFAULT_RADIUS_M, f"{DEFAULT_RADIUS_M * 100:g} +- {DEFAULT_RADIUS_SD_M * 100:g} "
                                       f"cm (distances scale with it)", assumed)
     if radius_m is not None:
-        exam.radius_sd_m = 0.0  # given: taken as known
+        # given: taken as known, or with the 1-sigma given beside it (--radius-from: the measuring exam's)
+        exam.radius_sd_m = float(radius_sd_m) if radius_sd_m else 0.0
     elif meta is not None and meta.tube_radius_m is not None:
         exam.radius_sd_m = meta.tube_radius_sd_m
     else:
@@ -1024,7 +1034,7 @@ def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
     step's scale tied to its neighbours' where the scale chain is on (``scale_chain.npz``: every step's link and
     factor, :mod:`bodyslam.vision.scale_chain`); the outputs apply both as they read the steps (:func:`_exam_rows`).
     Cheap: written again on every run."""
-    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary, ring_tried
+    from bodyslam.vision.lumen_scale import exam_scale, exam_scale_sd_rel, lumen_scale_summary, ring_tried
     from bodyslam.vision.odometry import lumen_scale_measured
     from bodyslam.vision.scale_chain import chain_factors, chain_summary
 
@@ -1042,7 +1052,8 @@ def _lumen_scale_exam(exam: Exam, d: Path, settings: BatchSettings) -> None:
         tried = ring_tried(statuses, every)
         scale, samples = exam_scale(ring, tried)
         res = lumen_scale_summary(scale, samples, every, exam.radius_m,
-                                  chain_summary(factor, np.isfinite(steps[:, 2])) if apply else None, tried)
+                                  chain_summary(factor, np.isfinite(steps[:, 2])) if apply else None, tried,
+                                  exam_scale_sd_rel(ring) if scale != 1.0 else None)
     with atomic_path(d / "lumen_scale.json") as tmp:
         tmp.write_text(json.dumps({"lumen_scale": res}), encoding="utf-8")
 
@@ -1078,6 +1089,15 @@ def _lumen_scale_of(d: Path) -> dict | None:
     return (_checkpoint(d / "lumen_scale.json", "lumen_scale") or {}).get("lumen_scale")
 
 
+def _steps_sd_rel(exam: Exam, d: Path) -> float:
+    """The relative 1-sigma of the radius the exam's steps amount to: its lumen scale's where one was applied, else
+    the radius's own (:func:`bodyslam.vision.lumen_scale.radius_sd_rel_after`). The steps' 1-sigma, the fusion's
+    scale state and the path's variance all take it."""
+    from bodyslam.vision.lumen_scale import radius_sd_rel_after
+
+    return radius_sd_rel_after(_lumen_scale_of(d), exam.radius_sd_rel)
+
+
 def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, scheduler) -> None:
     """The k-step check of the per-step 1-sigma (:func:`bodyslam.vision.odometry.step_consistency`: up to 30
     three-frame pairs spread over the exam, each estimated straight and against its single steps); a checkpoint
@@ -1102,7 +1122,7 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
     the step into the frame as its ``motion.csv`` row and :class:`~bodyslam.steps.StepMotion` (None for the first
     frame), its gap's bridge applied and the lumen's uncertainty in its 1-sigma. ``info``: its ``problems`` list
     gets the chunks' problems, ``eof`` the frame a video ended at."""
-    from bodyslam.vision.lumen_scale import rescaled
+    from bodyslam.vision.lumen_scale import local_sd_rel_after, radius_sd_rel_after, rescaled
     from bodyslam.vision.odometry import with_lumen_uncertainty
 
     bridged = json.loads((d / "bridges.json").read_text(encoding="utf-8"))["bridged"]
@@ -1112,7 +1132,7 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
     if (d / "scale_chain.npz").is_file():
         with np.load(d / "scale_chain.npz") as z:
             chain = (z["factor"], z["link"], z["link_sd"])
-    rel, shape = exam.radius_sd_rel, exam.shape_sd_rel
+    rel, shape, local = radius_sd_rel_after(sc, exam.radius_sd_rel), exam.shape_sd_rel, local_sd_rel_after(sc)
     item = 0
     for ch in _iter_chunks(d):
         if info is not None:
@@ -1138,8 +1158,8 @@ def _exam_rows(exam: Exam, d: Path, info: dict | None = None) -> Iterator[tuple[
                 step = list(step)
                 step[_DISTANCE], step[_SIGMA_D] = s.distance_m, s.sigma_distance_m
                 step[_TX:_TX + 3] = map(float, s.t_c1_c2_m)
-            if (rel > 0 or shape > 0) and s.has_estimate:  # the lumen's uncertainty in the step's 1-sigma
-                s = with_lumen_uncertainty([s], rel, shape)[0]
+            if (rel > 0 or shape > 0 or local > 0) and s.has_estimate:  # the lumen's uncertainty in its 1-sigma
+                s = with_lumen_uncertainty([s], rel, shape, local)[0]
                 step = list(step)
                 step[_SIGMA_D] = s.sigma_distance_m
             yield row, step, s
@@ -1174,7 +1194,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     # (a second pass over the steps, _dead_reckon_into), not on the serial end of every exam (~0.12 ms a step)
     dr = DeadReckoner(lost_step_floor_m(exam.radius_m))
     info = {"problems": problems, "eof": None}
-    rel = exam.radius_sd_rel
+    rel = _steps_sd_rel(exam, d)
     with atomic_path(d / "frames.csv") as ftmp, atomic_path(d / "motion.csv") as mtmp, \
             open(ftmp, "w", newline="", encoding="utf-8") as ff, open(mtmp, "w", newline="", encoding="utf-8") as mf:
         fw, mw = csv.writer(ff, lineterminator="\n"), csv.writer(mf, lineterminator="\n")
@@ -1219,7 +1239,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
     write_tum(d / "trajectory.tum", t, P, Rotation.from_quat(Q),
               world="body frame" if fused is not None else "first camera frame")
     write_uncertainty(d / "uncertainty.csv", frame_idx, t, cov, sd_head, path_m, path_var)
-    marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems)
+    marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems, rel)
     classified = settings.motion.classify
     if wait_check is not None:  # the k-step check, run meanwhile, is in consistency.json from here on
         wait_check()
@@ -1413,7 +1433,8 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list,
     try:
         rf = RfInput.read(exam.rf, exam.sensors, exam.pathloss)
         loc = localize(steps, t, rf, exam.frame_rate_hz, np.asarray(frame_idx), mode=settings.fusion,
-                       radius_sd_rel=exam.radius_sd_rel, radius_m=exam.radius_m, bias_states=settings.rss_bias_states,
+                       radius_sd_rel=_steps_sd_rel(exam, d), radius_m=exam.radius_m,
+                       bias_states=settings.rss_bias_states,
                        travelled=False)  # _finalize makes the path travelled meanwhile
     except InputError as exc:
         problems.append([exam.rf, "", "error", f"RF not used: {exc}"])
@@ -1424,7 +1445,8 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list,
     return loc
 
 
-def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var, problems) -> list[list]:
+def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var, problems,
+           rel: float) -> list[list]:
     from bodyslam.vision.tracking import segment_variance
 
     if not exam.marks:
@@ -1455,7 +1477,7 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
         for lm in lms:
             j = where[lm]
             row += [path_m[k] - path_m[j],
-                    math.sqrt(segment_variance(path_m, path_var, j, k, exam.radius_sd_rel))]
+                    math.sqrt(segment_variance(path_m, path_var, j, k, rel))]
         rows.append(row)
     write_csv(d / "marks.csv", header, rows)
     return rows

@@ -72,8 +72,10 @@ from bodyslam.steps import StepMotion
 from bodyslam.vision.motion import _lm_soft_l1, _soft_l1_cost, _tube_c  # _tube_c: compiled residuals (None: not built)
 
 __all__ = ["RING_EVERY_MIN", "RING_SAMPLES_MAX", "RING_MIN_SAMPLES", "RING_SAMPLE_MIN_STEPS", "RING_NULL_SHARE",
-           "RING_SHARE_ALPHA", "RING_MIN_COST_DROP", "RING_MIN_DROP_SIGNIFICANCE", "ring_tried", "shows_rings",
-           "ring_every", "ring_distance_ratio", "exam_scale", "rescaled", "lumen_scale_summary", "lumen_scale_text"]
+           "RING_SHARE_ALPHA", "RING_MIN_COST_DROP", "RING_MIN_DROP_SIGNIFICANCE", "SCALE_SD_FLOOR_REL",
+           "SCALE_LOCAL_SD_REL", "ring_tried", "shows_rings", "ring_every", "ring_distance_ratio", "exam_scale",
+           "exam_scale_sd_rel", "scale_of_steps", "radius_sd_rel_after", "local_sd_rel_after", "rescaled",
+           "lumen_scale_summary", "lumen_scale_text"]
 
 RING_WIDTH_RADII = 1.0  # the ring's width w (Gaussian sigma along the axis), lumen radii (session 39; 0.7 to 38)
 RING_MAX_DEPTH = 0.6  # |A| bound: the ring closes the lumen by at most 60% (A = 0.6 tanh(a / 0.6))
@@ -309,6 +311,74 @@ def exam_scale(ratios, tried: int) -> tuple[float, int]:
     return float(np.median(r)), int(len(r))
 
 
+# The measured factor's own error beside its median's scatter (:func:`exam_scale_sd_rel`): the ring model is not the
+# folded, peristaltic lumen, and the steps the ring was fitted to are a sample of the exam's. Chosen on tuning renders
+# only (session 63, docs/RESULTS.md "The radius a measured lumen scale leaves"): 22 realistic runs (realistic_exam
+# 587-594, `bodyslam batch` defaults; realistic 595-598, the same; realistic 540-549, `testbed evaluate`), the factor
+# each run's steps still needed after it (testbed.score's distance_scale) against the stated relative 1-sigma: its
+# median's scatter alone put 50% of them inside 1-sigma (mean z^2 2.5); with a floor of 0.03 / 0.05 / 0.06 / 0.07 /
+# 0.10, 64 / 64 / 77 / 77 / 91% (mean z^2 1.8 / 1.2 / 1.04 / 0.88 / 0.56). 0.06 gives mean z^2 ~1.
+SCALE_SD_FLOOR_REL = 0.06
+# ... and what the exam's one factor cannot follow from step to step: the lumen's radius over a step's few
+# millimetres about the exam's mean (contraction rings ~2 cm long, peristalsis, folds), kept in each step's 1-sigma as
+# the lumen shape's share is (white: the fusion and the path do not take it out) wherever a measured factor replaces
+# the prior's 1-sigma (which covered it, within its 20%). Chosen on the same 22 tuning runs (session 63): with the
+# factor's 1-sigma alone 62% of the estimated steps' distance errors fell inside their stated 1-sigma (88% inside 2;
+# the prior's share gave 74% / 95%); with this share 0.10 / 0.11 / 0.115 beside it, 66.6 / 67.5 / 68.0% (91.7 / 92.2 /
+# 92.4%)
+SCALE_LOCAL_SD_REL = 0.11
+
+
+def exam_scale_sd_rel(ratios) -> float:
+    """The relative 1-sigma of :func:`exam_scale`'s factor where it applies: the median's scatter, ``1.2533 s /
+    sqrt(n)`` with ``s`` the robust spread (1.4826 MAD) of ``ln`` of the ``n`` finite ratios (the factor multiplies,
+    and one ratio's spread is ~0.15-0.5 in ``ln`` on realistic runs), and :data:`SCALE_SD_FLOOR_REL` in quadrature.
+    NaN where there are no ratios."""
+    r = np.asarray([x for x in ratios if x is not None and math.isfinite(x) and x > 0], float)
+    if not len(r):
+        return math.nan
+    lr = np.log(r)
+    spread = 1.4826 * float(np.median(np.abs(lr - np.median(lr))))
+    return math.hypot(1.2533 * spread / math.sqrt(len(r)), SCALE_SD_FLOOR_REL)
+
+
+def scale_of_steps(steps: list[StepMotion], measured: bool) -> dict:
+    """A run's lumen scale from its steps' ring ratios (``motion.csv``: ``bodyslam localize --motion``, `testbed
+    evaluate`), as the motion stage found it: ``factor``, ``samples`` (rings seen), ``steps_tried`` (0 where the scale
+    is not ``measured``: :func:`bodyslam.vision.odometry.lumen_scale_measured`), ``applied``, ``factor_sd_rel``
+    (:func:`exam_scale_sd_rel`; None where not applied) and ``steps_chained``."""
+    tried = ring_tried((s.status for s in steps), ring_every(len(steps) + 1)) if measured else 0
+    ratios = [s.ring_ratio for s in steps]
+    factor, samples = exam_scale(ratios, tried)
+    applied = factor != 1.0
+    return {"factor": factor, "samples": samples, "steps_tried": tried, "applied": applied,
+            "factor_sd_rel": exam_scale_sd_rel(ratios) if applied else None,
+            "steps_chained": int(sum(math.isfinite(s.chain_factor) for s in steps))}
+
+
+def radius_sd_rel_after(sc: dict | None, prior_sd_rel: float) -> float:
+    """The relative 1-sigma of the radius an exam's steps amount to: the measured factor's (``factor_sd_rel`` of
+    :func:`lumen_scale_summary` or :func:`scale_of_steps`) where the lumen scale was applied, else the radius's own
+    (``prior_sd_rel``: the prior's, meta.json's, 0 for a radius given). Both the steps' 1-sigma
+    (:func:`bodyslam.vision.odometry.with_lumen_uncertainty`) and the fusion's scale state and the path's variance
+    take this one number. A summary written before session 63 has no ``factor_sd_rel``: the prior's then."""
+    sd = _factor_sd_rel(sc)
+    return float(prior_sd_rel) if sd is None else sd
+
+
+def _factor_sd_rel(sc: dict | None) -> float | None:
+    """The applied factor's relative 1-sigma of a lumen-scale summary; None where none was applied or stated."""
+    if sc and sc.get("applied") and sc.get("factor_sd_rel") is not None and math.isfinite(sc["factor_sd_rel"]):
+        return float(sc["factor_sd_rel"])
+    return None
+
+
+def local_sd_rel_after(sc: dict | None) -> float:
+    """The white share of each step's 1-sigma (relative to its distance) that a measured lumen scale adds beside its
+    factor's (:data:`SCALE_LOCAL_SD_REL` where the scale was applied, :func:`radius_sd_rel_after`), 0 elsewhere."""
+    return SCALE_LOCAL_SD_REL if _factor_sd_rel(sc) is not None else 0.0
+
+
 def rescaled(s: StepMotion, factor: float) -> StepMotion:
     """A step with a full pose rescaled by ``factor`` (its translation, distance and their 1-sigma); any other
     step as it is."""
@@ -319,13 +389,21 @@ def rescaled(s: StepMotion, factor: float) -> StepMotion:
 
 
 def lumen_scale_summary(factor: float, samples: int, every: int, radius_m: float,
-                        scale_chain: dict | None = None, tried: int | None = None) -> dict:
+                        scale_chain: dict | None = None, tried: int | None = None,
+                        factor_sd_rel: float | None = None) -> dict:
     """What ``summary.json`` and the CLIs say of it: the factor applied, the ratios behind it (``samples`` rings seen
-    of ``tried`` fitted steps sampled), and the radius of the cylinder the rescaled steps amount to."""
+    of ``tried`` fitted steps sampled), its relative 1-sigma (``factor_sd_rel``: :func:`exam_scale_sd_rel`, None where
+    not applied), and the radius of the cylinder the rescaled steps amount to, with its 1-sigma."""
+    applied = bool(factor != 1.0)
+    sd = float(factor_sd_rel) if applied and factor_sd_rel is not None else None
     return {"factor": float(factor), "samples": int(samples), "steps_tried": None if tried is None else int(tried),
-            "every_nth_step": int(every), "applied": bool(factor != 1.0), "min_samples": RING_MIN_SAMPLES,
+            "every_nth_step": int(every), "applied": applied, "min_samples": RING_MIN_SAMPLES,
             "null_share": RING_NULL_SHARE,
+            "factor_sd_rel": sd,
+            # each step's white share beside it (local_sd_rel_after), relative to its distance
+            "local_sd_rel": SCALE_LOCAL_SD_REL if sd is not None else None,
             "effective_radius_m": float(radius_m * factor),
+            "effective_radius_sd_m": None if sd is None else float(radius_m * factor * sd),
             # the steps' scales tied to their neighbours' before this factor (bodyslam.vision.scale_chain)
             "scale_chain": scale_chain}
 
@@ -360,10 +438,14 @@ def lumen_scale_text(sc: dict | None) -> str:
             why = f", no more than the ~{sc.get('null_share', RING_NULL_SHARE):.0%} a lumen without rings shows"
         return (f"not applied ({sc['samples']}{sampled} step(s) showed a ring{why}): the steps keep the radius "
                 "prior's scale" + hint + _chain_text(sc.get("scale_chain")))
-    return (f"steps x{sc['factor']:.3f}, the median over the {sc['samples']}{sampled} steps that showed a ring "
+    sd = sc.get("factor_sd_rel")
+    pm = f" +- {100 * sd:.0f}%" if sd is not None else ""
+    radius_sd = sc.get("effective_radius_sd_m")
+    rpm = f" +- {radius_sd * 100:.2f}" if radius_sd is not None else ""
+    return (f"steps x{sc['factor']:.3f}{pm}, the median over the {sc['samples']}{sampled} steps that showed a ring "
             f"({'every' if sc['every_nth_step'] == 1 else 'every ' + _ordinal(sc['every_nth_step'])} step sampled) "
             "of a tube with one contraction ring against the "
-            f"cylinder: a cylinder of {sc['effective_radius_m'] * 100:.2f} cm" + _chain_text(sc.get("scale_chain")))
+            f"cylinder: a cylinder of {sc['effective_radius_m'] * 100:.2f}{rpm} cm" + _chain_text(sc.get("scale_chain")))
 
 
 def _chain_text(ch: dict | None) -> str:

@@ -804,13 +804,16 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
                     lumen_scale_used: list | None = None) -> list[StepMotion]:
     """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order), gaps
     bridged, rescaled by the lumen's scale seen in a sample of them where the radius is a prior
-    (:func:`lumen_scale_measured`, :mod:`bodyslam.vision.lumen_scale`). ``camera="rear"``: a dual-camera capsule's rear frames, reported as the
+    (:func:`lumen_scale_measured`, :mod:`bodyslam.vision.lumen_scale`), each step's 1-sigma with the radius's
+    uncertainty in it (:func:`with_lumen_uncertainty`: the measured factor's where it applies,
+    :func:`~bodyslam.vision.lumen_scale.radius_sd_rel_after`). ``camera="rear"``: a dual-camera capsule's rear frames, reported as the
     body's motion. ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame;
     ``fov_used``: one that receives the field-of-view mask the run used (None: the image circle; :func:`write_mask`
     writes it); ``lumen_scale_used``: one that receives the scale's summary
     (:func:`~bodyslam.vision.lumen_scale.lumen_scale_summary`), or None where it was not measured."""
     from bodyslam.parallel import imap_tasks
-    from bodyslam.vision.lumen_scale import exam_scale, lumen_scale_summary, rescaled, ring_tried
+    from bodyslam.vision.lumen_scale import (exam_scale, exam_scale_sd_rel, local_sd_rel_after, lumen_scale_summary,
+                                             radius_sd_rel_after, rescaled, ring_tried)
     from bodyslam.vision.lumen_scale import ring_every as sample_every
 
     seq = Sequence.open(seq_dir, radius_m, camera)
@@ -852,15 +855,22 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
             log.info("scale chain: %d steps tied to their neighbours by %d links", chain["steps_chained"],
                      chain["links"])
         tried = ring_tried((s.status for s in steps), every)
-        factor, samples = exam_scale((s.ring_ratio for s in steps), tried)
+        ratios = [s.ring_ratio for s in steps]
+        factor, samples = exam_scale(ratios, tried)
         log.info("lumen scale: %.3f from %d ring ratios of %d steps fitted (one step in %d)", factor, samples, tried,
                  every)
         steps = [rescaled(s, factor) for s in steps]
+        sc = lumen_scale_summary(factor, samples, every, seq.radius_m, chain, tried,
+                                 exam_scale_sd_rel(ratios) if factor != 1.0 else None)
+        # the measured factor's 1-sigma where it applies, and what it cannot follow from step to step
+        rel, local = radius_sd_rel_after(sc, seq.radius_sd_rel), local_sd_rel_after(sc)
         if lumen_scale_used is not None:
-            lumen_scale_used.append(lumen_scale_summary(factor, samples, every, seq.radius_m, chain, tried))
-    elif lumen_scale_used is not None:
-        lumen_scale_used.append(None)
-    return with_lumen_uncertainty(steps, seq.radius_sd_rel, seq.shape_sd_rel)
+            lumen_scale_used.append(sc)
+    else:
+        rel, local = seq.radius_sd_rel, 0.0
+        if lumen_scale_used is not None:
+            lumen_scale_used.append(None)
+    return with_lumen_uncertainty(steps, rel, seq.shape_sd_rel, local)
 
 
 def lumen_scale_measured(settings: MotionSettings, radius_sd_rel: float) -> bool:
@@ -882,7 +892,7 @@ LUMEN_SCALE_MIN_PRIOR_SD_REL = 0.10
 
 
 def with_lumen_uncertainty(steps: list[StepMotion], radius_sd_rel: float,
-                           shape_sd_rel: float = 0.0) -> list[StepMotion]:
+                           shape_sd_rel: float = 0.0, local_sd_rel: float = 0.0) -> list[StepMotion]:
     """The steps with what the tube estimator assumes of the lumen in their 1-sigma distance, both added in
     quadrature to the fit's own 1-sigma:
 
@@ -894,18 +904,21 @@ def with_lumen_uncertainty(steps: list[StepMotion], radius_sd_rel: float,
       that changes within the view) errs by a fraction of the step that changes from step to step, which the fit's
       residuals do not show (its 1-sigma was ~5x optimistic on the realistic testbed); ``shape_sd_rel * |d|``
       stays in the step's 1-sigma (meta.json ``lumen_shape_sd_rel``). A step facing the wall (status ``wall``)
-      has it times :data:`WALL_SIGMA_FACTOR`, as its fit's share already is: its non-radius part is inflated.
+      has it times :data:`WALL_SIGMA_FACTOR`, as its fit's share already is: its non-radius part is inflated;
+    - where a measured lumen scale replaced the radius prior (``radius_sd_rel`` is then the factor's 1-sigma), the
+      radius about the exam's mean over a step's few millimetres, which one factor cannot follow: ``local_sd_rel *
+      |d|`` (:data:`bodyslam.vision.lumen_scale.SCALE_LOCAL_SD_REL`), white as the shape's share is.
 
     Steps without an estimate are unchanged."""
-    if not (radius_sd_rel > 0 or shape_sd_rel > 0):
+    if not (radius_sd_rel > 0 or shape_sd_rel > 0 or local_sd_rel > 0):
         return steps
-    radius_sd_rel, shape_sd_rel = max(radius_sd_rel, 0.0), max(shape_sd_rel, 0.0)
+    radius_sd_rel, shape_sd_rel, local_sd_rel = max(radius_sd_rel, 0.0), max(shape_sd_rel, 0.0), max(local_sd_rel, 0.0)
     out = []
     for s in steps:
         if s.has_estimate and math.isfinite(s.distance_m):
             fit = s.sigma_distance_m if math.isfinite(s.sigma_distance_m) else 0.0
             shape = shape_sd_rel * (WALL_SIGMA_FACTOR if s.status == StepStatus.WALL else 1.0)
-            s = replace(s, sigma_distance_m=math.hypot(fit, radius_sd_rel * abs(s.distance_m),
-                                                       shape * abs(s.distance_m)))
+            d = abs(s.distance_m)
+            s = replace(s, sigma_distance_m=math.hypot(fit, radius_sd_rel * d, shape * d, local_sd_rel * d))
         out.append(s)
     return out

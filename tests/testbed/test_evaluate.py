@@ -30,8 +30,10 @@ def test_evaluate_writes_a_report_with_units_and_plots(tmp_path):
     assert t41["mae_distance_scale_aligned_cm"] <= t41["mae_distance_cm"] and t41["distance_scale"] > 0
     # the demo tells its radius exactly: no lumen scale measured (bodyslam.vision.lumen_scale), said per run too
     assert rep["lumen_scale"] == {"runs": 1, "runs_applied": 0, "factor_mean": None, "factor_min": None,
-                                  "factor_max": None, "samples_mean": 0.0, "steps_chained_mean": 0.0}
+                                  "factor_max": None, "factor_sd_rel_mean": None, "samples_mean": 0.0,
+                                  "steps_chained_mean": 0.0}
     assert rep["per_seed"][0]["lumen_scale"]["factor"] == 1.0
+    assert rep["per_seed"][0]["lumen_scale"]["factor_sd_rel"] is None  # nothing applied: no factor's 1-sigma
     assert rep["per_seed"][0]["lumen_scale"]["steps_tried"] == 0  # no ring fitted where the radius is told
     assert rep["per_seed"][0]["lumen_scale"]["steps_chained"] == 0  # nor a scale chain (bodyslam.vision.scale_chain)
     for alg in ("ekf_rss", "ekf_rss_causal", "ekf_rss_rts", "ekf_rss_bias", "ekf_rss_bias_rts"):  # per filter:
@@ -105,6 +107,11 @@ def test_the_runs_lumen_scales_summed_and_said():
     assert "applied on 2 of 3 runs" in line and "x0.850 on average (0.800 to 0.900)" in line and "1.040" in line
     assert "60 steps a run had their scale tied" in line
     assert "tied" not in _lumen_html({**sc, "steps_chained_mean": 0.0}, 1.04)
+    assert sc["factor_sd_rel_mean"] is None and "stated 1-sigma" not in line  # runs from before session 63
+    with_sd = _lumen_summary([{"factor": 0.9, "samples": 30, "factor_sd_rel": 0.07},
+                              {"factor": 0.8, "samples": 40, "factor_sd_rel": 0.09}, {"factor": 1.0, "samples": 20}])
+    assert with_sd["factor_sd_rel_mean"] == pytest.approx(0.08)
+    assert "(0.800 to 0.900; stated 1-sigma 8% on average)" in _lumen_html(with_sd, 1.04)
     assert _lumen_html(_lumen_summary([{"factor": 1.0, "samples": 0}]), 1.0) == "" and _lumen_html(None, 1.0) == ""
 
 

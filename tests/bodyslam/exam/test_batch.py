@@ -706,32 +706,47 @@ def test_the_report_says_whether_the_radius_is_a_prior_or_known():
 
 def test_a_clip_takes_the_lumen_radius_its_exam_measured(tmp_path):
     """``--radius-from``: the lumen radius an earlier batch run measured for its exam (its lumen scale's effective
-    radius), from the exam's summary.json, the study's (one exam) or their directory; refused with the file and the
-    reason where there is none to take, and beside --radius-m."""
+    radius) and its 1-sigma, from the exam's summary.json, the study's (one exam) or their directory; refused with the
+    file and the reason where there is none to take, and beside --radius-m. A summary from before the 1-sigma was
+    stated gives the radius alone, taken as known."""
     from bodyslam.exam.batch import radius_from_summary
 
-    scale = {"factor": 0.736, "samples": 34, "applied": True, "effective_radius_m": 0.0092}
+    scale = {"factor": 0.736, "samples": 34, "applied": True, "effective_radius_m": 0.0092,
+             "effective_radius_sd_m": 0.0008}
     exam = tmp_path / "out" / "exam"
     exam.mkdir(parents=True)
     (exam / "summary.json").write_text(json.dumps({"exam": "exam", "lumen_scale": scale}))
     (tmp_path / "out" / "summary.json").write_text(json.dumps({"exams": [{"exam": "exam", "lumen_scale": scale}]}))
     for p in (exam / "summary.json", exam, tmp_path / "out" / "summary.json", tmp_path / "out"):
-        assert radius_from_summary(p) == 0.0092
+        assert radius_from_summary(p) == (0.0092, 0.0008)
     (tmp_path / "two.json").write_text(json.dumps({"exams": [{"lumen_scale": scale}, {"lumen_scale": scale}]}))
     (tmp_path / "unapplied.json").write_text(json.dumps({"lumen_scale": dict(scale, applied=False, samples=5)}))
     (tmp_path / "unmeasured.json").write_text(json.dumps({"lumen_scale": None}))
     (tmp_path / "other.json").write_text(json.dumps({"format": "bodyslam-sequence/1"}))
     (tmp_path / "broken.json").write_text(json.dumps({"lumen_scale": dict(scale, effective_radius_m=-1)}))
+    (tmp_path / "broken_sd.json").write_text(json.dumps({"lumen_scale": dict(scale, effective_radius_sd_m=0.01)}))
+    old = {k: v for k, v in scale.items() if k != "effective_radius_sd_m"}
+    (tmp_path / "old.json").write_text(json.dumps({"lumen_scale": old}))
+    assert radius_from_summary(tmp_path / "old.json") == (0.0092, None)
     for name, why in (("two.json", "a study of 2 exams"), ("unapplied.json", "not applied: 5 ring"),
                       ("unmeasured.json", "was not measured"), ("other.json", "not a bodyslam batch summary"),
-                      ("broken.json", "not a positive number"), ("missing.json", "file not found")):
+                      ("broken.json", "not a positive number"), ("broken_sd.json", "not a 1-sigma"),
+                      ("missing.json", "file not found")):
         with pytest.raises(InputError, match=why):
             radius_from_summary(tmp_path / name)
-    # through the CLI: the demo clip runs at that radius, known exactly (no radius share in its 1-sigma)
+    # through the CLI: the demo clip runs at that radius with its 1-sigma (8.7%: below the 10% at which a clip would
+    # measure its own scale again, so its steps keep it); an old summary's radius is taken as known
     assert cli_main(["batch", str(DEMO / "frames"), "--out", str(tmp_path / "clip"), "--jobs", "1",
                      "--radius-from", str(exam)]) == 0
     summary = json.loads((tmp_path / "clip" / "summary.json").read_text())["exams"][0]
-    assert (summary["radius_m"], summary["radius_sd_m"]) == (0.0092, 0.0)
+    assert (summary["radius_m"], summary["radius_sd_m"]) == (0.0092, 0.0008)
+    assert summary["lumen_scale"] is None
+    assert cli_main(["batch", str(DEMO / "frames"), "--out", str(tmp_path / "clip_old"), "--jobs", "1",
+                     "--radius-from", str(tmp_path / "old.json")]) == 0
+    old_summary = json.loads((tmp_path / "clip_old" / "summary.json").read_text())["exams"][0]
+    assert (old_summary["radius_m"], old_summary["radius_sd_m"]) == (0.0092, 0.0)
+    # the radius's 1-sigma widens the path's
+    assert summary["sd_path_travelled_m"] > old_summary["sd_path_travelled_m"]
     assert cli_main(["batch", str(DEMO / "frames"), "--out", str(tmp_path / "both"), "--radius-from", str(exam),
                      "--radius-m", "0.01"]) == 1
     assert cli_main(["batch", str(DEMO / "frames"), "--out", str(tmp_path / "none"),

@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bodyslam.steps import StepMotion, rotation_step
-from bodyslam.vision.lumen_scale import (RING_MIN_SAMPLES, RING_SAMPLE_MIN_STEPS, RING_SAMPLES_MAX, exam_scale,
-                                         rescaled, ring_distance_ratio, ring_every)
+from bodyslam.vision.lumen_scale import (RING_MIN_SAMPLES, RING_SAMPLE_MIN_STEPS, RING_SAMPLES_MAX, SCALE_SD_FLOOR_REL,
+                                         exam_scale, rescaled, ring_distance_ratio, ring_every)
 
 EVERY_RATIO = dict(min_cost_drop=-np.inf, min_significance=-np.inf)  # no test of whether a ring is seen
 from bodyslam.vision.motion import fit_tube, motion_from_transform
@@ -105,6 +105,42 @@ def test_the_exam_scale_is_the_median_of_enough_ratios():
     assert exam_scale(odd, 2 * len(odd)) == (pytest.approx(0.925), len(odd))
 
 
+def test_the_exam_scale_states_its_1_sigma():
+    """The factor's relative 1-sigma: its median's scatter (1.2533 x the robust spread of ln r over sqrt(n)) with the
+    ring measure's own error (SCALE_SD_FLOOR_REL, chosen on tuning renders) in quadrature; the radius the steps amount
+    to takes it where the scale applied, the radius's own 1-sigma where it did not."""
+    from scipy.stats import norm
+
+    from bodyslam.vision.lumen_scale import SCALE_SD_FLOOR_REL, exam_scale_sd_rel, radius_sd_rel_after
+
+    assert SCALE_SD_FLOOR_REL == 0.06
+    assert exam_scale_sd_rel([0.8] * 30) == pytest.approx(SCALE_SD_FLOOR_REL)  # no scatter: the floor alone
+    q = norm.ppf((np.arange(40) + 0.5) / 40)  # ln r spread as a normal of 1-sigma 0.3, 40 ratios
+    sd = exam_scale_sd_rel(list(0.8 * np.exp(0.3 * q)) + [math.nan, None, -1.0])  # not measured: left out
+    assert sd == pytest.approx(math.hypot(1.2533 * 0.3 / math.sqrt(40), SCALE_SD_FLOOR_REL), rel=0.03)
+    # four times the ratios: the median's share halves
+    sd4 = exam_scale_sd_rel(list(0.8 * np.exp(0.3 * norm.ppf((np.arange(160) + 0.5) / 160))))
+    assert sd4 == pytest.approx(math.hypot(1.2533 * 0.3 / math.sqrt(160), SCALE_SD_FLOOR_REL), rel=0.03)
+    assert math.isnan(exam_scale_sd_rel([math.nan]))
+    applied = {"applied": True, "factor": 0.8, "factor_sd_rel": sd}
+    assert radius_sd_rel_after(applied, 0.2) == sd
+    assert radius_sd_rel_after({"applied": False, "factor": 1.0, "factor_sd_rel": None}, 0.2) == 0.2
+    assert radius_sd_rel_after(None, 0.2) == 0.2
+    assert radius_sd_rel_after({"applied": True, "factor": 0.8}, 0.2) == 0.2  # a summary from before session 63
+    # beside it, each step keeps the radius's change over its few millimetres, white (only where a factor applied)
+    from bodyslam.steps import StepStatus
+    from bodyslam.vision.lumen_scale import SCALE_LOCAL_SD_REL, local_sd_rel_after
+    from bodyslam.vision.odometry import with_lumen_uncertainty
+
+    assert SCALE_LOCAL_SD_REL == 0.11
+    assert local_sd_rel_after(applied) == SCALE_LOCAL_SD_REL
+    assert local_sd_rel_after(None) == 0.0 and local_sd_rel_after({"applied": True, "factor": 0.8}) == 0.0
+    step = StepMotion(0.004, 0.0, 0.0, 0.0, 40, StepStatus.OK, t_c1_c2_m=np.array([0.0, 0.0, 0.004]),
+                      R_c1_c2=np.eye(3), sigma_distance_m=0.0003)
+    one = with_lumen_uncertainty([step], sd, 0.13, SCALE_LOCAL_SD_REL)[0]
+    assert one.sigma_distance_m == pytest.approx(math.hypot(0.0003, 0.004 * sd, 0.004 * 0.13, 0.004 * 0.11))
+
+
 def test_an_exam_shows_rings_only_beyond_what_a_lumen_without_them_lets_through():
     """The ideal `exam` tube (no rings; its radius varies by +-8%) let 10 and 13 of 124 fitted steps through the ring
     test, reading short (median ~0.95): enough ratios, but no more than a lumen without rings shows, so the prior's
@@ -182,11 +218,13 @@ def test_what_a_run_says_of_its_lumen_scale():
             and "frames" not in few)
     plain = lumen_scale_text(lumen_scale_summary(1.0, 13, 16, 0.0125, tried=124))
     assert "13 of 124 sampled step(s) showed a ring, no more than the ~10% a lumen without rings shows" in plain
-    done = lumen_scale_summary(0.88, 30, 4, 0.0125, tried=70)
+    done = lumen_scale_summary(0.88, 30, 4, 0.0125, tried=70, factor_sd_rel=0.085)
     assert done["effective_radius_m"] == pytest.approx(0.011) and done["applied"] and done["steps_tried"] == 70
-    assert ("steps x0.880, the median over the 30 of 70 sampled steps that showed a ring (every 4th step sampled)"
-            in lumen_scale_text(done))
-    assert "1.10 cm" in lumen_scale_text(done)
+    assert done["effective_radius_sd_m"] == pytest.approx(0.011 * 0.085)
+    assert ("steps x0.880 +- 8%, the median over the 30 of 70 sampled steps that showed a ring (every 4th step "
+            "sampled)" in lumen_scale_text(done))
+    assert "1.10 +- 0.09 cm" in lumen_scale_text(done)
+    assert lumen_scale_summary(1.0, 5, 4, 0.0125, factor_sd_rel=0.085)["factor_sd_rel"] is None  # not applied
     assert "(every step sampled)" in lumen_scale_text(lumen_scale_summary(0.9, 30, 1, 0.0125))
     said = [lumen_scale_text(lumen_scale_summary(0.9, 30, n, 0.0125)) for n in (2, 3, 11, 21, 22, 112)]
     assert [t.split("(every ")[1].split(" step")[0] for t in said] == ["2nd", "3rd", "11th", "21st", "22nd", "112th"]
@@ -220,6 +258,12 @@ def test_motion_and_batch_apply_the_same_lumen_scale(tmp_path, monkeypatch):
     fits = []  # every ring fit the chunks run: the count ring_tried gives from the statuses
     ratio = lumen_scale.ring_distance_ratio
     monkeypatch.setattr(lumen_scale, "ring_distance_ratio", lambda *a, **k: fits.append(1) or ratio(*a, **k))
+    from bodyslam.vision import odometry
+
+    radius_shares = []  # the radius's relative 1-sigma each step's 1-sigma is given, and the local share
+    share = odometry.with_lumen_uncertainty
+    monkeypatch.setattr(odometry, "with_lumen_uncertainty",
+                        lambda st, r, shape, local: radius_shares.append((r, local)) or share(st, r, shape, local))
     steps = sequence_motion(seq, settings, jobs=1, lumen_scale_used=used)
     assert used[0]["applied"] and used[0]["factor"] != 1.0
     assert used[0]["steps_tried"] == len(fits) > 20
@@ -231,11 +275,24 @@ def test_motion_and_batch_apply_the_same_lumen_scale(tmp_path, monkeypatch):
     assert summary["lumen_scale"]["factor"] == used[0]["factor"]
     # the path travelled from the rescaled steps, as bodyslam motion and testbed's scoring take it: its missing
     # steps' model in radii of the prior (not rescaled: docs/RESULTS.md, session 39)
+    from bodyslam.io import read_motion_steps
     from bodyslam.steps import lost_to_motion
     from bodyslam.vision.tracking import path_travelled
 
     assert any(lost_to_motion(s) for s in steps)  # a step the missing steps' model fills
-    path, var = path_travelled(steps, 0.2, meta["tube_radius_m"])
+    # the measured factor's 1-sigma, not the prior's 20%, is the radius's now: in the summary, in each step's 1-sigma,
+    # and the same from motion.csv's ring ratios (bodyslam localize --motion, testbed evaluate)
+    rel = used[0]["factor_sd_rel"]
+    assert SCALE_SD_FLOOR_REL <= rel < 0.2 and summary["lumen_scale"]["factor_sd_rel"] == rel
+    assert lumen_scale.radius_sd_rel_after(used[0], 0.2) == rel
+    again = lumen_scale.scale_of_steps(read_motion_steps(tmp_path / "motion.csv", range(1, len(steps) + 1)), True)
+    # (motion.csv keeps 9 digits of each ratio)
+    assert again["factor"] == pytest.approx(used[0]["factor"], rel=1e-8)
+    assert again["factor_sd_rel"] == pytest.approx(rel, rel=1e-8)
+    # what motion and batch put in every step's 1-sigma
+    assert set(radius_shares) == {(rel, lumen_scale.SCALE_LOCAL_SD_REL)}
+    assert summary["lumen_scale"]["local_sd_rel"] == lumen_scale.SCALE_LOCAL_SD_REL
+    path, var = path_travelled(steps, rel, meta["tube_radius_m"])
     assert summary["path_travelled_m"] == pytest.approx(path[-1], rel=1e-6)
     assert summary["sd_path_travelled_m"] == pytest.approx(math.sqrt(var[-1]), rel=1e-6)
 
