@@ -92,6 +92,10 @@ def _parser() -> argparse.ArgumentParser:
                            help="angular depth for the thesis estimator: camera model or linear Eq. 3.11")
             q.add_argument("--radius-m", type=float, default=None,
                            help="lumen radius in metres (default: meta.json tube_radius_m)")
+            q.add_argument("--radius-from", default=None, metavar="SUMMARY",
+                           help="take the lumen radius an earlier batch run measured for its exam, with its 1-sigma "
+                                "(its summary.json, or its output directory): for a clip cut from that exam, too "
+                                "short to measure its own; instead of --radius-m")
 
     def frame_opts(q):
         q.add_argument("--jobs", type=jobs_count, default=None, help="worker processes (default: one per core)")
@@ -236,10 +240,6 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--fusion", default="rss", choices=FUSION_MODES, help="with RF: EKF on RSS (default) or fixes")
     ba.add_argument("--rss-bias-states", action="store_true", help=RSS_BIAS_HELP)
     ba.add_argument("--force", action="store_true", help="overwrite an output directory holding another run")
-    ba.add_argument("--radius-from", default=None, metavar="SUMMARY",
-                    help="take the lumen radius an earlier batch run measured for its exam, with its 1-sigma (its "
-                         "summary.json, or its output directory): for a clip cut from that exam, too short to "
-                         "measure its own; instead of --radius-m")
     frame_opts(ba)
     motion_opts(ba, default_mode="fast")
     ss = cmd("speed-stats")
@@ -578,6 +578,7 @@ def _localize(args) -> int:
     from bodyslam.vision.odometry import Sequence, lumen_scale_measured, sequence_motion
 
     _check_bias_states(args)
+    radius_sd_m = _given_radius(args)
     seq_dir = Path(args.seqdir)
     meta = read_meta(seq_dir)
     rf_meta = meta.rf
@@ -593,15 +594,16 @@ def _localize(args) -> int:
             raise ConfigError(f"lumen radius must be a positive number of metres, got {args.radius_m!r}")
         n, rate = meta.n_frames, meta.frame_rate_hz
         radius_m = meta.tube_radius_m if args.radius_m is None else args.radius_m
-        # a radius on the command line has no spread
-        radius_sd_rel = meta.radius_sd_rel if args.radius_m is None else 0.0
+        # a radius on the command line has no spread, unless --radius-from gave one
+        radius_sd_rel = meta.radius_sd_rel if args.radius_m is None else (radius_sd_m or 0.0) / args.radius_m
         steps = read_motion_steps(args.motion, range(1, n))
         # the lumen scale the motion stage applied, from the steps' ring ratios: its 1-sigma is the radius's now
         applied = scale_of_steps(steps, lumen_scale_measured(_motion_settings(args), radius_sd_rel))
     else:
-        seq = Sequence.open(seq_dir, args.radius_m)
+        seq = Sequence.open(seq_dir, args.radius_m, radius_sd_m=radius_sd_m)
         n, rate, radius_sd_rel, radius_m = seq.n_frames, seq.frame_rate_hz, seq.radius_sd_rel, seq.radius_m
         steps = sequence_motion(seq_dir, _motion_settings(args), jobs=args.jobs, radius_m=args.radius_m,
+                                radius_sd_m=radius_sd_m,
                                 progress=Progress("motion"), problems=problems, fov_used=fov,
                                 lumen_scale_used=scale)
         applied = scale[0]
@@ -640,23 +642,32 @@ def _localize(args) -> int:
     return _print_problems(problems + loc.rf_problems)
 
 
+def _given_radius(args) -> float | None:
+    """``--radius-from``: sets ``args.radius_m`` to the radius an earlier batch run measured (it refuses both options
+    at once) and returns its 1-sigma (m; None where the summary states none: the radius is then taken as known, as
+    with ``--radius-m``)."""
+    from bodyslam.errors import ConfigError
+    from bodyslam.exam.batch import radius_from_summary
+
+    if getattr(args, "radius_from", None) is None:
+        return None
+    if args.radius_m is not None:
+        raise ConfigError("give the lumen radius by --radius-m or by --radius-from, not both")
+    args.radius_m, radius_sd_m = radius_from_summary(args.radius_from)
+    pm = f" +- {radius_sd_m * 100:.3f}" if radius_sd_m is not None else ""
+    print(f"lumen radius {args.radius_m * 100:.3f}{pm} cm, as {args.radius_from} measured it")
+    return radius_sd_m
+
+
 def _batch(args) -> int:
     from bodyslam.errors import ConfigError
-    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range,
-                                     radius_from_summary, read_marks, run_batch, unlit_text)
+    from bodyslam.exam.batch import (BatchSettings, open_exams, parse_frame_list, parse_frame_range, read_marks,
+                                     run_batch, unlit_text)
     from bodyslam.vision.tracking import path_share_text
     from bodyslam.steps import WITH_ESTIMATE
 
     _check_bias_states(args)
-    if args.radius_from is not None:
-        if args.radius_m is not None:
-            raise ConfigError("give the lumen radius by --radius-m or by --radius-from, not both")
-        args.radius_m, radius_sd_m = radius_from_summary(args.radius_from)
-        print(f"lumen radius {args.radius_m * 100:.3f}"
-              + (f" +- {radius_sd_m * 100:.3f}" if radius_sd_m is not None else "")
-              + f" cm, as {args.radius_from} measured it")
-    else:
-        radius_sd_m = None
+    radius_sd_m = _given_radius(args)
     marks = [(f, "") for f in parse_frame_list(args.mark)] if args.mark else []
     landmarks = parse_frame_list(args.landmark) if args.landmark else []
     frame_range = parse_frame_range(args.frame_range) if args.frame_range else None
@@ -802,12 +813,13 @@ def _motion_or_track(args) -> int:
     from bodyslam.vision.tracking import dead_reckon, path_travelled
 
     settings = _motion_settings(args)
-    seq = Sequence.open(args.seqdir, args.radius_m, args.camera)
+    radius_sd_m = _given_radius(args)
+    seq = Sequence.open(args.seqdir, args.radius_m, args.camera, radius_sd_m=radius_sd_m)
     check_writable(args.out)
     problems: list = []
     fov: list = []
     scale: list = []
-    steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m,
+    steps = sequence_motion(args.seqdir, settings, jobs=args.jobs, radius_m=args.radius_m, radius_sd_m=radius_sd_m,
                             progress=Progress(args.cmd), camera=args.camera, problems=problems, fov_used=fov,
                             lumen_scale_used=scale)
     counts = Counter(str(s.status) for s in steps)

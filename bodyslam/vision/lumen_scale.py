@@ -445,7 +445,8 @@ def lumen_scale_text(sc: dict | None) -> str:
     return (f"steps x{sc['factor']:.3f}{pm}, the median over the {sc['samples']}{sampled} steps that showed a ring "
             f"({'every' if sc['every_nth_step'] == 1 else 'every ' + _ordinal(sc['every_nth_step'])} step sampled) "
             "of a tube with one contraction ring against the "
-            f"cylinder: a cylinder of {sc['effective_radius_m'] * 100:.2f}{rpm} cm" + _chain_text(sc.get("scale_chain")))
+            f"cylinder: a cylinder of {sc['effective_radius_m'] * 100:.2f}{rpm} cm"
+            + _chain_text(sc.get("scale_chain")))
 
 
 def _chain_text(ch: dict | None) -> str:

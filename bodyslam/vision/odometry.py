@@ -749,7 +749,10 @@ class Sequence:
         return self.radius_sd_m / self.radius_m
 
     @classmethod
-    def open(cls, seq_dir: str | os.PathLike, radius_m: float | None = None, camera: str = "front") -> "Sequence":
+    def open(cls, seq_dir: str | os.PathLike, radius_m: float | None = None, camera: str = "front",
+             radius_sd_m: float | None = None) -> "Sequence":
+        """A sequence directory's frames and meta.json. ``radius_m``: the lumen radius given instead of meta.json's,
+        known exactly unless ``radius_sd_m`` gives its 1-sigma (``--radius-from``: the radius an exam measured)."""
         seq = Path(seq_dir)
         meta = read_meta(seq)
         if camera not in CAMERAS:
@@ -759,6 +762,9 @@ class Sequence:
             raise InputError(f"{seq}/meta.json: no tube_radius_m; give the lumen radius (--radius-m)")
         if not (math.isfinite(r) and r > 0):
             raise InputError(f"lumen radius must be a positive number of metres, got {r!r}")
+        sd = meta.tube_radius_sd_m if radius_m is None else float(radius_sd_m or 0.0)
+        if not (math.isfinite(sd) and 0 <= sd < r):
+            raise InputError(f"the lumen radius's 1-sigma must be below the radius, got {sd!r} m for {r!r} m")
         extr = None
         if camera == "front":
             cam_d, frames_dir = meta.camera, seq / meta.frames_dir
@@ -772,7 +778,7 @@ class Sequence:
             raise InputError(f"{frames_dir}: frames directory not found")
         src = FrameSource.sequence(frames_dir, meta.n_frames, meta.frame_rate_hz)
         return cls(seq, camera_from_dict(cam_d), cam_d, meta.n_frames, meta.frame_rate_hz, float(r), src, camera,
-                   extr, meta.tube_radius_sd_m if radius_m is None else 0.0, meta.lumen_shape_sd_rel)
+                   extr, sd, meta.lumen_shape_sd_rel)
 
     def frame(self, k: int) -> np.ndarray:
         """Frame ``k`` as RGB; raises :class:`InputError` when unreadable or of the wrong size."""
@@ -801,22 +807,24 @@ def sequence_motion(seq_dir: str | os.PathLike, settings: MotionSettings = Motio
                     jobs: int | None = None, radius_m: float | None = None, chunk_frames: int = 50,
                     progress: Callable[[int, int], None] | None = None, camera: str = "front",
                     problems: list | None = None, fov_used: list | None = None,
-                    lumen_scale_used: list | None = None) -> list[StepMotion]:
+                    lumen_scale_used: list | None = None, radius_sd_m: float | None = None) -> list[StepMotion]:
     """Per-step motion of every consecutive pair of a sequence (``n_frames - 1`` steps, in order), gaps
     bridged, rescaled by the lumen's scale seen in a sample of them where the radius is a prior
     (:func:`lumen_scale_measured`, :mod:`bodyslam.vision.lumen_scale`), each step's 1-sigma with the radius's
     uncertainty in it (:func:`with_lumen_uncertainty`: the measured factor's where it applies,
-    :func:`~bodyslam.vision.lumen_scale.radius_sd_rel_after`). ``camera="rear"``: a dual-camera capsule's rear frames, reported as the
-    body's motion. ``problems``: a list that receives ``[file, frame, severity, reason]`` for every bad frame;
+    :func:`~bodyslam.vision.lumen_scale.radius_sd_rel_after`). ``camera="rear"``: a dual-camera capsule's rear
+    frames, reported as the body's motion. ``problems``: a list that receives ``[file, frame, severity, reason]``
+    for every bad frame;
     ``fov_used``: one that receives the field-of-view mask the run used (None: the image circle; :func:`write_mask`
     writes it); ``lumen_scale_used``: one that receives the scale's summary
-    (:func:`~bodyslam.vision.lumen_scale.lumen_scale_summary`), or None where it was not measured."""
+    (:func:`~bodyslam.vision.lumen_scale.lumen_scale_summary`), or None where it was not measured; ``radius_sd_m``:
+    the 1-sigma of a ``radius_m`` given (:meth:`Sequence.open`)."""
     from bodyslam.parallel import imap_tasks
     from bodyslam.vision.lumen_scale import (exam_scale, exam_scale_sd_rel, local_sd_rel_after, lumen_scale_summary,
                                              radius_sd_rel_after, rescaled, ring_tried)
     from bodyslam.vision.lumen_scale import ring_every as sample_every
 
-    seq = Sequence.open(seq_dir, radius_m, camera)
+    seq = Sequence.open(seq_dir, radius_m, camera, radius_sd_m=radius_sd_m)
     n = seq.n_frames
     if n < 2:
         raise InputError(f"{seq_dir}: need at least 2 frames, meta.json says {n}")

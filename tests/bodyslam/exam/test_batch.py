@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 import signal
 import subprocess
@@ -747,6 +748,25 @@ def test_a_clip_takes_the_lumen_radius_its_exam_measured(tmp_path):
     assert (old_summary["radius_m"], old_summary["radius_sd_m"]) == (0.0092, 0.0)
     # the radius's 1-sigma widens the path's
     assert summary["sd_path_travelled_m"] > old_summary["sd_path_travelled_m"]
+    # bodyslam motion (and track, localize) take it too: the same distances as with --radius-m, each step's 1-sigma
+    # with the radius's share in it
+    from bodyslam.io import read_motion_csv
+
+    assert cli_main(["motion", str(DEMO), "--out", str(tmp_path / "from.csv"), "--mode", "fast", "--jobs", "1",
+                     "--radius-from", str(exam)]) == 0
+    assert cli_main(["motion", str(DEMO), "--out", str(tmp_path / "known.csv"), "--mode", "fast", "--jobs", "1",
+                     "--radius-m", "0.0092"]) == 0
+    a, b = read_motion_csv(tmp_path / "from.csv"), read_motion_csv(tmp_path / "known.csv")
+    fitted = [k for k in a if a[k]["distance_m"] > 1e-4 and a[k]["status"] == "ok"]
+    assert fitted and all(a[k]["distance_m"] == b[k]["distance_m"] for k in a)
+    for k in fitted:  # the fit's and the shape's shares are the same in both: the difference is the radius's
+        share = math.sqrt(a[k]["sigma_distance_m"] ** 2 - b[k]["sigma_distance_m"] ** 2)
+        assert share == pytest.approx(0.0008 / 0.0092 * a[k]["distance_m"], rel=1e-3), k  # (9 digits in the CSV)
+    assert cli_main(["motion", str(DEMO), "--out", str(tmp_path / "both.csv"), "--radius-from", str(exam),
+                     "--radius-m", "0.01"]) == 1
+    assert cli_main(["localize", str(DEMO), "--out", str(tmp_path / "loc"), "--motion", str(tmp_path / "from.csv"),
+                     "--radius-from", str(tmp_path / "broken_sd.json")]) == 1
+    assert not (tmp_path / "both.csv").exists() and not (tmp_path / "loc").exists()
     assert cli_main(["batch", str(DEMO / "frames"), "--out", str(tmp_path / "both"), "--radius-from", str(exam),
                      "--radius-m", "0.01"]) == 1
     assert cli_main(["batch", str(DEMO / "frames"), "--out", str(tmp_path / "none"),
