@@ -258,8 +258,16 @@ def _score_motion(args) -> int:
 
     rep = score_motion(args.seqdir, args.motion_csv)
     if (Path(args.seqdir) / "meta.json").exists():
+        from bodyslam.io import read_motion_steps
+        from bodyslam.vision.lumen_scale import radius_sd_rel_after, scale_of_steps
+        from bodyslam.vision.odometry import MotionSettings, lumen_scale_measured
+
         meta = read_meta(args.seqdir)
-        rel, radius_m = meta.radius_sd_rel, meta.tube_radius_m
+        # the radius's 1-sigma the steps carry: the lumen scale's where the motion stage applied one (its ring ratios
+        # in motion.csv), else the prior's -- as testbed evaluate and bodyslam localize --motion take it
+        steps = read_motion_steps(args.motion_csv, range(1, meta.n_frames))
+        lumen = scale_of_steps(steps, lumen_scale_measured(MotionSettings(), meta.radius_sd_rel))
+        rel, radius_m = radius_sd_rel_after(lumen, meta.radius_sd_rel), meta.tube_radius_m
     else:  # Table 4.1 needs only the truth; the path's 1-sigma then leaves out the radius prior's spread
         rel, radius_m = 0.0, None
         print(f"note: {args.seqdir}: no meta.json, so the path's 1-sigma has no lumen-radius share and a step lost "

@@ -384,9 +384,9 @@ def radius_from_summary(path: str | os.PathLike) -> tuple[float, float | None]:
     """The lumen radius (m) an earlier `bodyslam batch` run measured for its exam, and its 1-sigma (m; None in a
     summary written before session 63, which states none): the ``effective_radius_m`` and ``effective_radius_sd_m``
     of its lumen scale (:func:`bodyslam.vision.lumen_scale.lumen_scale_summary`), for a clip cut from that exam, too
-    short to
-    measure its own (``--radius-from``; docs/RESULTS.md, "Short clips: ... their scale", session 61: 18-frame clips
-    of the realistic testbed at a real exam's pace read +45% with the radius prior, +9% with their exam's radius).
+    short to measure its own (``--radius-from``; docs/RESULTS.md, "Short clips: ... their scale", session 61:
+    18-frame clips of the realistic testbed at a real exam's pace read +45% with the radius prior, +9% with their
+    exam's radius).
     ``path``: the exam's ``summary.json``, the study's (one exam), or the directory holding either.
 
     Raises

@@ -293,6 +293,13 @@ def test_motion_and_batch_apply_the_same_lumen_scale(tmp_path, monkeypatch):
     assert set(radius_shares) == {(rel, lumen_scale.SCALE_LOCAL_SD_REL)}
     assert summary["lumen_scale"]["local_sd_rel"] == lumen_scale.SCALE_LOCAL_SD_REL
     path, var = path_travelled(steps, rel, meta["tube_radius_m"])
+    # testbed score-motion states the same path 1-sigma from motion.csv's ring ratios
+    from testbed.cli import main as testbed_main
+
+    assert testbed_main(["score-motion", str(seq), str(tmp_path / "motion.csv"), "--json",
+                         str(tmp_path / "score.json")]) == 0
+    scored = json.loads((tmp_path / "score.json").read_text())["path_travelled"]
+    assert scored["sigma_m"] == pytest.approx(math.sqrt(var[-1]), rel=1e-6)
     assert summary["path_travelled_m"] == pytest.approx(path[-1], rel=1e-6)
     assert summary["sd_path_travelled_m"] == pytest.approx(math.sqrt(var[-1]), rel=1e-6)
 
