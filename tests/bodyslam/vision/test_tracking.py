@@ -359,6 +359,22 @@ def test_the_loss_curves_scale_is_the_exams_own(monkeypatch):
     # measured: 0.39 radii at the exam's scale against 0.64 at the measured curve's (true 0.15): such runs are
     # still filled long, less so (the slow renders' rotation runs: 8.4 -> 7.5 and 8.5 -> 6.5 cm for 1.3 and 2.1)
     assert 0.15 * R < np.median(m[lost2]) < 0.7 * np.median(fixed[lost2])
+    # a matcher that reaches twice as far (the ideal tube's texture: half its steps lost at 0.8 radii; steps of
+    # 0.2-1 radii whose speed changes slowly) takes the largest scale (session 63), and its lost steps are filled
+    # right on the whole (measured: 1.01 of their true length against 0.93 at the measured curve's scale)
+    monkeypatch.setattr("bodyslam.vision.tracking.LOSS_SCALE_GRID", LOSS_SCALE_GRID)
+    assert max(LOSS_SCALE_GRID) == 2.0
+    rng = np.random.default_rng(0)
+    slow = np.convolve(rng.normal(0, 1, n + 60), np.ones(60) / np.sqrt(60), "valid")[:n]
+    d3 = R * np.minimum(np.exp(np.log(0.45) + 0.35 * slow + rng.normal(0, 0.15, n)), 0.98)
+    lost3 = rng.random(n) < 1 / (1 + (d3 / (2.0 * LOST_STEP_FLOOR_R * R)) ** -3.5)
+    args3 = (np.where(lost3, np.nan, d3), np.where(lost3, 0, (0.05 * d3) ** 2), lost3, R)
+    m3, _ = missing_step_lengths(*args3, info=info)
+    assert info["loss_scale"] == 2.0 and 150 < lost3.sum() < 400
+    monkeypatch.setattr("bodyslam.vision.tracking.LOSS_SCALE_GRID", (1.0,))
+    at_measured, _ = missing_step_lengths(*args3)
+    ratio, ratio_measured = m3[lost3].sum() / d3[lost3].sum(), at_measured[lost3].sum() / d3[lost3].sum()
+    assert abs(ratio - 1.0) < 0.05 and ratio_measured < ratio - 0.04
 
 
 def test_the_share_of_the_path_without_an_estimate_counts_the_filled_steps_only():
