@@ -12,8 +12,8 @@ the sequence keeps (scoring only; the pipeline never reads it):
   the wall;
 - FT/FL (`frames.csv` against `labels.csv`): lumen-facing frames called FL, wall-facing frames found;
 - the fused trajectory (`trajectory.tum` against `groundtruth.tum`): mean position error, and the share of frames
-  inside the 68% ellipsoid of their stated per-axis 1-sigma (`uncertainty.csv`; its axes only, their correlations
-  are not written).
+  inside the 68% ellipsoid of their stated covariance (`uncertainty.csv`: the per-axis 1-sigma and, since session 63,
+  their correlations; an older file's per-axis 1-sigma alone).
 
 Prints a line per seed and the mean over seeds; ``--json`` writes them. Use tuning seeds (500-599) to choose
 anything and reporting seeds (700-799) to report (README, "Seeds"). ``--frames`` and ``--set`` change the scenario as
@@ -65,10 +65,19 @@ def score_exam(seq: Path, ex: Path) -> dict:
     _, p_est, _ = read_tum(ex / "trajectory.tum")
     _, p_true, _ = read_tum(seq / "groundtruth.tum")
     err = p_est - p_true
-    sd = np.array([[float(r[k]) for k in ("sd_x_m", "sd_y_m", "sd_z_m")]
-                   for r in csv.DictReader(open(ex / "uncertainty.csv", newline=""))])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inside = np.sum((err / sd) ** 2, axis=1) <= CHI2_3DOF_68
+    rows_u = list(csv.DictReader(open(ex / "uncertainty.csv", newline="")))
+    sd = np.array([[float(r[k]) for k in ("sd_x_m", "sd_y_m", "sd_z_m")] for r in rows_u])
+    if rows_u and "corr_xy" in rows_u[0]:  # the whole covariance (since session 63): its 68% ellipsoid
+        corr = np.array([[float(r[k] or "nan") for k in ("corr_xy", "corr_xz", "corr_yz")] for r in rows_u])
+        c = np.repeat(np.eye(3)[None], len(sd), axis=0)
+        for col, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
+            c[:, i, j] = c[:, j, i] = np.nan_to_num(corr[:, col])
+        cov = c * sd[:, :, None] * sd[:, None, :]
+        inside = np.array([np.isfinite(e).all() and np.all(np.isfinite(v)) and np.linalg.det(v) > 0
+                           and float(e @ np.linalg.solve(v, e)) <= CHI2_3DOF_68 for e, v in zip(err, cov)])
+    else:  # an older run's file: the per-axis 1-sigma alone (its correlations not written)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inside = np.sum((err / sd) ** 2, axis=1) <= CHI2_3DOF_68
     return {
         "path_m": path, "sd_path_m": sd_path, "true_path_m": true_path, "path_error_rel": path / true_path - 1.0,
         "path_inside_1sigma": bool(abs(path - true_path) <= sd_path),

@@ -146,3 +146,28 @@ def test_localize_cli_on_the_demo(tmp_path):
     assert p.returncode == 0, p.stderr
     _, est3, _ = read_tum(tmp_path / "loc3" / "trajectory.tum")
     assert np.abs(est3 - est).max() > 1e-4
+
+
+def test_uncertainty_csv_keeps_the_whole_position_covariance(tmp_path):
+    """The per-axis 1-sigma and the three correlation coefficients rebuild each frame's 3x3 position covariance to
+    the CSV's 9 digits; an axis without spread (a localizer that states none) leaves its correlations empty."""
+    import csv
+
+    from bodyslam.fusion.localize import UNCERTAINTY_COLUMNS, write_uncertainty
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 3, 3)) * 0.01
+    cov = a @ np.transpose(a, (0, 2, 1)) + np.eye(3) * 1e-6
+    cov[4] = np.diag([1e-4, 0.0, 4e-4])
+    write_uncertainty(tmp_path / "u.csv", np.arange(5), np.arange(5) * 0.5, cov)
+    rows = list(csv.DictReader(open(tmp_path / "u.csv", newline="")))
+    assert list(rows[0]) == UNCERTAINTY_COLUMNS
+    for k, r in enumerate(rows[:4]):
+        sd = np.array([float(r[c]) for c in ("sd_x_m", "sd_y_m", "sd_z_m")])
+        c = np.eye(3)
+        c[0, 1] = c[1, 0] = float(r["corr_xy"])
+        c[0, 2] = c[2, 0] = float(r["corr_xz"])
+        c[1, 2] = c[2, 1] = float(r["corr_yz"])
+        assert np.allclose(c * np.outer(sd, sd), cov[k], rtol=1e-7, atol=1e-15)
+        assert abs(float(r["corr_xy"])) > 0.01  # these covariances do correlate their axes
+    assert rows[4]["corr_xy"] == "" and rows[4]["corr_yz"] == "" and float(rows[4]["corr_xz"]) == 0.0
