@@ -424,13 +424,12 @@ def open_exams(inputs: list[str], calib: str | None = None, fps: float | None = 
                landmarks: list[int] | None = None, problems: list | None = None,
                frame_range: tuple[int, int | None] | None = None, radius_sd_m: float | None = None) -> list[Exam]:
     """Exams from command-line inputs: frame folders, sequence directories, videos, manifests (CSV/JSON).
-    ``radius_sd_m``: the 1-sigma of ``radius_m`` (None or 0: the radius given is taken as known; a manifest row's own
-    radius always is).
 
     A manifest lists one exam per row (CSV with a header) or object (JSON list): ``input`` and optionally
     ``name, calib, fps, radius_m, mask, rf, sensors, marks, landmarks, frame_range`` (frame lists as
     ``"120;455"``, the range as ``"1200-48000"``: :func:`parse_frame_range`); relative paths are relative to the
-    manifest. Command-line options are defaults for every exam.
+    manifest. Command-line options are defaults for every exam. ``radius_sd_m``: the 1-sigma of ``radius_m`` (None or
+    0: the radius given is taken as known; a manifest row's own radius always is).
 
     ``problems``: in a study (several inputs or manifest rows), an exam that cannot be opened is listed there as
     ``[source, "", "error", reason]`` and the others go on (the study then exits 3); without it, or when no exam

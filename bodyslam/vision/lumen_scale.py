@@ -301,11 +301,16 @@ def shows_rings(samples: int, tried: int) -> bool:
     return float(binom.sf(samples - 1, max(int(tried), samples), RING_NULL_SHARE)) < RING_SHARE_ALPHA
 
 
+def _finite_ratios(ratios) -> np.ndarray:
+    """The ratios that were measured (not None, finite, positive), as an array."""
+    return np.asarray([x for x in ratios if x is not None and math.isfinite(x) and x > 0], float)
+
+
 def exam_scale(ratios, tried: int) -> tuple[float, int]:
     """``(factor, samples)``: the median of an exam's finite ring ratios where they say it shows rings
     (:func:`shows_rings`, ``tried`` the steps the ring was fitted to: :func:`ring_tried`), else 1.0 (the prior's
     scale)."""
-    r = np.asarray([x for x in ratios if x is not None and math.isfinite(x) and x > 0], float)
+    r = _finite_ratios(ratios)
     if not shows_rings(len(r), tried):
         return 1.0, int(len(r))
     return float(np.median(r)), int(len(r))
@@ -334,7 +339,7 @@ def exam_scale_sd_rel(ratios) -> float:
     sqrt(n)`` with ``s`` the robust spread (1.4826 MAD) of ``ln`` of the ``n`` finite ratios (the factor multiplies,
     and one ratio's spread is ~0.15-0.5 in ``ln`` on realistic runs), and :data:`SCALE_SD_FLOOR_REL` in quadrature.
     NaN where there are no ratios."""
-    r = np.asarray([x for x in ratios if x is not None and math.isfinite(x) and x > 0], float)
+    r = _finite_ratios(ratios)
     if not len(r):
         return math.nan
     lr = np.log(r)
