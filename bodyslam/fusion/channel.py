@@ -29,8 +29,20 @@ memory), so :func:`smoother_inflation` weights lag ``l`` by :func:`two_sided_lag
 session 16, when it under-covered, 57% inside the 68% ellipsoid on tuning seeds 503-509, because the process
 noise understated the steps lost to motion; with them stated, 70% against 83% untapered, docs/RESULTS.md).
 
-What it does not see: error the residuals cannot show (the estimate follows part of the correlated error, so
-``kappa`` is if anything low), and error from the vision's heading. On the ideal ``thesis`` channel ``kappa`` is 1.0.
+What the estimate takes up (``fitted_dof``, session 64). The residuals are read at the estimated positions, and a
+position moves to fit part of each slow error: of a persistent offset on ``m`` sensors, a fit with ``p`` position
+parameters leaves ``m - p`` of its ``m`` dimensions in the residuals (the projection onto the orthogonal
+complement of the readings' position Jacobian, as a least-squares fit's residual sum of squares has ``n - p`` degrees
+of freedom). The correlations measured there are therefore low by ``(m - p) / m``, and the position's error is the
+part they do not show. ``fitted_dof = 3`` (:data:`POSITION_DOF`, the position's three coordinates) scales the
+summed correlations by ``m / (m - 3)``, ``m`` the sensors that gave a reading so far: 32 / 29 = 1.10 on the testbed's
+32 sensors, 1.6 on an 8-antenna belt. Measured on tuning runs (the per-sensor mean residual's energy at the true
+positions over that at the estimated ones, readings beyond 4 sigma left out): 1.11 on ``realistic`` 540-549 and 1.13
+on ``realistic_exam`` 587-594, i.e. 3.2 and 3.6 dimensions taken up of 32 (docs/RESULTS.md, "What the fit takes
+up"). The start's search windows (:mod:`bodyslam.fusion.body_slam`) read the correlations as measured.
+
+What it does not see: the vision's heading error. On the ideal ``thesis`` channel ``kappa`` is 1.0 (no lag is
+significant, so nothing is scaled).
 
 Units: dB for readings, frames for lags.
 """
@@ -47,7 +59,8 @@ from bodyslam.fusion.body_slam import FusionResult
 from bodyslam.fusion.rf import PathLossModel
 
 __all__ = ["ResidualCorrelation", "normalised_residuals", "residual_correlation", "causal_inflation", "filter_memory",
-           "smoother_inflation", "two_sided_lag_weights", "inflate", "MAX_LAG_FRAMES", "STATED_MAX_LAG_FRAMES"]
+           "smoother_inflation", "two_sided_lag_weights", "inflate", "MAX_LAG_FRAMES", "STATED_MAX_LAG_FRAMES",
+           "POSITION_DOF"]
 
 # lags looked at by default: 30 frames (15 s at the PillCam SB's 2 fps). A sensor's constant departure from the
 # calibration correlates at every lag; the cap is where this estimate stops counting it (a stated choice). The start
@@ -65,6 +78,8 @@ STATED_MAX_LAG_FRAMES = 120
 # a lag counts once it has this many reading pairs (a few frames of a sensor array): with 16 pairs white noise
 # passes the significance test 2.5% of the time at a correlation of 0.5 and more (measured: kappa 2.1 at frame 1)
 MIN_PAIRS = 100
+# the estimate's parameters per frame that fit the readings' slow errors (module docstring): its position's three
+POSITION_DOF = 3
 # frames per block of :func:`normalised_residuals` (~1 MB per intermediate at 32 sensors)
 RESIDUAL_BLOCK_FRAMES = 4096
 
@@ -77,17 +92,21 @@ def _frame_blocks(n: int):
 
 @dataclass(frozen=True)
 class ResidualCorrelation:
-    """Pooled autocorrelation ``rho (L,)`` of the normalised RSS residuals at lags ``1 .. L`` frames, the pairs
-    behind each, the lags summed (``n_lags``) and the variance inflation factor ``kappa >= 1``."""
+    """Pooled autocorrelation ``rho (L,)`` of the normalised RSS residuals at lags ``1 .. L`` frames (as measured),
+    the pairs behind each, the lags summed (``n_lags``), the factor the summed correlations were scaled by for what
+    the estimate took up (``fitted_gain``, ``m / (m - p)``; 1 where none, module docstring) and the variance
+    inflation factor ``kappa = max(1, 1 + 2 fitted_gain sum rho) >= 1``."""
 
     rho: np.ndarray
     n_pairs: np.ndarray
     n_lags: int
     kappa: float
+    fitted_gain: float = 1.0
 
     def as_dict(self) -> dict:
         return {"kappa": round(self.kappa, 3), "lags_summed": self.n_lags,
-                "rho_lag1": None if not len(self.rho) else round(float(self.rho[0]), 3)}
+                "rho_lag1": None if not len(self.rho) else round(float(self.rho[0]), 3),
+                "fitted_gain": round(self.fitted_gain, 3)}
 
 
 def normalised_residuals(rss_dbm: np.ndarray, positions_w_m: np.ndarray, sensors_w_m: np.ndarray,
@@ -146,8 +165,18 @@ def _running(total: np.ndarray | None, x: np.ndarray) -> np.ndarray:
     return np.cumsum(x, 0) if total is None else np.cumsum(np.concatenate([total[None], x]), 0)[1:]
 
 
-def _kappa(prod: np.ndarray, cnt: np.ndarray, sq: np.ndarray, n_sq: np.ndarray):
-    """``(rho, n_lags, kappa)`` along the last axis (works per frame on cumulative sums)."""
+def _fitted_gain(n_sensors, fitted_dof: int):
+    """``m / (m - p)`` for ``m`` sensors (a number or per frame) and ``p`` = ``fitted_dof`` parameters fitted
+    (module docstring); 1 for ``p = 0``. At most ``m`` (one sensor's worth of residual left) where ``m <= p + 1``."""
+    m = np.asarray(n_sensors, float)
+    if fitted_dof <= 0:
+        return np.ones_like(m)
+    return m / np.maximum(m - fitted_dof, 1.0)
+
+
+def _kappa(prod: np.ndarray, cnt: np.ndarray, sq: np.ndarray, n_sq: np.ndarray, gain=1.0):
+    """``(rho, n_lags, kappa)`` along the last axis (works per frame on cumulative sums); ``gain`` (a number, or
+    per frame) scales the summed correlations (:func:`_fitted_gain`), not ``rho``."""
     var = sq / np.maximum(n_sq, 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = (prod / np.maximum(cnt, 1)) / var[..., None]
@@ -156,14 +185,15 @@ def _kappa(prod: np.ndarray, cnt: np.ndarray, sq: np.ndarray, n_sq: np.ndarray):
     # initial sequence: lags before the first insignificant one
     first = np.where(insignificant.any(axis=-1), insignificant.argmax(axis=-1), rho.shape[-1])
     keep = np.arange(rho.shape[-1]) < first[..., None]
-    kappa = np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep, rho, 0.0), axis=-1))
+    kappa = np.maximum(1.0, 1.0 + 2.0 * np.asarray(gain) * np.sum(np.where(keep, rho, 0.0), axis=-1))
     return rho, first, kappa
 
 
-def residual_correlation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES) -> ResidualCorrelation:
-    """The correlation of a whole run's normalised residuals ``z (n, m)`` (module docstring). The lag sums in blocks
-    of frames (:func:`_frame_blocks`), added frame after frame as one sum over the frames adds them: at once their
-    ``(n, L)`` arrays took ~1 kB a frame (issue 17)."""
+def residual_correlation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, fitted_dof: int = 0) -> ResidualCorrelation:
+    """The correlation of a whole run's normalised residuals ``z (n, m)`` (module docstring); ``fitted_dof``: the
+    parameters per frame of the estimate the residuals were read at (:data:`POSITION_DOF`; 0: the correlations as
+    measured). The lag sums in blocks of frames (:func:`_frame_blocks`), added frame after frame as one sum over the
+    frames adds them: at once their ``(n, L)`` arrays took ~1 kB a frame (issue 17)."""
     z = np.asarray(z, float)
     prod = cnt = None
     sq, n_sq = np.empty(len(z)), np.empty(len(z))
@@ -172,35 +202,42 @@ def residual_correlation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES) -> Residu
         prod, cnt = _running(prod, p)[-1], _running(cnt, c)[-1]
     if prod is None:
         prod, cnt = np.zeros(max_lag), np.zeros(max_lag)
-    rho, first, kappa = _kappa(prod, cnt, sq.sum(), n_sq.sum())
-    return ResidualCorrelation(rho, cnt.astype(int), int(first), float(kappa))
+    gain = float(_fitted_gain(np.isfinite(z).any(axis=0).sum(), fitted_dof))
+    rho, first, kappa = _kappa(prod, cnt, sq.sum(), n_sq.sum(), gain)
+    return ResidualCorrelation(rho, cnt.astype(int), int(first), float(kappa), gain)
 
 
-def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.ndarray | None = None) -> np.ndarray:
+def causal_inflation(z: np.ndarray, max_lag: int = MAX_LAG_FRAMES, memory: np.ndarray | None = None,
+                     fitted_dof: int = 0) -> np.ndarray:
     """``kappa (n,)``: frame ``k``'s from the residuals of frames ``0 .. k`` only (1 until any lag is
     significant). ``memory (n,)``: the filter's per-frame memory ``a_k`` (:func:`filter_memory`), lag ``l``
     weighted by ``a_k^l`` (module docstring); None: every lag in full, as for an average over the whole run.
+    ``fitted_dof``: as :func:`residual_correlation`'s, ``m`` the sensors that gave a reading in frames ``0 .. k``.
     A block of frames at a time, the running sums carried from block to block (at once: ~10 arrays of ``(n, L)``)."""
     z = np.asarray(z, float)
     lags = np.arange(1, max_lag + 1)
     mem = None if memory is None else np.asarray(memory, float)
     kappa = np.empty(len(z))
     prod = cnt = sq = n_sq = None
+    seen = np.zeros(z.shape[1], bool)  # the sensors with a reading so far
     for rows in _frame_blocks(len(kappa)):
         p, c, s, ns = _lag_sums(z, max_lag, rows)
         prod, cnt, sq, n_sq = _running(prod, p), _running(cnt, c), _running(sq, s), _running(n_sq, ns)
-        rho, first, kappa[rows] = _kappa(prod, cnt, sq, n_sq)
+        seen_k = np.logical_or.accumulate(np.vstack([seen, np.isfinite(z[rows])]), axis=0)[1:]
+        gain = _fitted_gain(seen_k.sum(axis=1), fitted_dof)
+        rho, first, kappa[rows] = _kappa(prod, cnt, sq, n_sq, gain)
         if mem is not None:
-            kappa[rows] = _weighted_kappa(rho, first, mem[rows, None] ** lags[None])
-        prod, cnt, sq, n_sq = prod[-1], cnt[-1], sq[-1], n_sq[-1]
+            kappa[rows] = _weighted_kappa(rho, first, mem[rows, None] ** lags[None], gain)
+        prod, cnt, sq, n_sq, seen = prod[-1], cnt[-1], sq[-1], n_sq[-1], seen_k[-1]
     return kappa
 
 
-def _weighted_kappa(rho: np.ndarray, n_lags, w: np.ndarray) -> np.ndarray:
+def _weighted_kappa(rho: np.ndarray, n_lags, w: np.ndarray, gain=1.0) -> np.ndarray:
     """``kappa (n,)`` from the correlations ``rho`` (``(L,)`` or ``(n, L)``) of their first ``n_lags`` lags (a number
-    or ``(n,)``), lag ``l`` weighted per frame by ``w (n, L)``: ``max(1, 1 + 2 sum_l w_l rho_l)``."""
+    or ``(n,)``), lag ``l`` weighted per frame by ``w (n, L)``: ``max(1, 1 + 2 gain sum_l w_l rho_l)`` (``gain``: a
+    number or per frame, :func:`_fitted_gain`)."""
     keep = np.arange(1, w.shape[1] + 1)[None] <= np.reshape(n_lags, (-1, 1))
-    return np.maximum(1.0, 1.0 + 2.0 * np.sum(np.where(keep, np.atleast_2d(rho) * w, 0.0), axis=1))
+    return np.maximum(1.0, 1.0 + 2.0 * np.asarray(gain) * np.sum(np.where(keep, np.atleast_2d(rho) * w, 0.0), axis=1))
 
 
 def two_sided_lag_weights(memory: np.ndarray, max_lag: int) -> np.ndarray:
@@ -221,7 +258,8 @@ def smoother_inflation(corr: ResidualCorrelation, memory: np.ndarray | None) -> 
     memory = np.asarray(memory, float)
     kappa = np.empty(len(memory))
     for rows in _frame_blocks(len(kappa)):  # (the (n, L) lag weights a block at a time)
-        kappa[rows] = _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory[rows], len(corr.rho)))
+        kappa[rows] = _weighted_kappa(corr.rho, corr.n_lags, two_sided_lag_weights(memory[rows], len(corr.rho)),
+                                      corr.fitted_gain)
     return kappa
 
 

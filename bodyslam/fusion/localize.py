@@ -14,8 +14,9 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
    (``Localization.rts``);
 5. their covariances scaled by the readings' measured correlation (:mod:`bodyslam.fusion.channel`: the smoother's
    by the whole exam's, the online filter's frame ``k`` by frames ``0 .. k``'s, over lags up to
-   :data:`~bodyslam.fusion.channel.STATED_MAX_LAG_FRAMES`), so that the stated 1-sigma admits a channel that is not
-   the calibration's independent shadowing (1.0 on an ideal one);
+   :data:`~bodyslam.fusion.channel.STATED_MAX_LAG_FRAMES`, the summed correlations scaled by ``m / (m - 3)`` for what
+   the positions they were read at took up, :data:`~bodyslam.fusion.channel.POSITION_DOF`), so that the stated
+   1-sigma admits a channel that is not the calibration's independent shadowing (1.0 on an ideal one);
 6. the path travelled (:func:`bodyslam.vision.tracking.path_travelled`).
 
 :func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
@@ -38,8 +39,9 @@ import numpy as np
 from bodyslam.errors import InputError
 from bodyslam.fusion.body_slam import RSS_BIAS_STATES, FusionResult, fuse, released, rts_smooth
 from bodyslam.fusion.refine import refine_map
-from bodyslam.fusion.channel import (STATED_MAX_LAG_FRAMES, ResidualCorrelation, causal_inflation, filter_memory,
-                                     inflate, normalised_residuals, residual_correlation, smoother_inflation)
+from bodyslam.fusion.channel import (POSITION_DOF, STATED_MAX_LAG_FRAMES, ResidualCorrelation, causal_inflation,
+                                     filter_memory, inflate, normalised_residuals, residual_correlation,
+                                     smoother_inflation)
 from bodyslam.io import write_csv, write_image, write_tum
 from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_sensors, rss_per_frame
 from bodyslam.steps import StepMotion, lost_step_floor_m
@@ -156,7 +158,8 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     if honest_cov:
         kappa_online = online_inflation(ekf, rss, rf, memory)
         channel = residual_correlation(normalised_residuals(rss_net, smoothed.positions_w_m, rf.sensors_w_m,
-                                                            rf.normals_w, rf.pathloss), STATED_MAX_LAG_FRAMES)
+                                                            rf.normals_w, rf.pathloss), STATED_MAX_LAG_FRAMES,
+                                       POSITION_DOF)
         kappa_smoothed = smoother_inflation(channel, memory)
         ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
     path, var = path_travelled(steps, radius_sd_rel, radius_m) if travelled else (None, None)
@@ -173,7 +176,7 @@ def online_inflation(res: FusionResult, rss: np.ndarray, rf: RfInput,
     when not given)."""
     return causal_inflation(normalised_residuals(net_of_bias(res, rss), res.positions_w_m, rf.sensors_w_m,
                                                  rf.normals_w, rf.pathloss),
-                            STATED_MAX_LAG_FRAMES, filter_memory(res) if memory is None else memory)
+                            STATED_MAX_LAG_FRAMES, filter_memory(res) if memory is None else memory, POSITION_DOF)
 
 
 def net_of_bias(res: FusionResult, rss: np.ndarray) -> np.ndarray:
