@@ -11,7 +11,10 @@ hundreds of cheap runs:
 - a synthetic capsule path at a chosen pace (`exam`: 0.06 cm a frame, 400 frames, as `realistic_exam` and most of a
   real exam; `thesis`: 0.4 cm, 200 frames, the dissertation's pace), its turn per cm the same at both;
 - visual steps whose translation and rotation carry noise drawn from their own stated 1-sigma (7.5% of the step per
-  axis, 0.2 deg per axis: at the filter's floors at the thesis pace);
+  axis, 0.2 deg per axis: at the filter's floors at the thesis pace); with ``--lost`` / ``--rotation-only`` a share
+  of the steps (drawn at random per step) has no estimate (status ``too_few_matches``: the filters' constant-velocity
+  rule) or its rotation only (status ``rotation``, at the guided fit's usual 1-sigma of 2 deg), as the realistic
+  testbed's fast steps have (about 12% and 18% of them at the dissertation's pace);
 - RSS from the thesis sensor grids through a channel (`ideal`, `shadowing`: correlated along the path only,
   `departures`: per-sensor path-loss offsets and placement error only, `realistic`: the `realistic` scenario's own
   `[rf.channel]`, read from its file).
@@ -22,6 +25,7 @@ its median, the share of frames inside the 68% ellipsoid, the mean error, and th
 Synthetic seeds: the generator's, not a testbed scenario's (they choose nothing unless a session says so).
 
     .venv/bin/python benchmarks/bench_stated_sigma.py [--pace exam,thesis] [--channel ideal,realistic] [--runs 100]
+        [--lost 0.12 --rotation-only 0.18]
 
 About 0.1-0.3 s a run on this machine (100 runs of both paces and two channels: ~1 minute).
 """
@@ -36,13 +40,14 @@ from scipy.spatial.transform import Rotation
 
 from bodyslam.fusion.localize import RfInput, localize
 from bodyslam.fusion.rf import PathLossModel
-from bodyslam.steps import motion_from_transform
+from bodyslam.steps import StepMotion, StepStatus, motion_from_transform, rotation_step
 from testbed.rf import ChannelModel, SensorLayout, emulate_rf
 from testbed.scenario import load_scenario
 
 PACES = {"exam": (0.0006, 400), "thesis": (0.004, 200)}  # step (m), frames
 CHI2_3DOF_68 = 3.527
 STEP_SIGMA_FRAC, STEP_SIGMA_R_RAD = 0.075, np.radians(0.2)
+GUIDED_SIGMA_R_RAD = np.radians(2.0)  # a rotation-only step's (bodyslam.vision.guided.rotation_sigma_rad at ~100 matches)
 
 
 def channels() -> dict[str, ChannelModel]:
@@ -53,9 +58,11 @@ def channels() -> dict[str, ChannelModel]:
             "realistic": real}
 
 
-def synthetic_run(seed: int, step_m: float, n: int):
-    """Visual steps (noise drawn from their stated 1-sigma), the true positions ``(n, 3)``, the sensor layout."""
+def synthetic_run(seed: int, step_m: float, n: int, lost: float = 0.0, rotation_only: float = 0.0):
+    """Visual steps (noise drawn from their stated 1-sigma; shares ``lost`` and ``rotation_only`` of them without an
+    estimate or with their rotation only) and the true positions ``(n, 3)``."""
     rng = np.random.default_rng(seed)
+    kind_rng = np.random.default_rng([seed, 1])  # (the steps' noise stays the same whatever the shares)
     per_cm = step_m / 0.004  # the thesis generator's turns, per cm of path
     R, p = Rotation.from_rotvec([0.4, -0.3, 0.2]), np.array([-0.04, 0.0, -0.04])
     steps, truth = [], [p]
@@ -66,16 +73,25 @@ def synthetic_run(seed: int, step_m: float, n: int):
                                               2.0 * per_cm]))
         t = np.array([0.0, 0.0, step_m])
         measured = Rs * Rotation.from_rotvec(rng.normal(0.0, STEP_SIGMA_R_RAD, 3))
-        steps.append(motion_from_transform(measured, t + rng.normal(0.0, sig_t, 3),
-                                           sigma_distance_m=sig_t, sigma_rotation_rad=STEP_SIGMA_R_RAD))
+        t_noise = rng.normal(0.0, sig_t, 3)
+        u_kind = kind_rng.random()
+        if u_kind < lost:
+            steps.append(StepMotion.failed(StepStatus.TOO_FEW_MATCHES))
+        elif u_kind < lost + rotation_only:
+            guided = Rs * Rotation.from_rotvec(kind_rng.normal(0.0, GUIDED_SIGMA_R_RAD, 3))
+            steps.append(rotation_step(guided, 100, GUIDED_SIGMA_R_RAD))
+        else:
+            steps.append(motion_from_transform(measured, t + t_noise, sigma_distance_m=sig_t,
+                                               sigma_rotation_rad=STEP_SIGMA_R_RAD))
         p = p + R.apply(t)
         R = R * Rs
         truth.append(p)
     return steps, np.array(truth)
 
 
-def score_run(seed: int, step_m: float, n: int, channel: ChannelModel, skip: int) -> dict:
-    steps, truth = synthetic_run(seed, step_m, n)
+def score_run(seed: int, step_m: float, n: int, channel: ChannelModel, skip: int, lost: float = 0.0,
+              rotation_only: float = 0.0) -> dict:
+    steps, truth = synthetic_run(seed, step_m, n, lost, rotation_only)
     layout, pl = SensorLayout.thesis_grids(), PathLossModel()
     rss = emulate_rf(truth, layout, pl, rng=seed, channel=channel)["rss_dbm"]
     stamps = np.arange(n) / 2.0
@@ -97,20 +113,27 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=100)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--skip-frames", type=int, default=80, help="frames left out at the start (default 80)")
+    ap.add_argument("--lost", type=float, default=0.0, help="share of the steps without an estimate (default 0)")
+    ap.add_argument("--rotation-only", type=float, default=0.0,
+                    help="share of the steps with their rotation only (default 0)")
     args = ap.parse_args()
     known = channels()
     paces, chans = args.pace.split(","), args.channel.split(",")
     bad = [p for p in paces if p not in PACES] + [c for c in chans if c not in known]
     if bad or args.runs < 1 or args.skip_frames < 0:
         raise SystemExit(f"unknown pace or channel {bad}, or --runs < 1 / --skip-frames < 0")
+    if not (0 <= args.lost and 0 <= args.rotation_only and args.lost + args.rotation_only < 1):
+        raise SystemExit(f"--lost and --rotation-only must be shares >= 0 that sum below 1, got {args.lost} and "
+                         f"{args.rotation_only}")
     seeds = range(args.first_seed, args.first_seed + args.runs)
-    print(f"synthetic seeds {seeds.start}-{seeds.stop - 1}; frames from {args.skip_frames} on; z^2 is 3 and 68% "
-          f"inside if honest")
+    print(f"synthetic seeds {seeds.start}-{seeds.stop - 1}; frames from {args.skip_frames} on; steps lost "
+          f"{args.lost:.0%}, rotation only {args.rotation_only:.0%}; z^2 is 3 and 68% inside if honest")
     for pace in paces:
         step_m, n = PACES[pace]
         for cname in chans:
             t0 = time.perf_counter()
-            rows = [score_run(s, step_m, n, known[cname], args.skip_frames) for s in seeds]
+            rows = [score_run(s, step_m, n, known[cname], args.skip_frames, args.lost, args.rotation_only)
+                    for s in seeds]
             kappa = np.mean([r["kappa"] for r in rows])
             for name in ("smoothed", "online"):
                 a = np.array([r[name] for r in rows])
