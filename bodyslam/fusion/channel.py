@@ -33,13 +33,17 @@ What the estimate takes up (``fitted_dof``, session 64). The residuals are read 
 position moves to fit part of each slow error: of a persistent offset on ``m`` sensors, a fit with ``p`` position
 parameters leaves ``m - p`` of its ``m`` dimensions in the residuals (the projection onto the orthogonal
 complement of the readings' position Jacobian, as a least-squares fit's residual sum of squares has ``n - p`` degrees
-of freedom). The correlations measured there are therefore low by ``(m - p) / m``, and the position's error is the
-part they do not show. ``fitted_dof = 3`` (:data:`POSITION_DOF`, the position's three coordinates) scales the
-summed correlations by ``m / (m - 3)``, ``m`` the sensors that gave a reading so far: 32 / 29 = 1.10 on the testbed's
-32 sensors, 1.6 on an 8-antenna belt. Measured on tuning runs (the per-sensor mean residual's energy at the true
-positions over that at the estimated ones, readings beyond 4 sigma left out): 1.11 on ``realistic`` 540-549 and 1.13
-on ``realistic_exam`` 587-594, i.e. 3.2 and 3.6 dimensions taken up of 32 (docs/RESULTS.md, "What the fit takes
-up"). The start's search windows (:mod:`bodyslam.fusion.body_slam`) read the correlations as measured.
+of freedom). The slow errors' autocovariances measured there are therefore low by ``(m - p) / m``, and the position's
+error is the part they do not show. ``fitted_dof = 3`` (:data:`POSITION_DOF`, the position's three coordinates)
+scales the summed correlations by ``m / (m - 3)``, ``m`` the sensors that gave a reading so far: 32 / 29 = 1.10 on
+the testbed's 32 sensors, 1.6 on an 8-antenna belt. Measured on tuning runs (the per-sensor mean residual's energy at
+the true positions over that at the estimated ones, readings beyond 4 sigma left out): 1.11 on ``realistic`` 540-549
+and 1.13 on ``realistic_exam`` 587-594, i.e. 3.2 and 3.6 dimensions taken up of 32. Where the slow errors are most of
+the residuals' mean square (a strongly correlated channel), that mean square, rho's normaliser, shrinks with them,
+and rho itself is low by less (1.03-1.06 on those runs); but kappa also leaves out the mean square itself, 1.10-1.12
+of the calibration's sigma^2 there, which the variance of a mean carries. The factor was kept for the stated
+1-sigma it gives, chosen by the tuning runs' mean z^2 (3.28 -> 2.98 over 22 runs; docs/RESULTS.md, "What the fit
+takes up"). The start's search windows (:mod:`bodyslam.fusion.body_slam`) read the correlations as measured.
 
 What it does not see: the vision's heading error. On the ideal ``thesis`` channel ``kappa`` is 1.0 (no lag is
 significant, so nothing is scaled).
