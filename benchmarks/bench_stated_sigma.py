@@ -120,8 +120,12 @@ def main() -> None:
     known = channels()
     paces, chans = args.pace.split(","), args.channel.split(",")
     bad = [p for p in paces if p not in PACES] + [c for c in chans if c not in known]
-    if bad or args.runs < 1 or args.skip_frames < 0:
-        raise SystemExit(f"unknown pace or channel {bad}, or --runs < 1 / --skip-frames < 0")
+    if bad:
+        raise SystemExit(f"unknown pace or channel: {', '.join(bad)} (paces: {', '.join(PACES)}; channels: "
+                         f"{', '.join(known)})")
+    if args.runs < 1 or args.skip_frames < 0:
+        raise SystemExit(f"--runs must be at least 1 and --skip-frames at least 0, got {args.runs} and "
+                         f"{args.skip_frames}")
     if not (0 <= args.lost and 0 <= args.rotation_only and args.lost + args.rotation_only < 1):
         raise SystemExit(f"--lost and --rotation-only must be shares >= 0 that sum below 1, got {args.lost} and "
                          f"{args.rotation_only}")
