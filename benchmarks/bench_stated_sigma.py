@@ -123,9 +123,9 @@ def main() -> None:
     if bad:
         raise SystemExit(f"unknown pace or channel: {', '.join(bad)} (paces: {', '.join(PACES)}; channels: "
                          f"{', '.join(known)})")
-    if args.runs < 1 or args.skip_frames < 0:
-        raise SystemExit(f"--runs must be at least 1 and --skip-frames at least 0, got {args.runs} and "
-                         f"{args.skip_frames}")
+    if args.runs < 1 or not 0 <= args.skip_frames < min(PACES[p][1] for p in paces):
+        raise SystemExit(f"--runs must be at least 1 and --skip-frames at least 0 and below the frames a run "
+                         f"({', '.join(f'{p} {PACES[p][1]}' for p in paces)}), got {args.runs} and {args.skip_frames}")
     if not (0 <= args.lost and 0 <= args.rotation_only and args.lost + args.rotation_only < 1):
         raise SystemExit(f"--lost and --rotation-only must be shares >= 0 that sum below 1, got {args.lost} and "
                          f"{args.rotation_only}")
