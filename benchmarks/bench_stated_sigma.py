@@ -43,9 +43,9 @@ from bodyslam.fusion.rf import PathLossModel
 from bodyslam.steps import StepMotion, StepStatus, motion_from_transform, rotation_step
 from testbed.rf import ChannelModel, SensorLayout, emulate_rf
 from testbed.scenario import load_scenario
+from testbed.score import CHI2_3_683
 
 PACES = {"exam": (0.0006, 400), "thesis": (0.004, 200)}  # step (m), frames
-CHI2_3DOF_68 = 3.527
 STEP_SIGMA_FRAC, STEP_SIGMA_R_RAD = 0.075, np.radians(0.2)
 GUIDED_SIGMA_R_RAD = np.radians(2.0)  # a rotation-only step's (bodyslam.vision.guided.rotation_sigma_rad at ~100 matches)
 
@@ -101,7 +101,7 @@ def score_run(seed: int, step_m: float, n: int, channel: ChannelModel, skip: int
     for name, res in (("smoothed", loc.smoothed), ("online", loc.filtered)):
         e = (res.positions_w_m - truth)[skip:]
         z2 = np.einsum("ki,ki->k", e, np.linalg.solve(res.cov[skip:, :3, :3], e[:, :, None])[:, :, 0])
-        out[name] = (float(z2.mean()), float(np.mean(z2 <= CHI2_3DOF_68)), float(np.linalg.norm(e, axis=1).mean()))
+        out[name] = (float(z2.mean()), float(np.mean(z2 <= CHI2_3_683)), float(np.linalg.norm(e, axis=1).mean()))
     return out
 
 
