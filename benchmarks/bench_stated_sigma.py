@@ -21,7 +21,9 @@ hundreds of cheap runs:
 
 Printed per pace and channel, for the smoothed output and the online filter (frames from ``--skip-frames`` on, past
 the start's alignment): the mean over runs of each run's mean z^2 (3 if honest; a few runs far off dominate it),
-its median, the share of frames inside the 68% ellipsoid, the mean error, and the mean correlation factor kappa.
+its median, the share of frames inside the 68% ellipsoid, the mean error, the same three for the orientation (its
+stated 3 x 3 covariance, the error in the filter's convention as ``testbed evaluate`` scores it; session 65), and the
+mean correlation factor kappa.
 Synthetic seeds: the generator's, not a testbed scenario's (they choose nothing unless a session says so).
 
     .venv/bin/python benchmarks/bench_stated_sigma.py [--pace exam,thesis] [--channel ideal,realistic] [--runs 100]
@@ -60,12 +62,12 @@ def channels() -> dict[str, ChannelModel]:
 
 def synthetic_run(seed: int, step_m: float, n: int, lost: float = 0.0, rotation_only: float = 0.0):
     """Visual steps (noise drawn from their stated 1-sigma; shares ``lost`` and ``rotation_only`` of them without an
-    estimate or with their rotation only) and the true positions ``(n, 3)``."""
+    estimate or with their rotation only), the true positions ``(n, 3)`` and the true orientations (``R_w_c``, n)."""
     rng = np.random.default_rng(seed)
     kind_rng = np.random.default_rng([seed, 1])  # (the steps' noise stays the same whatever the shares)
     per_cm = step_m / 0.004  # the thesis generator's turns, per cm of path
     R, p = Rotation.from_rotvec([0.4, -0.3, 0.2]), np.array([-0.04, 0.0, -0.04])
-    steps, truth = [], [p]
+    steps, truth, truth_rot = [], [p], [R]
     sig_t = STEP_SIGMA_FRAC * step_m
     for k in range(n - 1):
         u = k * per_cm
@@ -86,12 +88,13 @@ def synthetic_run(seed: int, step_m: float, n: int, lost: float = 0.0, rotation_
         p = p + R.apply(t)
         R = R * Rs
         truth.append(p)
-    return steps, np.array(truth)
+        truth_rot.append(R)
+    return steps, np.array(truth), Rotation.concatenate(truth_rot)
 
 
 def score_run(seed: int, step_m: float, n: int, channel: ChannelModel, skip: int, lost: float = 0.0,
               rotation_only: float = 0.0) -> dict:
-    steps, truth = synthetic_run(seed, step_m, n, lost, rotation_only)
+    steps, truth, truth_rot = synthetic_run(seed, step_m, n, lost, rotation_only)
     layout, pl = SensorLayout.thesis_grids(), PathLossModel()
     rss = emulate_rf(truth, layout, pl, rng=seed, channel=channel)["rss_dbm"]
     stamps = np.arange(n) / 2.0
@@ -101,7 +104,13 @@ def score_run(seed: int, step_m: float, n: int, channel: ChannelModel, skip: int
     for name, res in (("smoothed", loc.smoothed), ("online", loc.filtered)):
         e = (res.positions_w_m - truth)[skip:]
         z2 = np.einsum("ki,ki->k", e, np.linalg.solve(res.cov[skip:, :3, :3], e[:, :, None])[:, :, 0])
-        out[name] = (float(z2.mean()), float(np.mean(z2 <= CHI2_3_683)), float(np.linalg.norm(e, axis=1).mean()))
+        # the orientation in the filter's convention (R_true = R_est Exp(e), e in the camera frame), as testbed
+        # evaluate scores it (testbed.evaluate.orientation_consistency)
+        er = (res.rotations_w_c[skip:].inv() * truth_rot[skip:]).as_rotvec()
+        zr2 = np.einsum("ki,ki->k", er, np.linalg.solve(res.cov[skip:, 3:6, 3:6], er[:, :, None])[:, :, 0])
+        out[name] = (float(z2.mean()), float(np.mean(z2 <= CHI2_3_683)), float(np.linalg.norm(e, axis=1).mean()),
+                     float(zr2.mean()), float(np.mean(zr2 <= CHI2_3_683)),
+                     float(np.degrees(np.linalg.norm(er, axis=1)).mean()))
     return out
 
 
@@ -143,7 +152,9 @@ def main() -> None:
                 a = np.array([r[name] for r in rows])
                 print(f"{pace:6s} {cname:10s} {name:8s}: mean z^2 {a[:, 0].mean():5.2f} (median run "
                       f"{np.median(a[:, 0]):4.2f}), inside 68% {a[:, 1].mean():.3f}, error {100 * a[:, 2].mean():.2f} "
-                      f"cm; kappa {kappa:.1f} ({len(rows)} runs, {time.perf_counter() - t0:.0f} s)", flush=True)
+                      f"cm; orientation: mean z^2 {a[:, 3].mean():6.2f} (median run {np.median(a[:, 3]):5.2f}), inside 68% "
+                      f"{a[:, 4].mean():.3f}, error {a[:, 5].mean():.1f} deg; kappa {kappa:.1f} ({len(rows)} runs, "
+                      f"{time.perf_counter() - t0:.0f} s)", flush=True)
 
 
 if __name__ == "__main__":
