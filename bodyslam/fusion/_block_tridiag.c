@@ -14,6 +14,15 @@
      O     float64 (n - 1, 6, 6)   read
      Sinv  float64 (n, 6, 6)       written (work: the forward pass's inverses)
      C     float64 (n, 6, 6)       written: the marginal covariances
+
+   readings_share(O, Sinv, C, W, M) (session 65; bodyslam.fusion.refine.sandwich_share): the diagonal blocks of
+   H^-1 W H^-1 for a block-diagonal W, from a marginals() call's Sinv and C. The cross blocks of H^-1 are
+   C_(k,j) = A_k ... A_(j-1) C_j (j > k) with A_k = -Sinv_k O_k, so M_k = C_k U_k C_k + B_k, with a forward pass
+   U_0 = 0, U_k = A_(k-1)^T (W_(k-1) + U_(k-1)) A_(k-1) (the frames before k) and a backward pass
+   B_(n-1) = C W C, B_k = C_k W_k C_k + A_k B_(k+1) A_k^T (frame k and those after it).
+     O, Sinv, C  as above, read
+     W     float64 (n, 6, 6)       read
+     M     float64 (n, 6, 6)       written
    All C-contiguous. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -122,8 +131,64 @@ done:
     return ret;
 }
 
+static PyObject *readings_share(PyObject *self, PyObject *args) {
+    Py_buffer ob, sb, cb, wb, mb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*", &ob, &sb, &cb, &wb, &mb))
+        return NULL;
+    PyObject *ret = NULL;
+    Py_ssize_t blk = B * B * (Py_ssize_t)sizeof(double), n = sb.len / blk;
+    if (n < 1 || sb.len != n * blk || ob.len != (n - 1) * blk || cb.len != sb.len || wb.len != sb.len ||
+        mb.len != sb.len) {
+        PyErr_SetString(PyExc_ValueError, "readings_share: Sinv, C, W and M (n, 6, 6), O (n - 1, 6, 6) float64 arrays");
+        goto done;
+    }
+    {
+        const double *O = (const double *)ob.buf, *Sinv = (const double *)sb.buf, *C = (const double *)cb.buf;
+        const double *W = (const double *)wb.buf;
+        double *M = (double *)mb.buf;
+        Py_BEGIN_ALLOW_THREADS
+        double A[B * B], U[B * B] = {0}, T[B * B], V[B * B], Bk[B * B];
+        for (Py_ssize_t k = 0; k < n; k++) {  /* forward: M_k = C_k U_k C_k */
+            if (k) {  /* U_k = A^T (W_(k-1) + U_(k-1)) A, A = -Sinv_(k-1) O_(k-1) (the sign cancels) */
+                mm(Sinv + (k - 1) * B * B, O + (k - 1) * B * B, A, 0, 0);
+                for (int i = 0; i < B * B; i++)
+                    V[i] = W[(k - 1) * B * B + i] + U[i];
+                mm(A, V, T, 1, 0);
+                mm(T, A, U, 0, 0);
+            }
+            mm(C + k * B * B, U, T, 0, 0);
+            mm(T, C + k * B * B, M + k * B * B, 0, 0);
+        }
+        for (Py_ssize_t k = n - 1; k >= 0; k--) {  /* backward: B_k = C_k W_k C_k + A_k B_(k+1) A_k^T; M_k += B_k */
+            mm(C + k * B * B, W + k * B * B, T, 0, 0);
+            mm(T, C + k * B * B, V, 0, 0);
+            if (k < n - 1) {
+                mm(Sinv + k * B * B, O + k * B * B, A, 0, 0);
+                mm(A, Bk, T, 0, 0);
+                mm(T, A, U, 0, 1);
+                for (int i = 0; i < B * B; i++)
+                    V[i] += U[i];
+            }
+            for (int i = 0; i < B * B; i++) {
+                Bk[i] = V[i];
+                M[k * B * B + i] += V[i];
+            }
+        }
+        Py_END_ALLOW_THREADS
+        ret = Py_NewRef(Py_None);
+    }
+done:
+    PyBuffer_Release(&ob);
+    PyBuffer_Release(&sb);
+    PyBuffer_Release(&cb);
+    PyBuffer_Release(&wb);
+    PyBuffer_Release(&mb);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"marginals", marginals, METH_VARARGS, "Marginal covariances of a block-tridiagonal information matrix."},
+    {"readings_share", readings_share, METH_VARARGS, "Diagonal blocks of H^-1 W H^-1 for a block-diagonal W."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -16,7 +16,9 @@ The chain, the same for ``bodyslam localize``, ``bodyslam batch`` and ``testbed 
    by the whole exam's, the online filter's frame ``k`` by frames ``0 .. k``'s, over lags up to
    :data:`~bodyslam.fusion.channel.STATED_MAX_LAG_FRAMES`, the summed correlations scaled by ``m / (m - 3)`` for what
    the positions they were read at took up, :data:`~bodyslam.fusion.channel.POSITION_DOF`), so that the stated
-   1-sigma admits a channel that is not the calibration's independent shadowing (1.0 on an ideal one);
+   1-sigma admits a channel that is not the calibration's independent shadowing (1.0 on an ideal one). The
+   whole-exam solve's orientation takes the factor on the readings' share of its information only
+   (:func:`bodyslam.fusion.refine.stated_covariances`, session 65);
 6. the path travelled (:func:`bodyslam.vision.tracking.path_travelled`).
 
 :func:`write_localization` writes the one output set: ``trajectory.tum`` (smoothed), ``trajectory_filter.tum``
@@ -150,18 +152,30 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
     ekf, rts = released(ekf), released(rts_smooth(ekf))
     smoothed = rts
     rss_net = net_of_bias(ekf, rss)  # the readings less the filter's RSS bias states (step 4)
-    if refine and mode == "rss":
+    measured: dict = {}
+
+    def smoother_kappa(positions_w_m: np.ndarray):
+        """The readings' correlation at the smoothed positions, and the smoother's factor from it (step 5)."""
+        measured["channel"] = residual_correlation(normalised_residuals(rss_net, positions_w_m, rf.sensors_w_m,
+                                                                        rf.normals_w, rf.pathloss),
+                                                   STATED_MAX_LAG_FRAMES, POSITION_DOF)
+        measured["kappa"] = smoother_inflation(measured["channel"], memory)
+        return measured["kappa"]
+
+    refined = refine and mode == "rss"
+    if refined:  # the whole-exam solve states its covariance with the factor (refine.stated_covariances)
         bias_var = None if ekf.passes is None else ekf.passes.post_bias_var_db2
         smoothed = refine_map(rts, steps, rss_net, rf.sensors_w_m, rf.normals_w, rf.pathloss, lost_floor_m=floor,
-                              reading_var_db2=bias_var)
+                              reading_var_db2=bias_var, reading_kappa=smoother_kappa if honest_cov else None)
     channel = kappa_online = kappa_smoothed = None
     if honest_cov:
         kappa_online = online_inflation(ekf, rss, rf, memory)
-        channel = residual_correlation(normalised_residuals(rss_net, smoothed.positions_w_m, rf.sensors_w_m,
-                                                            rf.normals_w, rf.pathloss), STATED_MAX_LAG_FRAMES,
-                                       POSITION_DOF)
-        kappa_smoothed = smoother_inflation(channel, memory)
-        ekf, smoothed, rts = inflate(ekf, kappa_online), inflate(smoothed, kappa_smoothed), inflate(rts, kappa_smoothed)
+        if not refined:
+            smoother_kappa(smoothed.positions_w_m)
+        channel, kappa_smoothed = measured["channel"], measured["kappa"]
+        ekf, rts = inflate(ekf, kappa_online), inflate(rts, kappa_smoothed)
+        if not refined:
+            smoothed = rts
     path, var = path_travelled(steps, radius_sd_rel, radius_m) if travelled else (None, None)
     frames = np.arange(len(stamps_s)) if frames is None else np.asarray(frames)
     return Localization(frames, stamps_s, ekf, smoothed, fixes, rss, path, var, list(rf.problems), channel,

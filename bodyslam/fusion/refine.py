@@ -26,12 +26,13 @@ two rules, with the same errors at 15 as at 60). The normal equations are block 
 block without the Jacobian (the readings in chunks of frames) and solved as a banded system, so time is linear in
 the frames and memory little more than the trajectory's (a 10,000-frame exam: ~1.5 s, 6 iterations, +15 MB).
 Covariances: the solution's own, each pose's block of the inverse of the Gauss-Newton system at the solution
-(:func:`marginal_covariances`, ``O(n)``; the caller scales them by the readings' measured correlation at the
-refined positions). Until session 26 the smoother's were stated (within 4% in position, docs/RESULTS.md), but they
-were linearised along the filter's run: where the refinement turned the orientation, its 1-sigma stayed the
-smoother's (realistic tuning: 91% of frames inside the orientation's 68% ellipsoid, 83% with the solution's own).
-With RSS bias states the solve takes the filter's biases as known; its covariance adds their variances to the
-readings' (``reading_var_db2``).
+(:func:`marginal_covariances`, ``O(n)``), stated with the readings' measured correlation at the refined positions
+(``reading_kappa``, :func:`stated_covariances`: the position's scaled by it, the orientation's the sandwich with
+the readings' share scaled, ``O(n)`` too). Until session 26 the smoother's were stated (within 4% in position,
+docs/RESULTS.md), but they were linearised along the filter's run: where the refinement turned the orientation,
+its 1-sigma stayed the smoother's (realistic tuning: 91% of frames inside the orientation's 68% ellipsoid, 83% with
+the solution's own). With RSS bias states the solve takes the filter's biases as known; its covariance adds their
+variances to the readings' (``reading_var_db2``).
 
 Measured on tuning seeds only (docs/RESULTS.md, "The whole exam solved at once"), smoother -> refined, mean
 position error / orientation error (optical axis):
@@ -78,7 +79,7 @@ except ImportError:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["refine_map", "MapProblem", "marginal_covariances"]
+__all__ = ["refine_map", "MapProblem", "marginal_covariances", "sandwich_share", "stated_covariances"]
 
 CHUNK_FRAMES = 4096  # frames per block of the readings' terms (~3 MB per array at 32 sensors)
 # frames per block of the readings' rows in the normal equations: ~8 arrays of (f, m, 3) at once on each thread
@@ -188,11 +189,20 @@ class MapProblem:
             z, Jz = z * w, Jz * w[..., None]
         return np.where(use, z, 0.0), np.where(use[..., None], Jz, 0.0), use
 
-    def normal_equations(self, p, R, extra_var=None):
+    def reading_information(self, p, extra_var=None) -> np.ndarray:
+        """``(n, 3, 3)``: the readings' share of each frame's position information, ``Jz^T Jz`` of its readings that
+        count (the rows :meth:`normal_equations` adds to ``D``, which gives them as it builds them; ``extra_var`` as
+        there)."""
+        H = np.zeros((self.n, 3, 3))
+        self.normal_equations(p, np.repeat(np.eye(3)[None], self.n, axis=0), extra_var, readings_out=H)
+        return H
+
+    def normal_equations(self, p, R, extra_var=None, readings_out: np.ndarray | None = None):
         """``(D, O, g)``: the Gauss-Newton system ``J^T J dx = -J^T r`` in blocks -- ``D (n, 6, 6)`` the diagonal
         blocks, ``O (n-1, 6, 6)`` the blocks ``(k, k+1)``, ``g (n, 6)`` the gradient ``J^T r`` -- without forming
         ``J`` (:meth:`linearise`, the same system as a sparse matrix, is the reference the tests hold it to).
-        ``extra_var``: variance added to the readings' (:meth:`_reading_rows`; the covariance's system only)."""
+        ``extra_var``: variance added to the readings' (:meth:`_reading_rows`; the covariance's system only).
+        ``readings_out (n, 3, 3)``: filled with the readings' share of ``D`` (:meth:`reading_information`)."""
         D = np.zeros((self.n, 6, 6))
         g = np.zeros((self.n, 6))
         O = np.empty((self.n - 1, 6, 6))
@@ -208,8 +218,11 @@ class MapProblem:
 
         def block(rows):  # the readings: position rows of their own frame only (blocks write their own rows)
             z, Jz, _ = self._reading_rows(p, rows, extra_var)
-            D[rows, :3, :3] += np.einsum("kmi,kmj->kij", Jz, Jz)
+            info = np.einsum("kmi,kmj->kij", Jz, Jz)
+            D[rows, :3, :3] += info
             g[rows, :3] += np.einsum("kmi,km->ki", Jz, z)
+            if readings_out is not None:
+                readings_out[rows] = info
 
         self._per_chunk(block, NORMAL_CHUNK_FRAMES)
         return D, O, g
@@ -241,14 +254,17 @@ class MapProblem:
 def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sensors_w_m: np.ndarray,
                normals_w: np.ndarray, pl: PathLossModel, max_iter: int = 30, tol: float = 1e-6,
                rel_tol: float = 1e-6, lost_floor_m: float = 0.0, own_cov: bool = True,
-               reading_var_db2: np.ndarray | None = None) -> FusionResult:
+               reading_var_db2: np.ndarray | None = None, reading_kappa=None) -> FusionResult:
     """The smoothed run ``res`` (:func:`bodyslam.fusion.body_slam.rts_smooth`) refined to the whole exam's joint
     optimum (module docstring); a copy with the refined positions, orientations and their covariances
     (``own_cov``; False: the smoother's, as ``res``; also where the system is singular), everything else as
     ``res``. ``lost_floor_m``: the filters' least length of a step lost to motion
     (:func:`bodyslam.fusion.ekf.process_noise`). ``reading_var_db2 (n, m)``: variance (dB^2) the covariance adds
     to each reading's, where ``rss`` is net of estimated offsets (the filter's RSS bias states' variances): the
-    solution takes them as known, its 1-sigma should not."""
+    solution takes them as known, its 1-sigma should not. ``reading_kappa``: a function of the solution's positions
+    ``(n, 3)`` giving the readings' correlation factor (a number or one per frame,
+    :mod:`bodyslam.fusion.channel`); with it the covariance is the stated one, :func:`stated_covariances` (the
+    caller does not scale it again)."""
     prob = MapProblem(steps, rss, sensors_w_m, normals_w, pl, res.scale, lost_floor_m=lost_floor_m)
     p = np.array(res.positions_w_m, float)
     R = res.rotations_w_c.as_matrix()
@@ -276,12 +292,98 @@ def refine_map(res: FusionResult, steps: list[StepMotion], rss: np.ndarray, sens
     log.info("whole-exam refinement: cost %.1f -> %.1f in %d iterations", f_start, f, it)
     cov = None
     del D, O, g  # (the loop's system: not held while the covariance's is built, 0.6 kB a frame)
+    kappa = None if reading_kappa is None else reading_kappa(p)
     if own_cov:
-        D, O, _ = prob.normal_equations(p, R, reading_var_db2)
-        cov = marginal_covariances(D, O)
+        H_rf = None if kappa is None else np.zeros((prob.n, 3, 3))
+        D, O, _ = prob.normal_equations(p, R, reading_var_db2, readings_out=H_rf)
+        cov = marginal_covariances(D, O) if kappa is None else stated_covariances(D, O, H_rf, kappa)
         if cov is None:
             log.warning("whole-exam refinement: its information matrix is singular; the smoother's covariances kept")
-    return replace(res, positions_w_m=p, rotations_w_c=Rotation.from_matrix(R), cov=res.cov if cov is None else cov)
+    if cov is None:
+        cov = res.cov if kappa is None else res.cov * _per_frame(kappa, len(res.cov))[:, None, None]
+    return replace(res, positions_w_m=p, rotations_w_c=Rotation.from_matrix(R), cov=cov)
+
+
+def _per_frame(kappa, n: int) -> np.ndarray:
+    """A correlation factor (a number or one per frame) as ``(n,)``."""
+    return np.broadcast_to(np.asarray(kappa, float), (n,))
+
+
+def stated_covariances(D: np.ndarray, O: np.ndarray, H_rf: np.ndarray, kappa) -> np.ndarray | None:
+    """``(n, 6, 6)``: the whole-exam solve's stated covariances with the readings' errors correlated by ``kappa``
+    (a number or one per frame, :mod:`bodyslam.fusion.channel`; ``D``, ``O``: its information matrix ``H``,
+    :func:`marginal_covariances`; ``H_rf (n, 3, 3)``: the readings' share of each frame's position information,
+    :meth:`MapProblem.reading_information`). None where ``H`` is not positive definite.
+
+    - Orientation (and its cross blocks with the position): the sandwich ``H^-1 (H + sum_j (kappa_j - 1) H_rf,j)
+      H^-1``, the covariance of the same solution when each reading's noise variance is ``kappa`` times what the
+      solve assumed (:func:`sandwich_share`). The readings inform the orientation through the heading they give
+      the path; the roll about it and the turns between frames are the steps', whose noise ``kappa`` does not
+      describe. Until session 65 the whole covariance was scaled by ``kappa``. On the realistic testbed that put
+      92-94% of frames inside the orientation's 68% ellipsoid. With the sandwich: 68.75% on realistic tuning
+      renders 540-549 and 56% on reporting renders 700-719 (the steps' own rotations err more than they state
+      there); on ``benchmarks/bench_stated_sigma.py``, 74% at the dissertation's pace with a matcher's gaps and 65% at
+      a real exam's (docs/RESULTS.md, "The orientation's 1-sigma from the readings' share").
+    - Position: ``kappa`` times the marginal covariance, as before. The sandwich's position is narrower (on the
+      bench 54-55% of frames inside at either pace, against 74-77%). The position's 1-sigma was chosen on tuning
+      runs as it is (the correlations and what the fit takes up, :mod:`bodyslam.fusion.channel`), and the scaled
+      form carries what the white-noise picture leaves out: slow per-sensor errors, and what the fit absorbs.
+
+    A frame whose combined matrix is not positive definite (the per-frame factors differ from frame to frame, so
+    the scaled position can fall short of the sandwich's) keeps ``kappa`` times its marginal covariance."""
+    n = len(D)
+    k = _per_frame(kappa, n)
+    W = np.zeros((n, 6, 6))
+    W[:, :3, :3] = (k - 1.0)[:, None, None] * H_rf
+    share = sandwich_share(D, O, W)
+    if share is None:
+        return None
+    C, M = share
+    out = C + M
+    out[:, :3, :3] = k[:, None, None] * C[:, :3, :3]
+    bad = np.linalg.eigvalsh(out)[:, 0] <= 0.0
+    if bad.any():
+        log.info("stated covariance: %d frame(s) keep kappa x the marginal covariance (not positive definite)",
+                 int(bad.sum()))
+        out[bad] = k[bad, None, None] * C[bad]
+    return out
+
+
+def sandwich_share(D: np.ndarray, O: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(C, M)``, each ``(n, 6, 6)``: the diagonal blocks of ``H^-1`` (:func:`marginal_covariances`) and of
+    ``H^-1 W H^-1`` for the block-diagonal ``W (n, 6, 6)``, in ``O(n)``. The cross blocks of ``H^-1`` are
+    ``C_kj = A_k ... A_(j-1) C_j`` for ``j > k``, ``A_k = -S_k^-1 O_k``, so ``M_k = C_k U_k C_k + B_k`` with a forward
+    pass ``U_k = A_(k-1)^T (W_(k-1) + U_(k-1)) A_(k-1)`` (the frames before ``k``) and a backward one ``B_k = C_k W_k
+    C_k + A_k B_(k+1) A_k^T`` (frame ``k`` and those after it). None where ``H`` is not positive definite.
+    Compiled where ``_block_tridiag.c`` was built, else numpy (the same arithmetic; tests hold both to the dense
+    product)."""
+    n = len(D)
+    if _bt is not None and n >= 1:
+        D = np.ascontiguousarray(D, np.float64)
+        O = np.ascontiguousarray(O, np.float64)
+        Sinv, C = np.empty_like(D), np.empty_like(D)
+        if not _bt.marginals(D, O, Sinv, C):
+            return None
+        M = np.empty_like(D)
+        _bt.readings_share(O, Sinv, C, np.ascontiguousarray(W, np.float64), M)
+        return C, M
+    passes = _marginal_passes_numpy(D, O)
+    if passes is None:
+        return None
+    Sinv, C = passes
+    A = -(Sinv[:-1] @ O)
+    AT = np.swapaxes(A, 1, 2)
+    M = np.empty_like(D)
+    U = np.zeros((6, 6))
+    for k in range(n):
+        if k:
+            U = AT[k - 1] @ (W[k - 1] + U) @ A[k - 1]
+        M[k] = C[k] @ U @ C[k]
+    Bk = None
+    for k in range(n - 1, -1, -1):
+        Bk = C[k] @ W[k] @ C[k] + (0.0 if Bk is None else A[k] @ Bk @ AT[k])
+        M[k] += Bk
+    return C, M
 
 
 def marginal_covariances(D: np.ndarray, O: np.ndarray) -> np.ndarray | None:
@@ -302,6 +404,12 @@ def marginal_covariances(D: np.ndarray, O: np.ndarray) -> np.ndarray | None:
 
 def _marginal_covariances_numpy(D: np.ndarray, O: np.ndarray) -> np.ndarray | None:
     """:func:`marginal_covariances` in numpy."""
+    passes = _marginal_passes_numpy(D, O)
+    return None if passes is None else passes[1]
+
+
+def _marginal_passes_numpy(D: np.ndarray, O: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The forward pass's inverses ``S_k^-1`` and the marginal covariances (:func:`marginal_covariances`)."""
     n = len(D)
     Sinv = np.empty_like(D)
     OT = np.swapaxes(O, 1, 2)
@@ -321,7 +429,7 @@ def _marginal_covariances_numpy(D: np.ndarray, O: np.ndarray) -> np.ndarray | No
     GT = np.swapaxes(G, 1, 2)
     for k in range(n - 2, -1, -1):
         C[k] = Sinv[k] + G[k] @ C[k + 1] @ GT[k]
-    return C
+    return Sinv, C
 
 
 def _solve_damped(D: np.ndarray, O: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray | None:
