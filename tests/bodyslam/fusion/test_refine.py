@@ -105,11 +105,9 @@ def _block_tridiagonal(D, O):
     return H
 
 
-@pytest.mark.parametrize("compiled", [True, False])
-def test_the_marginal_covariances_are_the_inverses_diagonal_blocks(monkeypatch, compiled):
-    # The forward-backward recursion against the dense inverse of a random positive definite block-tridiagonal
-    # matrix (measured 1e-16 of the largest entry; 1e-10 is rounding with room); a singular one gives None.
-    # Both the compiled passes (_block_tridiag.c) and numpy's.
+def _random_system(monkeypatch, compiled: bool, n: int = 9):
+    """``(D, O)`` of a random positive definite block-tridiagonal matrix, each diagonal block alone of rank 4 (only
+    the chain makes it regular), with the compiled passes (skipped where not built) or numpy's."""
     import bodyslam.fusion.refine as refine_mod
 
     if compiled and refine_mod._bt is None:
@@ -117,8 +115,7 @@ def test_the_marginal_covariances_are_the_inverses_diagonal_blocks(monkeypatch, 
     if not compiled:
         monkeypatch.setattr(refine_mod, "_bt", None)
     rng = np.random.default_rng(3)
-    n = 9
-    D = np.array([a.T @ a for a in rng.normal(size=(n, 4, 6))])  # each alone rank 4: only the chain makes H regular
+    D = np.array([a.T @ a for a in rng.normal(size=(n, 4, 6))])
     O = np.zeros((n - 1, 6, 6))
     for k in range(n - 1):
         a = rng.normal(size=(6, 12))
@@ -126,6 +123,16 @@ def test_the_marginal_covariances_are_the_inverses_diagonal_blocks(monkeypatch, 
         D[k] += B[:6, :6]
         D[k + 1] += B[6:, 6:]
         O[k] = B[:6, 6:]
+    return D, O
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_marginal_covariances_are_the_inverses_diagonal_blocks(monkeypatch, compiled):
+    # The forward-backward recursion against the dense inverse of a random positive definite block-tridiagonal
+    # matrix (measured 1e-16 of the largest entry; 1e-10 is rounding with room); a singular one gives None.
+    # Both the compiled passes (_block_tridiag.c) and numpy's.
+    D, O = _random_system(monkeypatch, compiled)
+    n = len(D)
     Hinv = np.linalg.inv(_block_tridiagonal(D, O))
     C = marginal_covariances(D, O)
     for k in range(n):
@@ -143,21 +150,9 @@ def test_the_readings_share_is_the_dense_sandwich(monkeypatch, compiled):
     # order 1. Its C is marginal_covariances'.
     import bodyslam.fusion.refine as refine_mod
 
-    if compiled and refine_mod._bt is None:
-        pytest.skip("bodyslam/fusion/_block_tridiag.c is not built here (no C compiler at install)")
-    if not compiled:
-        monkeypatch.setattr(refine_mod, "_bt", None)
-    rng = np.random.default_rng(3)
-    n = 9
-    D = np.array([a.T @ a for a in rng.normal(size=(n, 4, 6))])
-    O = np.zeros((n - 1, 6, 6))
-    for k in range(n - 1):
-        a = rng.normal(size=(6, 12))
-        B = a.T @ a
-        D[k] += B[:6, :6]
-        D[k + 1] += B[6:, 6:]
-        O[k] = B[:6, 6:]
-    W = np.array([w.T @ w for w in rng.normal(size=(n, 6, 6))])
+    D, O = _random_system(monkeypatch, compiled)
+    n = len(D)
+    W = np.array([w.T @ w for w in np.random.default_rng(4).normal(size=(n, 6, 6))])
     Hinv = np.linalg.inv(_block_tridiagonal(D, O))
     Wd = np.zeros_like(Hinv)
     for k in range(n):
