@@ -204,6 +204,19 @@ def test_the_stated_orientation_takes_the_factor_on_the_readings_share_only():
     assert np.array_equal(one, marginal_covariances(D, O))
 
 
+def test_a_singular_solve_states_the_smoothers_covariance_scaled(monkeypatch):
+    # Where the whole-exam solve's information is not positive definite, refine_map keeps the smoother's
+    # covariance; with a correlation factor it is scaled by it, as localize scaled it before (not left unscaled).
+    import bodyslam.fusion.refine as refine_mod
+
+    steps, fixes, rss, pos, nrm, pl, gt = synthetic_run(2, n=25)
+    rts = rts_smooth(fuse(steps, fixes, rss, pos, nrm, pl, mode="rss"))
+    monkeypatch.setattr(refine_mod, "sandwich_share", lambda D, O, W: None)
+    kappa = np.linspace(1.0, 3.0, len(gt))
+    out = refine_map(rts, steps, rss, pos, nrm, pl, reading_kappa=lambda p: kappa)
+    assert np.allclose(out.cov, rts.cov * kappa[:, None, None], rtol=1e-15, atol=0)
+
+
 def test_the_refined_covariance_is_the_solutions_own():
     # refine_map states the inverse of J^T J at its solution (the Gauss-Newton information of every step and
     # reading), not the smoother's covariance: held to the sparse reference's dense inverse to rounding.
