@@ -191,10 +191,15 @@ class MapProblem:
 
     def reading_information(self, p, extra_var=None) -> np.ndarray:
         """``(n, 3, 3)``: the readings' share of each frame's position information, ``Jz^T Jz`` of its readings that
-        count (the rows :meth:`normal_equations` adds to ``D``, which gives them as it builds them; ``extra_var`` as
-        there)."""
+        count (the rows :meth:`normal_equations` adds to ``D``; it also gives them as it builds them, its
+        ``readings_out``; ``extra_var`` as there)."""
         H = np.zeros((self.n, 3, 3))
-        self.normal_equations(p, np.repeat(np.eye(3)[None], self.n, axis=0), extra_var, readings_out=H)
+
+        def block(rows):
+            Jz = self._reading_rows(p, rows, extra_var)[1]
+            H[rows] = np.einsum("kmi,kmj->kij", Jz, Jz)
+
+        self._per_chunk(block, NORMAL_CHUNK_FRAMES)
         return H
 
     def normal_equations(self, p, R, extra_var=None, readings_out: np.ndarray | None = None):

@@ -200,7 +200,10 @@ def test_the_stated_orientation_takes_the_factor_on_the_readings_share_only():
     assert np.trace(stated.cov[:, 3:, 3:] - own.cov[:, 3:, 3:], axis1=1, axis2=2).max() > 0.1 * np.trace(
         own.cov[:, 3:, 3:], axis1=1, axis2=2).max()  # the readings inform this run's orientation: not a no-op
     D, O, _ = prob.normal_equations(own.positions_w_m, own.rotations_w_c.as_matrix())
-    one = stated_covariances(D, O, prob.reading_information(own.positions_w_m), 1.0)
+    H_rf = np.zeros((len(gt), 3, 3))
+    prob.normal_equations(own.positions_w_m, own.rotations_w_c.as_matrix(), readings_out=H_rf)
+    assert np.allclose(H_rf, prob.reading_information(own.positions_w_m), rtol=1e-12, atol=0)
+    one = stated_covariances(D, O, H_rf, 1.0)
     assert np.array_equal(one, marginal_covariances(D, O))
 
 
