@@ -97,7 +97,9 @@ class Localization:
     channel: ResidualCorrelation | None = None
     kappa_online: np.ndarray | None = None
     rts: FusionResult | None = None  # the RTS smoother before the refinement (its covariance scaled the same way)
-    # the factor the smoother's covariance was scaled by, per frame (bodyslam.fusion.channel.smoother_inflation)
+    # the smoother's factor per frame (bodyslam.fusion.channel.smoother_inflation): the whole-exam solve's position
+    # covariance and the plain smoother's are scaled by it; the solve's orientation takes it on the readings' share
+    # (bodyslam.fusion.refine.stated_covariances)
     kappa_smoothed: np.ndarray | float | None = None
     sensor_names: tuple[str, ...] = ()  # the readings' columns (RfInput.sensor_names)
 
