@@ -615,7 +615,9 @@ def _html(out: Path, report: dict, view_html: str = "") -> None:
               f"channel): mean kappa {report['covariance_inflation_kappa']['smoothed']:.2f} (smoother, each lag "
               "weighted by its two-sided memory; the whole run's readings: "
               f"{report['covariance_inflation_kappa'].get('whole_run', float('nan')):.2f}), "
-              f"{report['covariance_inflation_kappa']['online_last_frame']:.2f} (online filter at the last frame).</p>"
+              f"{report['covariance_inflation_kappa']['online_last_frame']:.2f} (online filter at the last frame). "
+              "The whole-exam refinement's orientation takes kappa on the readings' share of its information only "
+              "(bodyslam.fusion.refine.stated_covariances).</p>"
             + "<h2>Per-step motion (Table 4.1)</h2>"
             + table(["figure", "value"], [[k, f"{v:.4f}"] for k, v in report["table_4_1"].items()])
             + (f"<p>Steps measured from their own pair (ok, wall): {report['steps_measured_frac']:.1%}; with the "
