@@ -172,7 +172,9 @@ def test_the_stated_orientation_takes_the_factor_on_the_readings_share_only():
     # refine_map(reading_kappa=...): the position's covariance is kappa times the solution's own, as before; the
     # orientation's is the sandwich H^-1 (H + (kappa - 1) H_rf) H^-1 of the dense system (H_rf: the readings'
     # rows of J^T J), which lies between the solution's own (kappa 1) and kappa times it. A factor of 1 changes
-    # nothing. Held to the dense reference to the same rounding as the solution's own covariance (rtol 1e-7).
+    # nothing. Held to the dense reference to the same rounding as the solution's own covariance (rtol 1e-7: J^T J's
+    # condition number is ~1.2e9 here); the cross blocks, whose entries are smaller, relative to their own size
+    # (rtol 1e-6). Measured: 2.4e-10 and 2.6e-10 of each block's largest entry.
     from bodyslam.fusion.refine import stated_covariances
 
     steps, fixes, rss, pos, nrm, pl, gt = synthetic_run(2, n=25)
