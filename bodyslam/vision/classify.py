@@ -124,20 +124,26 @@ def normalise_photometric(rgb: np.ndarray, mask: np.ndarray, mode: str = "channe
     if mode == "none":
         return rgb
     if mode == "channel_p90":
-        gains = np.array([P90_TARGET / max(_masked_p90_u8(rgb[:, :, c], mask), 1.0) for c in range(3)], np.float32)
+        rgb, mask8 = np.ascontiguousarray(rgb), mask.astype(np.uint8)
+        gains = np.array([P90_TARGET / max(_masked_p90_u8(rgb, mask8, c), 1.0) for c in range(3)], np.float32)
     elif mode == "exposure_p90":
         value = np.max(rgb, axis=2)  # HSV's value
         gains = np.full(3, P90_TARGET / max(_masked_p90_u8(value, mask), 1.0), np.float32)
     else:
         raise ConfigError(f"photometric normalisation must be one of {PHOTOMETRIC_MODES}, got {mode!r}")
-    return cv2.convertScaleAbs(rgb.astype(np.float32) * gains)  # rounds and saturates to 0-255
+    # each channel's 256 values scaled exactly as the whole image would be (float32 product, rounded and saturated
+    # to 0-255 by convertScaleAbs), then looked up: the same pixels, ~10x faster on a 576-px frame than scaling it
+    lut = cv2.convertScaleAbs(np.arange(256, dtype=np.float32)[:, None] * gains[None, :])
+    return cv2.LUT(np.ascontiguousarray(rgb), lut.reshape(256, 1, 3))
 
 
-def _masked_p90_u8(channel: np.ndarray, mask: np.ndarray) -> float:
-    """``np.percentile(channel[mask], 90)`` of an 8-bit channel (its linear method), from the masked histogram."""
-    from bodyslam.vision.matching import _masked_percentiles_u8
+def _masked_p90_u8(image: np.ndarray, mask: np.ndarray, channel: int = 0) -> float:
+    """``np.percentile(image[..., channel][mask], 90)`` of an 8-bit image (its linear method), from the masked
+    histogram of that channel (read in place: no copy of it)."""
+    from bodyslam.vision.matching import _percentiles_from_hist
 
-    v = _masked_percentiles_u8(np.ascontiguousarray(channel), mask.astype(np.uint8), (90,))
+    counts = cv2.calcHist([np.ascontiguousarray(image)], [channel], mask.astype(np.uint8, copy=False), [256], [0, 256])
+    v = _percentiles_from_hist(counts.ravel(), (90,))
     return 0.0 if v is None else float(v[0])
 
 
