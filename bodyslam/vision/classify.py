@@ -132,7 +132,8 @@ def normalise_photometric(rgb: np.ndarray, mask: np.ndarray, mode: str = "channe
     else:
         raise ConfigError(f"photometric normalisation must be one of {PHOTOMETRIC_MODES}, got {mode!r}")
     # each channel's 256 values scaled exactly as the whole image would be (float32 product, rounded and saturated
-    # to 0-255 by convertScaleAbs), then looked up: the same pixels, ~10x faster on a 576-px frame than scaling it
+    # to 0-255 by convertScaleAbs), then looked up: the same pixels (the whole normalisation of a 576-px frame 6.3 ->
+    # 1.4 ms, session 66)
     lut = cv2.convertScaleAbs(np.arange(256, dtype=np.float32)[:, None] * gains[None, :])
     return cv2.LUT(np.ascontiguousarray(rgb), lut.reshape(256, 1, 3))
 
