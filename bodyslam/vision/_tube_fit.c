@@ -1,4 +1,4 @@
-/* The tube fit's residuals (bodyslam.vision.motion._tube_residuals_batch), compiled.
+/* The tube fit's residuals (bodyslam.vision.motion._tube_residuals_batch) and its fitting loop, compiled.
 
    The fit evaluates its residuals ~15 times per step on a batch of 11 parameter vectors (the point and its 10
    forward differences) and ~150 rays; in numpy that is ~40 array operations per call, whose per-call cost, not
@@ -21,7 +21,24 @@
      grid         float64 (G,)         the depths tried, as fractions of max_depth, increasing
      ring         float64 (5,)         max depth |A|, width in radii, the depth's prior 1-sigma, the place's prior
                                        1-sigma in radii, the place's prior centre in radii
-     out          float64 (B, 3n + 6)  per ray the three sine components, the four axis priors, the ring's two */
+     out          float64 (B, 3n + 6)  per ray the three sine components, the four axis priors, the ring's two
+
+   lm(model, p, k, b1, b2, radius, max_depth, noise_rad, prior_sigma, grid, ring, x_scale, h, f_scale, max_iter, xtol,
+      ftol, f_out, J_out) -> cost
+     The fit's robust Levenberg-Marquardt loop (bodyslam.vision.motion._lm_soft_l1, its forward-difference Jacobian
+     included) on one model: 0 the cylinder (10 parameters; grid and ring empty), 1 the ringed tube (12). Numpy's
+     loop spent ~2.5 ms of Python a fit where its residuals took 0.4 (session 67). The same steps, the same
+     decisions, the cost summed as np.sum sums it; the normal equations and their solve (Gaussian elimination with
+     partial pivoting) sum in another order than BLAS and LAPACK, so solutions agree to the rounding the fit's
+     conditioning amplifies (test_motion.py, test_lumen_scale.py compare the two). A forward difference in the
+     motion (parameters 0-5) keeps the rays' depths, which depend on the axis and the ring only: the same numbers
+     for about half the work.
+     p            float64 (10,) or (12,)  the start; overwritten with the solution
+     k            the first k parameters are fitted (6: the axis held), the others stay as p gives them
+     x_scale, h   float64 (k,)         the parameters' scales (the damping's metric) and forward-difference steps
+     f_out        float64 (m,)         written: the residuals at the solution, m = 3n + 4 (model 0) or 3n + 6
+     J_out        float64 (m, k)       written: the Jacobian there, rows scaled by (1 + f^2/f_scale^2)^-0.75 as
+                                       scipy scales a robust loss's */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
@@ -56,6 +73,159 @@ static void ray_residual(const double R[9], const double *p, double lam, const d
     o[2] = (cx * y - cy * x) * s;
 }
 
+/* each frame-1 ray's depth on the cylinder of p's axis (capped at max_depth): lam (n). It depends on p[6:] only */
+static void tube_depths(const double *p, const double *b1, Py_ssize_t n, double radius, double max_depth,
+                        double *lam) {
+    double r2 = radius * radius;
+    double ax, ay, az, ux, uy, uz;
+    tube_axis(p, &ax, &ay, &az, &ux, &uy, &uz);
+    double uu = ux * ux + uy * uy + uz * uz - r2;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double bx = b1[3 * i], by = b1[3 * i + 1], bz = b1[3 * i + 2];
+        double wx = by * az - bz * ay, wy = bz * ax - bx * az, wz = bx * ay - by * ax;
+        double ww = wx * wx + wy * wy + wz * wz;
+        double wu = wx * ux + wy * uy + wz * uz;
+        double disc = wu * wu - ww * uu;
+        double l = (wu + sqrt(disc > 0.0 ? disc : 0.0)) / ww;
+        if (isfinite(l) && l > 0.0)
+            l = l < max_depth ? l : max_depth;
+        else
+            l = max_depth;
+        lam[i] = l;
+    }
+}
+
+/* the rays' residuals (3n) of p's motion with the frame-1 points at depths lam */
+static void rays_residual(const double *p, const double *lam, const double *b1, const double *b2, Py_ssize_t n,
+                          double noise, double *o) {
+    double R[9];
+    rodrigues(p, R);
+    for (Py_ssize_t i = 0; i < n; i++)
+        ray_residual(R, p, lam[i], b1 + 3 * i, b2 + 3 * i, noise, o + 3 * i);
+}
+
+/* the squared distance of the ray's point at depth lam from the ringed tube's axis less the wall's squared radius
+   (< 0 inside), as lumen_scale._ring_points' f */
+static double ring_f(double lam, double ww, double wu, double uu, double ba, double radius, double A, double c,
+                     double w) {
+    double q = (lam * ba - c) / w;
+    double r = radius * (1.0 - A * exp(-0.5 * (q * q)));
+    return lam * lam * ww - 2.0 * lam * wu + uu - r * r;
+}
+
+/* each frame-1 ray's depth on the ringed tube of p's axis and ring: the first crossing of the wall on the depth grid,
+   then two regula-falsi steps inside its bracket (lams, n). It depends on p[6:] only */
+static void ring_depths(const double *p, const double *b1, Py_ssize_t n, double radius, double max_depth,
+                        const double *grid, Py_ssize_t G, const double *ring, double *lams) {
+    double w = ring[1] * radius;
+    double ax, ay, az, ux, uy, uz;
+    tube_axis(p, &ax, &ay, &az, &ux, &uy, &uz);
+    double A = ring[0] * tanh(p[10] / ring[0]), c = p[11] * radius;
+    double uu = ux * ux + uy * uy + uz * uz;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double bx = b1[3 * i], by = b1[3 * i + 1], bz = b1[3 * i + 2];
+        double wx = by * az - bz * ay, wy = bz * ax - bx * az, wz = bx * ay - by * ax;
+        double ww = wx * wx + wy * wy + wz * wz;
+        double wu = wx * ux + wy * uy + wz * uz;
+        double ba = bx * ax + by * ay + bz * az;
+        /* the first grid depth outside the wall (0 where none is: then no crossing) */
+        Py_ssize_t first = 0;
+        int hit = 0;
+        double f1 = 0.0, f0 = 0.0;
+        for (Py_ssize_t j = 0; j < G; j++) {
+            double fj = ring_f(max_depth * grid[j], ww, wu, uu, ba, radius, A, c, w);
+            if (fj >= 0.0) {
+                first = j;
+                hit = 1;
+                f1 = fj;
+                break;
+            }
+        }
+        double lam;
+        if (!hit) {
+            lam = max_depth;
+        } else {
+            Py_ssize_t j0 = first > 0 ? first - 1 : 0;
+            double l0 = max_depth * grid[j0], l1 = max_depth * grid[first];
+            f0 = j0 == first ? f1 : ring_f(l0, ww, wu, uu, ba, radius, A, c, w);
+            double lh;
+            if (first == 0) {
+                lh = l1;
+            } else {
+                lh = f1 != f0 ? l0 - f0 * (l1 - l0) / (f1 - f0) : l1;
+                for (int it = 0; it < 2; it++) { /* regula falsi inside the bracket */
+                    double fh = ring_f(lh, ww, wu, uu, ba, radius, A, c, w);
+                    if (fh < 0.0) {
+                        l0 = lh;
+                        f0 = fh;
+                    } else {
+                        l1 = lh;
+                        f1 = fh;
+                    }
+                    lh = f1 != f0 ? l0 - f0 * (l1 - l0) / (f1 - f0) : lh;
+                }
+            }
+            lam = lh;
+            if (lam < 1e-4) lam = 1e-4; /* NaN stays NaN, as numpy's clip */
+            if (lam > max_depth) lam = max_depth;
+        }
+        lams[i] = lam;
+    }
+}
+
+/* the ringed tube's priors (6) from p (12) */
+static void ring_priors(const double *p, const double *ps, const double *ring, double *o) {
+    for (int q = 0; q < 4; q++)
+        o[q] = p[6 + q] / ps[q];
+    o[4] = p[10] / ring[2];
+    o[5] = (p[11] - ring[4]) / ring[3];
+}
+
+/* a fit's fixed data: the model (0 the cylinder, 10 parameters; 1 the ringed tube, 12), its rays and constants */
+typedef struct {
+    int model;
+    const double *b1, *b2, *ps, *grid, *ring;
+    Py_ssize_t n, G;
+    double radius, max_depth, noise;
+} Problem;
+
+/* the rays' depths (n) under p: they depend on p[6:] only (the axis, and the ring), not on the motion */
+static void model_depths(const Problem *pr, const double *p, double *lam) {
+    if (pr->model == 0)
+        tube_depths(p, pr->b1, pr->n, pr->radius, pr->max_depth, lam);
+    else
+        ring_depths(p, pr->b1, pr->n, pr->radius, pr->max_depth, pr->grid, pr->G, pr->ring, lam);
+}
+
+/* the residuals (m) of p with the rays' depths lam */
+static void model_from_depths(const Problem *pr, const double *p, const double *lam, double *o) {
+    rays_residual(p, lam, pr->b1, pr->b2, pr->n, pr->noise, o);
+    if (pr->model == 0)
+        for (int q = 0; q < 4; q++)
+            o[3 * pr->n + q] = p[6 + q] / pr->ps[q];
+    else
+        ring_priors(p, pr->ps, pr->ring, o + 3 * pr->n);
+}
+
+/* the residuals (B x m) of B parameter vectors P (B x dim); -1 with MemoryError set where memory ran out */
+static int eval_batch(const Problem *pr, const double *P, Py_ssize_t B, double *out) {
+    int dim = pr->model == 0 ? 10 : 12;
+    Py_ssize_t m = 3 * pr->n + (pr->model == 0 ? 4 : 6);
+    double *lam = malloc(sizeof(double) * (size_t)(pr->n > 0 ? pr->n : 1));
+    if (!lam) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t k = 0; k < B; k++) {
+        model_depths(pr, P + dim * k, lam);
+        model_from_depths(pr, P + dim * k, lam, out + m * k);
+    }
+    Py_END_ALLOW_THREADS
+    free(lam);
+    return 0;
+}
+
 static PyObject *residuals(PyObject *self, PyObject *args) {
     Py_buffer pb, b1b, b2b, prb, outb;
     double radius, max_depth, noise;
@@ -73,35 +243,10 @@ static PyObject *residuals(PyObject *self, PyObject *args) {
         goto done;
     }
     {
-        const double *P = (const double *)pb.buf, *b1 = (const double *)b1b.buf, *b2 = (const double *)b2b.buf;
-        const double *ps = (const double *)prb.buf;
-        double *out = (double *)outb.buf;
-        double r2 = radius * radius;
-        Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t k = 0; k < B; k++) {
-            const double *p = P + 10 * k;
-            double *o = out + width * k;
-            double R[9], ax, ay, az, ux, uy, uz;
-            rodrigues(p, R);
-            tube_axis(p, &ax, &ay, &az, &ux, &uy, &uz);
-            double uu = ux * ux + uy * uy + uz * uz - r2;
-            for (Py_ssize_t i = 0; i < n; i++) {
-                double bx = b1[3 * i], by = b1[3 * i + 1], bz = b1[3 * i + 2];
-                double wx = by * az - bz * ay, wy = bz * ax - bx * az, wz = bx * ay - by * ax;
-                double ww = wx * wx + wy * wy + wz * wz;
-                double wu = wx * ux + wy * uy + wz * uz;
-                double disc = wu * wu - ww * uu;
-                double lam = (wu + sqrt(disc > 0.0 ? disc : 0.0)) / ww;
-                if (isfinite(lam) && lam > 0.0)
-                    lam = lam < max_depth ? lam : max_depth;
-                else
-                    lam = max_depth;
-                ray_residual(R, p, lam, b1 + 3 * i, b2 + 3 * i, noise, o + 3 * i);
-            }
-            for (int q = 0; q < 4; q++)
-                o[3 * n + q] = p[6 + q] / ps[q];
-        }
-        Py_END_ALLOW_THREADS
+        Problem pr = {0, (const double *)b1b.buf, (const double *)b2b.buf, (const double *)prb.buf, NULL, NULL, n, 0,
+                      radius, max_depth, noise};
+        if (eval_batch(&pr, (const double *)pb.buf, B, (double *)outb.buf) != 0)
+            goto done;
     }
     ret = Py_None;
     Py_INCREF(ret);
@@ -112,15 +257,6 @@ done:
     PyBuffer_Release(&prb);
     PyBuffer_Release(&outb);
     return ret;
-}
-
-/* the squared distance of the ray's point at depth lam from the ringed tube's axis less the wall's squared radius
-   (< 0 inside), as lumen_scale._ring_points' f */
-static double ring_f(double lam, double ww, double wu, double uu, double ba, double radius, double A, double c,
-                     double w) {
-    double q = (lam * ba - c) / w;
-    double r = radius * (1.0 - A * exp(-0.5 * (q * q)));
-    return lam * lam * ww - 2.0 * lam * wu + uu - r * r;
 }
 
 static PyObject *ring_residuals(PyObject *self, PyObject *args) {
@@ -143,74 +279,10 @@ static PyObject *ring_residuals(PyObject *self, PyObject *args) {
         goto done;
     }
     {
-        const double *P = (const double *)pb.buf, *b1 = (const double *)b1b.buf, *b2 = (const double *)b2b.buf;
-        const double *ps = (const double *)prb.buf, *grid = (const double *)gb.buf, *ring = (const double *)rb.buf;
-        double *out = (double *)outb.buf;
-        double w = ring[1] * radius;
-        Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t k = 0; k < B; k++) {
-            const double *p = P + 12 * k;
-            double *o = out + width * k;
-            double R[9], ax, ay, az, ux, uy, uz;
-            rodrigues(p, R);
-            tube_axis(p, &ax, &ay, &az, &ux, &uy, &uz);
-            double A = ring[0] * tanh(p[10] / ring[0]), c = p[11] * radius;
-            double uu = ux * ux + uy * uy + uz * uz;
-            for (Py_ssize_t i = 0; i < n; i++) {
-                double bx = b1[3 * i], by = b1[3 * i + 1], bz = b1[3 * i + 2];
-                double wx = by * az - bz * ay, wy = bz * ax - bx * az, wz = bx * ay - by * ax;
-                double ww = wx * wx + wy * wy + wz * wz;
-                double wu = wx * ux + wy * uy + wz * uz;
-                double ba = bx * ax + by * ay + bz * az;
-                /* the first grid depth outside the wall (0 where none is: then no crossing) */
-                Py_ssize_t first = 0;
-                int hit = 0;
-                double f1 = 0.0, f0 = 0.0;
-                for (Py_ssize_t j = 0; j < G; j++) {
-                    double fj = ring_f(max_depth * grid[j], ww, wu, uu, ba, radius, A, c, w);
-                    if (fj >= 0.0) {
-                        first = j;
-                        hit = 1;
-                        f1 = fj;
-                        break;
-                    }
-                }
-                double lam;
-                if (!hit) {
-                    lam = max_depth;
-                } else {
-                    Py_ssize_t j0 = first > 0 ? first - 1 : 0;
-                    double l0 = max_depth * grid[j0], l1 = max_depth * grid[first];
-                    f0 = j0 == first ? f1 : ring_f(l0, ww, wu, uu, ba, radius, A, c, w);
-                    double lh;
-                    if (first == 0) {
-                        lh = l1;
-                    } else {
-                        lh = f1 != f0 ? l0 - f0 * (l1 - l0) / (f1 - f0) : l1;
-                        for (int it = 0; it < 2; it++) { /* regula falsi inside the bracket */
-                            double fh = ring_f(lh, ww, wu, uu, ba, radius, A, c, w);
-                            if (fh < 0.0) {
-                                l0 = lh;
-                                f0 = fh;
-                            } else {
-                                l1 = lh;
-                                f1 = fh;
-                            }
-                            lh = f1 != f0 ? l0 - f0 * (l1 - l0) / (f1 - f0) : lh;
-                        }
-                    }
-                    lam = lh;
-                    if (lam < 1e-4) lam = 1e-4; /* NaN stays NaN, as numpy's clip */
-                    if (lam > max_depth) lam = max_depth;
-                }
-                ray_residual(R, p, lam, b1 + 3 * i, b2 + 3 * i, noise, o + 3 * i);
-            }
-            for (int q = 0; q < 4; q++)
-                o[3 * n + q] = p[6 + q] / ps[q];
-            o[3 * n + 4] = p[10] / ring[2];
-            o[3 * n + 5] = (p[11] - ring[4]) / ring[3];
-        }
-        Py_END_ALLOW_THREADS
+        Problem pr = {1, (const double *)b1b.buf, (const double *)b2b.buf, (const double *)prb.buf,
+                      (const double *)gb.buf, (const double *)rb.buf, n, G, radius, max_depth, noise};
+        if (eval_batch(&pr, (const double *)pb.buf, B, (double *)outb.buf) != 0)
+            goto done;
     }
     ret = Py_None;
     Py_INCREF(ret);
@@ -225,10 +297,250 @@ done:
     return ret;
 }
 
+/* numpy's pairwise summation (8 accumulators, blocks of 128), so that a cost is np.sum's to the last bit */
+static double pairwise_sum(const double *a, Py_ssize_t n) {
+    if (n < 8) {
+        double res = 0.0;
+        for (Py_ssize_t i = 0; i < n; i++)
+            res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        double r[8];
+        Py_ssize_t i;
+        for (int j = 0; j < 8; j++)
+            r[j] = a[j];
+        for (i = 8; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; j++)
+                r[j] += a[i + j];
+        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++)
+            res += a[i];
+        return res;
+    }
+    Py_ssize_t n2 = n / 2;
+    n2 -= n2 % 8;
+    return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
+}
+
+/* 0.5 sum rho(f^2) with scipy's soft_l1 at scale c (c2 = c^2); tmp: m doubles of scratch */
+static double soft_l1_cost(const double *f, Py_ssize_t m, double c2, double *tmp) {
+    for (Py_ssize_t i = 0; i < m; i++)
+        tmp[i] = sqrt(1.0 + f[i] * f[i] / c2) - 1.0;
+    return c2 * pairwise_sum(tmp, m);
+}
+
+/* f = model(p) and J (m x k, row-major) by forward differences in the first k parameters (steps h). A difference in
+   the motion (j < 6) keeps p's depths, which it does not change: the same numbers for ~half the work */
+static void fun_jac(const Problem *pr, const double *p, int dim, int k, const double *h, Py_ssize_t m, double *f,
+                    double *J, double *pt, double *fj, double *lam0, double *lamj) {
+    model_depths(pr, p, lam0);
+    model_from_depths(pr, p, lam0, f);
+    for (int j = 0; j < k; j++) {
+        for (int q = 0; q < dim; q++)
+            pt[q] = p[q];
+        pt[j] += h[j];
+        if (j < 6) {
+            model_from_depths(pr, pt, lam0, fj);
+        } else {
+            model_depths(pr, pt, lamj);
+            model_from_depths(pr, pt, lamj, fj);
+        }
+        for (Py_ssize_t i = 0; i < m; i++)
+            J[i * k + j] = (fj[i] - f[i]) / h[j];
+    }
+}
+
+/* M x = b for a k x k M (row-major, overwritten) by Gaussian elimination with partial pivoting; x in b. -1 where
+   a pivot is exactly 0 (LAPACK's singular matrix) */
+static int solve_small(double *M, double *b, int k) {
+    for (int c = 0; c < k; c++) {
+        int piv = c;
+        double best = fabs(M[c * k + c]);
+        for (int r = c + 1; r < k; r++)
+            if (fabs(M[r * k + c]) > best) {
+                best = fabs(M[r * k + c]);
+                piv = r;
+            }
+        if (M[piv * k + c] == 0.0)
+            return -1;
+        if (piv != c) {
+            for (int q = 0; q < k; q++) {
+                double t = M[c * k + q];
+                M[c * k + q] = M[piv * k + q];
+                M[piv * k + q] = t;
+            }
+            double t = b[c];
+            b[c] = b[piv];
+            b[piv] = t;
+        }
+        for (int r = c + 1; r < k; r++) {
+            double l = M[r * k + c] / M[c * k + c];
+            for (int q = c; q < k; q++)
+                M[r * k + q] -= l * M[c * k + q];
+            b[r] -= l * b[c];
+        }
+    }
+    for (int c = k - 1; c >= 0; c--) {
+        double s = b[c];
+        for (int q = c + 1; q < k; q++)
+            s -= M[c * k + q] * b[q];
+        b[c] = s / M[c * k + c];
+    }
+    return 0;
+}
+
+static double scaled_norm(const double *v, const double *xs, int k) {
+    double s = 0.0;
+    for (int j = 0; j < k; j++)
+        s += (v[j] / xs[j]) * (v[j] / xs[j]);
+    return sqrt(s);
+}
+
+/* motion._lm_soft_l1 on the model: p (dim) in and out, f (m) and J (m x k, scaled as scipy scales a robust loss's)
+   out; returns the cost, or -1 where memory ran out */
+static double lm_run(const Problem *pr, double *p, int dim, int k, const double *xs, const double *h, double f_scale,
+                     int max_iter, double xtol, double ftol, Py_ssize_t m, double *f, double *J) {
+    double c2 = f_scale * f_scale;
+    double *buf = malloc(sizeof(double) * (size_t)(4 * m + 2 * pr->n + 2 * k * k + 3 * k + 2 * dim));
+    if (!buf)
+        return -1.0;
+    double *fn = buf, *fj = fn + m, *w = fj + m, *tmp = w + m, *lam0 = tmp + m, *lamj = lam0 + pr->n,
+           *A = lamj + pr->n, *Mm = A + k * k, *g = Mm + k * k, *step = g + k, *D = step + k, *pt = D + k,
+           *pn = pt + dim;
+    fun_jac(pr, p, dim, k, h, m, f, J, pt, fj, lam0, lamj);
+    double cost = soft_l1_cost(f, m, c2, tmp);
+    for (int j = 0; j < k; j++)
+        D[j] = 1.0 / (xs[j] * xs[j]);
+    double lam = 1e-1;
+    for (int it = 0; it < max_iter; it++) {
+        for (Py_ssize_t i = 0; i < m; i++)
+            w[i] = 1.0 / sqrt(1.0 + f[i] * f[i] / c2);
+        /* g = (J w)^T f and A = J^T (J w), each sum over the residuals in their order, row by row */
+        for (int a = 0; a < k * k; a++)
+            A[a] = 0.0;
+        for (int a = 0; a < k; a++)
+            g[a] = 0.0;
+        for (Py_ssize_t i = 0; i < m; i++) {
+            const double *row = J + i * k;
+            double wi = w[i], fi = f[i];
+            for (int a = 0; a < k; a++) {
+                double ra = row[a];
+                g[a] += ra * wi * fi;
+                for (int b = a; b < k; b++)
+                    A[a * k + b] += ra * (row[b] * wi);
+            }
+        }
+        for (int a = 0; a < k; a++)
+            for (int b = a + 1; b < k; b++)
+                A[b * k + a] = A[a * k + b];
+        double cost_new = 0.0;
+        int accepted = 0;
+        for (;;) {
+            for (int a = 0; a < k * k; a++)
+                Mm[a] = A[a];
+            for (int a = 0; a < k; a++) {
+                Mm[a * k + a] += lam * (A[a * k + a] > D[a] ? A[a * k + a] : D[a]);
+                step[a] = g[a];
+            }
+            if (solve_small(Mm, step, k) != 0) {
+                lam *= 10.0;
+                if (lam > 1e12)
+                    break;
+                continue;
+            }
+            for (int a = 0; a < k; a++)
+                step[a] = -step[a];
+            for (int q = 0; q < dim; q++)
+                pn[q] = p[q];
+            for (int a = 0; a < k; a++)
+                pn[a] = p[a] + step[a];
+            model_depths(pr, pn, lamj);
+            model_from_depths(pr, pn, lamj, fn);
+            cost_new = soft_l1_cost(fn, m, c2, tmp);
+            if (isfinite(cost_new) && cost_new < cost) {
+                accepted = 1;
+                break;
+            }
+            lam *= 10.0;
+            if (lam > 1e12)
+                break;
+        }
+        if (!accepted)
+            break;
+        for (int a = 0; a < k; a++)
+            p[a] = pn[a];
+        int done = (cost - cost_new) < ftol * cost || scaled_norm(step, xs, k) < xtol * (scaled_norm(p, xs, k) + xtol);
+        fun_jac(pr, p, dim, k, h, m, f, J, pt, fj, lam0, lamj);
+        cost = cost_new;
+        lam = lam / 10.0 > 1e-9 ? lam / 10.0 : 1e-9;
+        if (done)
+            break;
+    }
+    for (Py_ssize_t i = 0; i < m; i++) {
+        double s = pow(1.0 + f[i] * f[i] / c2, -0.75);
+        for (int a = 0; a < k; a++)
+            J[i * k + a] *= s;
+    }
+    free(buf);
+    return cost;
+}
+
+/* lm(model, p, k, b1, b2, radius, max_depth, noise, prior_sigma, grid, ring, x_scale, h, f_scale, max_iter, xtol,
+      ftol, f_out, J_out) -> cost; p (dim,) is the start and is overwritten with the solution */
+static PyObject *lm(PyObject *self, PyObject *args) {
+    int model, k, max_iter;
+    Py_buffer pb, b1b, b2b, prb, gb, rb, xsb, hb, fb, jb;
+    double radius, max_depth, noise, f_scale, xtol, ftol;
+    if (!PyArg_ParseTuple(args, "iw*iy*y*dddy*y*y*y*y*diddw*w*", &model, &pb, &k, &b1b, &b2b, &radius, &max_depth,
+                          &noise, &prb, &gb, &rb, &xsb, &hb, &f_scale, &max_iter, &xtol, &ftol, &fb, &jb))
+        return NULL;
+    PyObject *ret = NULL;
+    int dim = model == 0 ? 10 : 12;
+    Py_ssize_t n = b1b.len / (Py_ssize_t)(3 * sizeof(double));
+    Py_ssize_t m = 3 * n + (model == 0 ? 4 : 6);
+    Py_ssize_t G = gb.len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t D8 = (Py_ssize_t)sizeof(double);
+    if ((model != 0 && model != 1) || k < 1 || k > dim || pb.len != dim * D8 || b1b.len != n * 3 * D8
+        || b2b.len != b1b.len || prb.len != 4 * D8 || (model == 1 && (G < 1 || gb.len != G * D8 || rb.len != 5 * D8))
+        || xsb.len != k * D8 || hb.len != k * D8 || fb.len != m * D8 || jb.len != m * k * D8) {
+        PyErr_SetString(PyExc_ValueError, "lm: model 0 or 1, p (10 or 12,), k free parameters, b1 and b2 (n, 3), "
+                                          "prior_sigma (4,), grid (G,) and ring (5,) for model 1, x_scale and h (k,), "
+                                          "f_out (m,) and J_out (m, k) float64 arrays");
+        goto done;
+    }
+    {
+        Problem pr = {model, (const double *)b1b.buf, (const double *)b2b.buf, (const double *)prb.buf,
+                      (const double *)gb.buf, (const double *)rb.buf, n, G, radius, max_depth, noise};
+        double cost;
+        Py_BEGIN_ALLOW_THREADS
+        cost = lm_run(&pr, (double *)pb.buf, dim, k, (const double *)xsb.buf, (const double *)hb.buf, f_scale,
+                      max_iter, xtol, ftol, m, (double *)fb.buf, (double *)jb.buf);
+        Py_END_ALLOW_THREADS
+        if (cost == -1.0)
+            PyErr_NoMemory();
+        else
+            ret = PyFloat_FromDouble(cost);
+    }
+done:
+    PyBuffer_Release(&pb);
+    PyBuffer_Release(&b1b);
+    PyBuffer_Release(&b2b);
+    PyBuffer_Release(&prb);
+    PyBuffer_Release(&gb);
+    PyBuffer_Release(&rb);
+    PyBuffer_Release(&xsb);
+    PyBuffer_Release(&hb);
+    PyBuffer_Release(&fb);
+    PyBuffer_Release(&jb);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
     {"residuals", residuals, METH_VARARGS, "The tube fit's residuals for a batch of parameter vectors."},
     {"ring_residuals", ring_residuals, METH_VARARGS,
      "The residuals of the tube with one contraction ring for a batch of parameter vectors."},
+    {"lm", lm, METH_VARARGS, "The tube fit's robust Levenberg-Marquardt loop (motion._lm_soft_l1) on either model."},
     {NULL, NULL, 0, NULL},
 };
 

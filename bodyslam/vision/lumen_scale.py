@@ -69,7 +69,8 @@ import numpy as np
 from bodyslam.camera import CameraModel
 from bodyslam.geometry import rotvec_to_matrix
 from bodyslam.steps import StepMotion
-from bodyslam.vision.motion import _lm_soft_l1, _soft_l1_cost, _tube_c  # _tube_c: compiled residuals (None: not built)
+# _tube_c: the compiled residuals (None: not built); lm_compiled: the fit's loop in C (None where it is not)
+from bodyslam.vision.motion import _lm_soft_l1, _soft_l1_cost, _tube_c, lm_compiled
 
 __all__ = ["RING_EVERY_MIN", "RING_SAMPLES_MAX", "RING_MIN_SAMPLES", "RING_SAMPLE_MIN_STEPS", "RING_NULL_SHARE",
            "RING_SHARE_ALPHA", "RING_MIN_COST_DROP", "RING_MIN_DROP_SIGNIFICANCE", "SCALE_SD_FLOOR_REL",
@@ -265,8 +266,14 @@ def _ring_ratio_rays(b1: np.ndarray, b2: np.ndarray, radius_m: float, x_tube: np
             F = _ring_residuals(Q, b1, b2, radius_m, max_depth_m, noise_rad, grid, c0)
             return F[0], ((F[1:] - F[0]) / h[:, None]).T
 
-        with np.errstate(all="ignore"):
-            q, _, _, cost = _lm_soft_l1(np.r_[x_tube, 0.2, c0], fun_jac, fun, x_scale, f_scale)
+        ring = np.array([RING_MAX_DEPTH, RING_WIDTH_RADII, RING_DEPTH_SD, RING_PLACE_SD_RADII, c0], np.float64)
+        sol = lm_compiled(1, np.r_[x_tube, 0.2, c0], 12, b1, b2, radius_m, max_depth_m, noise_rad,
+                          np.array([0.35, 0.35, 0.5 * radius_m, 0.5 * radius_m]), x_scale, h, f_scale, grid=grid,
+                          ring=ring)
+        if sol is None:
+            with np.errstate(all="ignore"):
+                sol = _lm_soft_l1(np.r_[x_tube, 0.2, c0], fun_jac, fun, x_scale, f_scale)
+        q, cost = sol[0], sol[3]
         if np.all(np.isfinite(q)) and np.isfinite(cost) and (best is None or cost < best[1]):
             best = (q, cost, c0)
     if best is None:

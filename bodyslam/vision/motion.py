@@ -66,6 +66,11 @@ try:  # the tube fit's residuals compiled (setup.py builds them where a C compil
 except ImportError:
     _tube_c = None
 _warned = False
+# The robust Levenberg-Marquardt loop compiled too (``_tube_fit.lm``, :func:`lm_compiled`): the numpy loop spent
+# ~2.5 ms of Python a fit, its residuals 0.4 (576-px realistic exam, fast mode, 3,195 fits; session 67). The same
+# loop, the same decisions; only the order of a few sums differs (tests/bodyslam/vision/test_motion.py compares
+# the two). False: the numpy loop (:func:`_lm_soft_l1`) wherever it is built.
+LM_COMPILED = True
 
 NAN = float("nan")
 
@@ -277,6 +282,32 @@ def _lm_soft_l1(p0: np.ndarray, fun_jac, fun, x_scale: np.ndarray, f_scale: floa
     return p, f, robust_jac(f, J), cost
 
 
+def lm_compiled(model: int, p0: np.ndarray, k: int, b1: np.ndarray, b2: np.ndarray, radius: float, max_depth: float,
+                noise_rad: float, prior_sigma: np.ndarray, x_scale: np.ndarray, h: np.ndarray, f_scale: float,
+                grid: np.ndarray | None = None, ring: np.ndarray | None = None, max_iter: int = 100,
+                xtol: float = 1e-5, ftol: float = 1e-5):
+    """:func:`_lm_soft_l1` in C on one of the two models, its forward-difference Jacobian included: ``model`` 0 the
+    cylinder (:func:`_tube_residuals_batch`, 10 parameters), 1 the ringed tube
+    (:func:`bodyslam.vision.lumen_scale._ring_residuals`, 12; ``grid`` and ``ring`` as there). Only the first ``k``
+    parameters of ``p0`` are fitted (steps ``h``, scales ``x_scale``, both ``(k,)``); the others stay as given.
+    Returns ``(p[:k], f, J, cost)`` as :func:`_lm_soft_l1` does; None where the compiled loop is not built or
+    :data:`LM_COMPILED` is off (the caller then runs :func:`_lm_soft_l1`)."""
+    if not (LM_COMPILED and _tube_c is not None and hasattr(_tube_c, "lm")):
+        return None
+    p = np.array(p0, np.float64)  # a copy: the loop writes the solution into it
+    m = 3 * len(b1) + (4 if model == 0 else 6)
+    f, J = np.empty(m), np.empty((m, k))
+    empty = np.empty(0)
+    cost = _tube_c.lm(int(model), p, int(k), np.ascontiguousarray(b1, np.float64),
+                      np.ascontiguousarray(b2, np.float64), float(radius), float(max_depth), float(noise_rad),
+                      np.ascontiguousarray(prior_sigma, np.float64),
+                      empty if grid is None else np.ascontiguousarray(grid, np.float64),
+                      empty if ring is None else np.ascontiguousarray(ring, np.float64),
+                      np.ascontiguousarray(x_scale, np.float64), np.ascontiguousarray(h, np.float64),
+                      float(f_scale), int(max_iter), float(xtol), float(ftol), f, J)
+    return p[:k].copy(), f, J, cost
+
+
 def estimate_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int = 20,
                   noise_rad: float = 0.003, max_depth_m: float = 0.3, init: np.ndarray | None = None,
                   max_points: int = 150, max_sigma_distance_m: float = 1e-3, solver: str = "lm") -> StepMotion:
@@ -353,14 +384,18 @@ def fit_tube(m: Matches, camera: CameraModel, radius_m: float, min_matches: int 
 
         best = None
         for s0 in (starts if starts else [p0]):
-            q = _lm_soft_l1(np.asarray(s0, float)[:6].copy(), fun_jac6,
-                            lambda q: residuals(np.r_[q, 0.0, 0.0, 0.0, 0.0]), x_scale[:6], 2.0)
+            q = lm_compiled(0, np.r_[np.asarray(s0, float)[:6], 0.0, 0.0, 0.0, 0.0], 6, b1, b2, R_max, max_depth_m,
+                            noise_rad, prior_sigma, x_scale[:6], steps[:6], 2.0)
+            if q is None:
+                q = _lm_soft_l1(np.asarray(s0, float)[:6].copy(), fun_jac6,
+                                lambda q: residuals(np.r_[q, 0.0, 0.0, 0.0, 0.0]), x_scale[:6], 2.0)
             if best is None or q[3] < best[3]:
                 best = q
         q, fval, J, cost = best
         x = np.r_[q, 0.0, 0.0, 0.0, 0.0]
     elif solver == "lm":
-        x, fval, J, cost = _lm_soft_l1(p0, fun_jac, residuals, x_scale, 2.0)
+        sol = lm_compiled(0, p0, 10, b1, b2, R_max, max_depth_m, noise_rad, prior_sigma, x_scale, steps, 2.0)
+        x, fval, J, cost = sol if sol is not None else _lm_soft_l1(p0, fun_jac, residuals, x_scale, 2.0)
     elif solver == "trf":
         try:
             sol = least_squares(residuals, p0, jac=lambda p: fun_jac(p)[1], loss="soft_l1", f_scale=2.0,

@@ -278,3 +278,80 @@ def test_numpys_residuals_say_they_are_used_once_and_fit_the_same(monkeypatch, c
     # six or more orders below issue 3's bars (0.01 cm, 0.5 deg)
     assert abs(got.distance_m - ref.distance_m) < 1e-9
     assert abs(got.roll_rad - ref.roll_rad) < 1e-7
+
+
+@pytest.mark.parametrize("rv, t, axis, off", CASES)
+def test_the_compiled_fit_loop_is_numpys(monkeypatch, rv, t, axis, off):
+    """``_tube_fit.lm`` is :func:`motion._lm_soft_l1` with its forward-difference Jacobian, in C (session 67): the
+    same decisions and the same arithmetic but for the order of a few sums (BLAS's, LAPACK's pivoting), so the same
+    solution to rounding the fit's conditioning amplifies (~1e-15 x 1e6). The free fit and the fit with the axis
+    held, on matches with 5% gross mismatches; the Jacobian's axis columns (whose rays' depths move) and motion
+    columns (whose depths the compiled loop reuses) both compared, and bad shapes refused."""
+    from bodyslam.vision import motion
+
+    if motion._tube_c is None or not hasattr(motion._tube_c, "lm"):
+        pytest.skip("bodyslam/vision/_tube_fit.c is not built here")
+    rng = np.random.default_rng(9)
+    m = synth_matches(tube_points(300, rng, axis, off), Rotation.from_rotvec(rv), np.array(t), noise_px=0.3, rng=rng)
+    pts2 = m.pts2_px.copy()
+    bad = rng.choice(len(m), 15, replace=False)
+    pts2[bad] += rng.normal(0, 8.0, (15, 2))
+    m = Matches(m.pts1_px, pts2, len(m))
+    calls = []
+    real = motion._lm_soft_l1
+    monkeypatch.setattr(motion, "_lm_soft_l1", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for hold in (False, True):
+        c_step, c_x = fit_tube(m, CAM, R_TUBE, hold_axis=hold)
+        assert not calls  # the compiled loop ran
+        monkeypatch.setattr(motion, "LM_COMPILED", False)
+        n_step, n_x = fit_tube(m, CAM, R_TUBE, hold_axis=hold)
+        assert calls  # and here numpy's
+        monkeypatch.setattr(motion, "LM_COMPILED", True)
+        calls.clear()
+        assert c_step.status == n_step.status == "ok"
+        # 1e-10 m (of a 0-6 mm step) and 1e-8 rad: far above the rounding above, far below a step's own error
+        np.testing.assert_allclose(c_x[3:6], n_x[3:6], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(c_x[0:3], n_x[0:3], rtol=0, atol=1e-8)
+        # the axis is fixed by parallax alone: on the step at rest (CASES[3]) the loops stop 1.6e-7 rad and 4e-9 m
+        # apart along its flat directions (their ftol); a loop that froze the axis's depths would be 0.2 rad off
+        np.testing.assert_allclose(c_x[6:8], n_x[6:8], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(c_x[8:10], n_x[8:10], rtol=0, atol=1e-8)
+        assert c_step.sigma_distance_m == pytest.approx(n_step.sigma_distance_m, rel=1e-6)
+        assert c_step.sigma_rotation_rad == pytest.approx(n_step.sigma_rotation_rad, rel=1e-6)
+
+    # the loop's own outputs against numpy's at one start: the residuals, the robust Jacobian (every column) and cost
+    b1, _ = CAM.unproject(m.pts1_px[:150])
+    b2, _ = CAM.unproject(m.pts2_px[:150])
+    prior = np.array([0.35, 0.35, 0.5 * R_TUBE, 0.5 * R_TUBE])
+    xs = np.r_[[0.05] * 3, [0.003] * 3, [0.2] * 2, [0.005] * 2]
+    h = 1e-6 * xs
+    p0 = np.zeros(10)
+    p0[5] = 0.3 * R_TUBE
+
+    def fun(p):
+        return motion._tube_residuals_batch(p[None], b1, b2, R_TUBE, 0.3, 0.003, prior)[0]
+
+    def fun_jac(p):
+        P = np.repeat(p[None], 11, axis=0)
+        P[1:] += np.diag(h)
+        F = motion._tube_residuals_batch(P, b1, b2, R_TUBE, 0.3, 0.003, prior)
+        return F[0], ((F[1:] - F[0]) / h[:, None]).T
+
+    for max_iter in (0, 100):  # 0: the start's own residuals, Jacobian and cost, before any step
+        pc, fc, Jc, cc = motion.lm_compiled(0, p0, 10, b1, b2, R_TUBE, 0.3, 0.003, prior, xs, h, 2.0,
+                                            max_iter=max_iter)
+        pn, fn, Jn, cn = real(p0, fun_jac, fun, xs, 2.0, max_iter=max_iter)
+        if max_iter == 0:  # the same formulas in the same order: the same numbers (the robust scale's power aside)
+            assert np.array_equal(pc, pn) and np.array_equal(fc, fn) and cc == cn
+            np.testing.assert_allclose(Jc, Jn, rtol=1e-14, atol=0)
+        else:  # as above: the axis along its flat directions on the step at rest
+            np.testing.assert_allclose(pc[:6], pn[:6], rtol=0, atol=1e-8)
+            np.testing.assert_allclose(pc[6:], pn[6:], rtol=0, atol=1e-6)
+            assert cc == pytest.approx(cn, rel=1e-9)
+    with pytest.raises(ValueError, match="float64 arrays"):
+        motion._tube_c.lm(0, p0.copy(), 10, b1, b2[:-1], R_TUBE, 0.3, 0.003, prior, np.empty(0), np.empty(0), xs, h,
+                          2.0, 100, 1e-5, 1e-5, np.empty(3 * len(b1) + 4), np.empty((3 * len(b1) + 4, 10)))
+    with pytest.raises(ValueError, match="float64 arrays"):  # a ringed tube without its grid
+        motion._tube_c.lm(1, np.zeros(12), 12, b1, b2, R_TUBE, 0.3, 0.003, prior, np.empty(0), np.empty(0),
+                          np.ones(12), np.ones(12), 2.0, 100, 1e-5, 1e-5, np.empty(3 * len(b1) + 6),
+                          np.empty((3 * len(b1) + 6, 12)))
