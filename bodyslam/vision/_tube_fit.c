@@ -27,7 +27,7 @@
       ftol, f_out, J_out) -> cost
      The fit's robust Levenberg-Marquardt loop (bodyslam.vision.motion._lm_soft_l1, its forward-difference Jacobian
      included) on one model: 0 the cylinder (10 parameters; grid and ring empty), 1 the ringed tube (12). Numpy's
-     loop spent ~2.5 ms of Python a fit where its residuals took 0.4 (session 67). The same steps, the same
+     loop took ~2.5 ms a fit, 0.4 of it in the compiled residuals (session 67). The same steps, the same
      decisions, the cost summed as np.sum sums it; the normal equations and their solve (Gaussian elimination with
      partial pivoting) sum in another order than BLAS and LAPACK, so solutions agree to the rounding the fit's
      conditioning amplifies (test_motion.py, test_lumen_scale.py compare the two). A forward difference in the

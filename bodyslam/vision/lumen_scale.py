@@ -187,13 +187,19 @@ def _ring_points(P: np.ndarray, b1: np.ndarray, radius: float, max_depth: float,
             cc[:, 0, 2] * Xx + cc[:, 1, 2] * Xy + cc[:, 2, 2] * Xz)
 
 
+def _axis_prior(radius: float) -> np.ndarray:
+    """The cylinder fit's axis priors (:func:`bodyslam.vision.motion.fit_tube`'s ``prior_sigma``), which the ring fit
+    keeps: tilt 0.35 rad, offset half a radius."""
+    return np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])
+
+
 def _ring_residuals(P, b1, b2, radius, max_depth, noise_rad, grid, c0):
     """The cylinder fit's residuals (ray angles over ``noise_rad``, the axis priors) for the ringed tube, and the
     ring's two priors: ``P (B, 12)`` -> ``(B, 3 n + 6)``. Compiled where ``_tube_fit.c`` was built (the same
     formulas, equal to ~1e-12; a call ~10x faster, a fit ~6x), else :func:`_ring_residuals_numpy`."""
     if _tube_c is None:
         return _ring_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, grid, c0)
-    prior = np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])  # the cylinder fit's axis priors
+    prior = _axis_prior(radius)
     out = np.empty((len(P), 3 * len(b1) + 6))
     _tube_c.ring_residuals(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(b1, np.float64),
                            np.ascontiguousarray(b2, np.float64), float(radius), float(max_depth), float(noise_rad),
@@ -209,7 +215,7 @@ def _ring_residuals_numpy(P, b1, b2, radius, max_depth, noise_rad, grid, c0):
     inv = 1.0 / (noise_rad * np.sqrt(x * x + y * y + z * z))
     cx, cy, cz = b2[:, 0], b2[:, 1], b2[:, 2]
     r = np.stack([(cy * z - cz * y) * inv, (cz * x - cx * z) * inv, (cx * y - cy * x) * inv], axis=-1)
-    prior = np.array([0.35, 0.35, 0.5 * radius, 0.5 * radius])  # the cylinder fit's axis priors
+    prior = _axis_prior(radius)
     return np.concatenate([r.reshape(len(P), -1), P[:, 6:10] / prior, P[:, 10:11] / RING_DEPTH_SD,
                            (P[:, 11:12] - c0) / RING_PLACE_SD_RADII], axis=1)
 
@@ -268,8 +274,7 @@ def _ring_ratio_rays(b1: np.ndarray, b2: np.ndarray, radius_m: float, x_tube: np
 
         ring = np.array([RING_MAX_DEPTH, RING_WIDTH_RADII, RING_DEPTH_SD, RING_PLACE_SD_RADII, c0], np.float64)
         sol = lm_compiled(1, np.r_[x_tube, 0.2, c0], 12, b1, b2, radius_m, max_depth_m, noise_rad,
-                          np.array([0.35, 0.35, 0.5 * radius_m, 0.5 * radius_m]), x_scale, h, f_scale, grid=grid,
-                          ring=ring)
+                          _axis_prior(radius_m), x_scale, h, f_scale, grid=grid, ring=ring)
         if sol is None:
             with np.errstate(all="ignore"):
                 sol = _lm_soft_l1(np.r_[x_tube, 0.2, c0], fun_jac, fun, x_scale, f_scale)

@@ -66,10 +66,10 @@ try:  # the tube fit's residuals compiled (setup.py builds them where a C compil
 except ImportError:
     _tube_c = None
 _warned = False
-# The robust Levenberg-Marquardt loop compiled too (``_tube_fit.lm``, :func:`lm_compiled`): the numpy loop spent
-# ~2.5 ms of Python a fit, its residuals 0.4 (576-px realistic exam, fast mode, 3,195 fits; session 67). The same
-# loop, the same decisions; only the order of a few sums differs (tests/bodyslam/vision/test_motion.py compares
-# the two). False: the numpy loop (:func:`_lm_soft_l1`) wherever it is built.
+# The robust Levenberg-Marquardt loop compiled too (``_tube_fit.lm``, :func:`lm_compiled`): the numpy loop took
+# ~2.5 ms a fit, 0.4 of it in the compiled residuals (576-px realistic exam, fast mode, 3,195 fits; session 67).
+# The same loop, the same decisions; only the order of a few sums differs (tests/bodyslam/vision/test_motion.py
+# compares the two). False: the numpy loop (:func:`_lm_soft_l1`) wherever it is built.
 LM_COMPILED = True
 
 NAN = float("nan")
