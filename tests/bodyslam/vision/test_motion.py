@@ -255,6 +255,8 @@ def test_the_compiled_residuals_are_built_where_a_compiler_is():
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler here: numpy's residuals are used")
     assert motion._tube_c is not None, "bodyslam/vision/_tube_fit.c was not built (pip install -e .)"
+    # a build from before session 67 has the residuals but not the fitting loop: fits then run numpy's, ~5% slower
+    assert hasattr(motion._tube_c, "lm"), "bodyslam/vision/_tube_fit.c is an old build (pip install -e .)"
 
 
 def test_numpys_residuals_say_they_are_used_once_and_fit_the_same(monkeypatch, caplog):
