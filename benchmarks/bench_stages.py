@@ -10,9 +10,11 @@ code more than compiled code (~10% in all on a 576-px exam), so read the rows ag
 run's speed from `bench_batch.py` or `bench_motion.py`. Issue 17: 100 frames/s on 2 cores is ~20 ms a frame and
 core, the serial end included; this says which stage to look at next.
 
-    .venv/bin/python benchmarks/bench_stages.py SEQ [--mode fast] [--json FILE] [--top N]
+    .venv/bin/python benchmarks/bench_stages.py SEQ [--mode fast] [--frames N] [--json FILE] [--top N]
 
-SEQ: a sequence directory (`testbed simulate ...`, or `bench_batch.py --keep DIR`'s exam).
+SEQ: a sequence directory (`testbed simulate ...`, or `bench_batch.py --keep DIR`'s exam). ``--frames N``: its first
+N frames only (a whole exam's first stretch: a sequence directory of its own, in a temporary folder, with the frames
+linked).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import cProfile
 import json
 import pstats
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -68,20 +71,32 @@ def stage_seconds(stats: pstats.Stats) -> dict[str, float]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("seq", type=Path, help="a sequence directory")
-    ap.add_argument("--mode", default="fast", help="matcher mode (default fast, as bodyslam batch)")
-    ap.add_argument("--json", type=Path, help="also write the figures here")
-    ap.add_argument("--top", type=int, default=0, help="also print the N functions with the most time of their own")
-    a = ap.parse_args(argv)
+def _first_frames(seq: Path, n: int, tmp: str) -> Path:
+    """A sequence directory in ``tmp`` holding ``seq``'s first ``n`` frames (its frames folder linked, meta.json's
+    frame count cut, its RF left out)."""
+    meta = json.loads((seq / "meta.json").read_text())
+    sub = Path(tmp) / seq.name
+    sub.mkdir()
+    frames_dir = meta.get("frames", {}).get("dir", "frames")
+    (sub / frames_dir).symlink_to((seq / frames_dir).resolve())
+    meta["n_frames"] = min(n, int(meta["n_frames"]))
+    meta.pop("rf", None)
+    (sub / "meta.json").write_text(json.dumps(meta))
+    return sub
 
+
+def run(a: argparse.Namespace, tmp: str) -> int:
+    """The profiled run and its table (``tmp``: where a first stretch is linked)."""
     from bodyslam.errors import BodySlamError
     from bodyslam.vision.odometry import MotionSettings, Sequence, sequence_motion, set_worker_threads
 
+    shown = f"{a.seq} (its first {a.frames} frames)" if a.frames else str(a.seq)
     try:
         settings = MotionSettings(match_mode=a.mode)
         n = Sequence.open(a.seq).n_frames
+        if a.frames is not None and a.frames < n:
+            a.seq = _first_frames(a.seq, a.frames, tmp)
+            n = Sequence.open(a.seq).n_frames
     except BodySlamError as e:
         print(f"bench_stages: {e}", file=sys.stderr)
         return 2
@@ -94,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - t0
     stats = pstats.Stats(prof)
     secs = stage_seconds(stats)
-    print(f"{a.seq}: {n} frames, {len(steps)} steps, mode {a.mode}: {wall:.1f} s under cProfile, one process, "
+    print(f"{shown}: {n} frames, {len(steps)} steps, mode {a.mode}: {wall:.1f} s under cProfile, one process, "
           f"OpenCV on one thread ({1e3 * wall / n:.1f} ms a frame)")
     print(f"{'stage':44s} {'ms a frame':>10s} {'share':>6s}")
     for label, _, _, caller in STAGES:
@@ -105,9 +120,23 @@ def main(argv: list[str] | None = None) -> int:
     if a.top:
         stats.sort_stats("tottime").print_stats(a.top)
     if a.json:
-        a.json.write_text(json.dumps({"seq": str(a.seq), "frames": n, "mode": a.mode, "wall_s": wall,
+        a.json.write_text(json.dumps({"seq": shown, "frames": n, "mode": a.mode, "wall_s": wall,
                                       "ms_per_frame": {k: 1e3 * v / n for k, v in secs.items()}}, indent=1))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("seq", type=Path, help="a sequence directory")
+    ap.add_argument("--mode", default="fast", help="matcher mode (default fast, as bodyslam batch)")
+    ap.add_argument("--json", type=Path, help="also write the figures here")
+    ap.add_argument("--top", type=int, default=0, help="also print the N functions with the most time of their own")
+    ap.add_argument("--frames", type=int, help="the sequence's first N frames only (N >= 2)")
+    a = ap.parse_args(argv)
+    if a.frames is not None and a.frames < 2:
+        ap.error(f"--frames must be at least 2, got {a.frames}")
+    with tempfile.TemporaryDirectory(prefix="bench_stages_") as tmp:
+        return run(a, tmp)
 
 
 if __name__ == "__main__":
