@@ -1,7 +1,8 @@
 """Build hook for the four compiled loops; everything else is in pyproject.toml.
 
 - bodyslam/vision/_srm_merge.c: SRM's merge loop (bodyslam.vision.segmentation);
-- bodyslam/vision/_tube_fit.c: the tube fit's residuals and its Levenberg-Marquardt loop (bodyslam.vision.motion);
+- bodyslam/vision/_tube_fit.c: the tube fit's residuals and its Levenberg-Marquardt loop (bodyslam.vision.motion),
+  guided matching's window pairs (bodyslam.vision.guided);
 - bodyslam/fusion/_ekf_rss.c: the raw-RSS filter's frames for one candidate (bodyslam.fusion.ekf);
 - bodyslam/fusion/_block_tridiag.c: the whole-exam solve's marginal covariances (bodyslam.fusion.refine).
 

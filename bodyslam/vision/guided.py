@@ -74,6 +74,10 @@ SIGMA_AT_MIN_RAD, SIGMA_POWER, SIGMA_FLOOR_RAD = math.radians(6.5), 2.7, math.ra
 # ~12 px on the testbed's 420 px frames
 WINDOW_RAD, REFINE_WINDOW_RAD = 0.19, 0.08
 RATIO = 0.9  # Lowe's ratio against the next neighbour inside the window (the window already excludes most)
+# The window's pairs compiled (``_tube_fit.guided_pairs``): the same pairs as :func:`_window_pairs_numpy`, whose
+# kd-tree and arrays of every candidate pair took ~6 ms a hypothesis on fast mode's 3,000 rescue keypoints (thesis
+# motion; session 67). False: numpy's.
+GUIDED_COMPILED = True
 # A rotation step is ``rotation_slow`` (not lost to motion) where the short-step hypotheses (SHORT_STEPS_R lumen radii,
 # the same rolls) verify at least SLOW_MATCH_RATIO times the matches the forward ones verify (each the best of its
 # set, on the first pass's window). Chosen on realistic tuning renders (session 48, fast mode, ``bodyslam batch``'s
@@ -147,11 +151,34 @@ def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12:
     empty = np.zeros((0, 2)), np.zeros((0, 2))
     if len(rows) < 8:
         return empty
+    from bodyslam.vision import motion  # its _tube_c: the compiled loops, None where not built
+
+    if GUIDED_COMPILED and motion._tube_c is not None and hasattr(motion._tube_c, "guided_pairs"):
+        out_i, out_j = np.empty(len(rows), np.int64), np.empty(len(rows), np.int64)
+        k = motion._tube_c.guided_pairs(np.ascontiguousarray(uv[rows], np.float64), rows.astype(np.int64),
+                                        np.ascontiguousarray(pts2, np.float64),
+                                        np.ascontiguousarray(dist12, np.float32), window_rad * float(camera.fx),
+                                        float(min_sep_px), float(RATIO), out_i, out_j)
+        p1, p2 = pts1[out_i[:k]], pts2[out_j[:k]]
+    else:
+        p1, p2 = _window_pairs_numpy(pts1, pts2, tree, dist12, uv, rows, window_rad * float(camera.fx), min_sep_px)
+    if len(p1) < 8:
+        return empty
+    _, keep = np.unique(np.round(p2, 1), axis=0, return_index=True)  # one match per frame-2 point
+    keep = np.sort(keep)
+    return p1[keep], p2[keep]
+
+
+def _window_pairs_numpy(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray, uv: np.ndarray,
+                        rows: np.ndarray, window_px: float, min_sep_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`guided_candidates`' pairs in numpy (``_tube_fit.guided_pairs`` where it is built): per predicted
+    keypoint the best descriptor in its window if it passes the ratio test, ``(p1, p2)`` in keypoint order."""
+    empty = np.zeros((0, 2)), np.zeros((0, 2))
     # Candidate pairs (frame-1 keypoint i, frame-2 keypoint j) within the window, as arrays, grouped by i (a stable
     # sort: j ascending inside a group); per group the nearest descriptor (ties: the lower j) and the nearest
     # among the other points. Written with reductions over the groups: a list per keypoint from query_ball_point
     # and a three-key sort took ~4x as long on ASIFT's 3000 keypoints (~160k pairs per hypothesis).
-    pairs = cKDTree(uv[rows]).sparse_distance_matrix(tree, window_rad * float(camera.fx), output_type="ndarray")
+    pairs = cKDTree(uv[rows]).sparse_distance_matrix(tree, window_px, output_type="ndarray")
     if len(pairs) == 0:
         return empty
     i = rows[pairs["i"]]
@@ -173,12 +200,7 @@ def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12:
     other = np.sqrt(dx * dx + dy * dy) > min_sep_px
     second = np.minimum.reduceat(np.where(other, dist, np.inf), starts)
     good = best_d < RATIO * second
-    p1, p2 = pts1[i[starts][good]], pts2[best_j[good]]
-    if len(p1) < 8:
-        return empty
-    _, keep = np.unique(np.round(p2, 1), axis=0, return_index=True)  # one match per frame-2 point
-    keep = np.sort(keep)
-    return p1[keep], p2[keep]
+    return pts1[i[starts][good]], pts2[best_j[good]]
 
 
 def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: float,

@@ -151,14 +151,19 @@ def test_odometry_falls_back_to_the_rotation_only_when_asked(rotation_steps, sta
     assert vo.estimate_pair(f1, f2, rotation=False).status == "too_few_matches"
 
 
-def test_guided_candidates_match_a_keypoint_by_keypoint_reading_of_the_rule():
-    """The vectorised candidate selection (grouped reductions) against the rule written out per keypoint: the
-    nearest descriptor inside the window (ties: the lower index), kept when below RATIO x the nearest among the
-    other points (more than 2 px from it). Descriptor distances are rounded so that ties happen."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_guided_candidates_match_a_keypoint_by_keypoint_reading_of_the_rule(monkeypatch, compiled):
+    """The candidate selection, compiled (``_tube_fit.guided_pairs``: a grid) and in numpy (grouped reductions),
+    against the rule written out per keypoint: the nearest descriptor inside the window (ties: the lower index),
+    kept when below RATIO x the nearest among the other points (more than 2 px from it). Descriptor distances are
+    rounded so that ties happen."""
     from scipy.spatial import cKDTree
 
-    from bodyslam.vision import guided
+    from bodyslam.vision import guided, motion
 
+    if compiled and (motion._tube_c is None or not hasattr(motion._tube_c, "guided_pairs")):
+        pytest.skip("bodyslam/vision/_tube_fit.c is not built here")
+    monkeypatch.setattr(guided, "GUIDED_COMPILED", compiled)
     rng = np.random.default_rng(3)
     m = synth_matches(tube_points(400, rng), R_TRUE, T_TRUE)
     pts1 = m.pts1_px
@@ -294,3 +299,48 @@ def test_descriptor_distances_are_exact_on_integer_descriptors():
     got = guided.descriptor_distances(d1, d2)
     assert got.dtype == np.float32 and got.shape == (70, 50)
     assert np.array_equal(got, exact) and got[3, 7] == 0.0
+
+
+def test_the_compiled_window_pairs_are_numpys_at_the_edges():
+    """``_tube_fit.guided_pairs`` against :func:`guided._window_pairs_numpy` where a grid could part from a kd-tree:
+    keypoints exactly one window away (kept: the kd-tree keeps distances <= the window), predictions far outside
+    the frame-2 points, a window with one candidate (no second: kept), windows far wider and narrower than the
+    points' spread, keypoints on top of each other, and a reversed (transposed, made contiguous) distance matrix as
+    the backward reading uses; bad shapes are refused."""
+    from scipy.spatial import cKDTree
+
+    from bodyslam.vision import guided, motion
+
+    if motion._tube_c is None or not hasattr(motion._tube_c, "guided_pairs"):
+        pytest.skip("bodyslam/vision/_tube_fit.c is not built here")
+    rng = np.random.default_rng(21)
+    pts2 = np.round(rng.uniform(0, 300, (500, 2)))  # whole pixels: exact distances of 3-4-5 triangles below
+    pts2[:40] = pts2[40:80]  # coincident keypoints
+    pts1 = rng.uniform(0, 300, (400, 2))
+    dist12 = np.round(rng.uniform(0, 6, (400, 500))).astype(np.float32)
+    uv = pts1.copy()
+    uv[:30] = pts2[100:130] + (3.0, 4.0)  # exactly 5 px from a keypoint
+    uv[30:35] = (1e7, -1e7)  # far outside
+    uv[35] = (-400.0, 150.0)
+    uv[36:60] = pts2[200:224]  # on a keypoint: alone in a narrow window
+    rows = np.r_[0:200, 250:400].astype(np.int64)
+
+    def both(window_px, d12, p1, p2):
+        n_p1, n_p2 = guided._window_pairs_numpy(p1, p2, cKDTree(p2), d12, uv, rows, window_px, 2.0)
+        oi, oj = np.empty(len(rows), np.int64), np.empty(len(rows), np.int64)
+        k = motion._tube_c.guided_pairs(np.ascontiguousarray(uv[rows]), rows, p2, np.ascontiguousarray(d12),
+                                        window_px, 2.0, guided.RATIO, oi, oj)
+        np.testing.assert_array_equal(p1[oi[:k]], n_p1)
+        np.testing.assert_array_equal(p2[oj[:k]], n_p2)
+        return k
+
+    counts = [both(w, dist12, pts1, pts2) for w in (5.0, 0.5, 12.0, 80.0, 1000.0)]
+    assert counts[0] > 30 and counts[1] > 0  # exact-distance pairs and single-candidate windows were compared
+    d21 = np.round(rng.uniform(0, 6, (500, 400))).astype(np.float32)
+    both(8.0, np.ascontiguousarray(d21.T), pts1, pts2)
+    with pytest.raises(ValueError, match="guided_pairs"):
+        motion._tube_c.guided_pairs(uv[rows], rows, pts2, np.ascontiguousarray(dist12[:, :-1]), 5.0, 2.0, guided.RATIO,
+                                    np.empty(len(rows), np.int64), np.empty(len(rows), np.int64))
+    with pytest.raises(ValueError, match="outside dist12"):
+        motion._tube_c.guided_pairs(uv[rows], rows + 300, pts2, dist12, 5.0, 2.0, guided.RATIO,
+                                    np.empty(len(rows), np.int64), np.empty(len(rows), np.int64))
