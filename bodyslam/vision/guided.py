@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 from bodyslam.camera import CameraModel
 from bodyslam.steps import StepMotion, rotation_step
 from bodyslam.vision.matching import Matcher, Matches, squared_distances
+from bodyslam.vision import motion  # its _tube_c: the compiled loops (None where not built)
 from bodyslam.vision.motion import fit_tube, tube_predict
 
 __all__ = ["estimate_rotation", "hypotheses", "short_hypotheses", "guided_matches", "descriptor_distances",
@@ -128,12 +129,12 @@ def descriptor_distances(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     return np.sqrt(sq, out=sq)
 
 
-def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray,
+def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree | None, dist12: np.ndarray,
                    params: np.ndarray, camera: CameraModel, radius_m: float, window_rad: float,
                    min_sep_px: float = 2.0, level: str = "default") -> Matches:
     """Verified matches under the motion ``params``: each frame-1 keypoint (``pts1``) takes the nearest
-    descriptor (``dist12``: :func:`descriptor_distances`) among the frame-2 keypoints (``pts2``, in ``tree``)
-    within ``window_rad`` (x the camera's focal length in pixels) of its predicted position, if that passes the
+    descriptor (``dist12``: :func:`descriptor_distances`) among the frame-2 keypoints (``pts2``; ``tree``, their
+    kd-tree, is used where numpy finds the pairs, and built there when None) within ``window_rad`` (x the camera's focal length in pixels) of its predicted position, if that passes the
     ratio test against the next one there that is a different point (more than ``min_sep_px`` away)."""
     p1, p2 = guided_candidates(pts1, pts2, tree, dist12, params, camera, radius_m, window_rad, min_sep_px)
     if len(p1) == 0:
@@ -141,8 +142,8 @@ def guided_matches(matcher: Matcher, pts1: np.ndarray, pts2: np.ndarray, tree: c
     return matcher.verify(p1, p2, level)
 
 
-def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray, params: np.ndarray,
-                      camera: CameraModel, radius_m: float, window_rad: float,
+def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree | None, dist12: np.ndarray,
+                      params: np.ndarray, camera: CameraModel, radius_m: float, window_rad: float,
                       min_sep_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """:func:`guided_matches` before verification: the matched points ``(p1, p2)``, one per frame-2 point; empty
     when fewer than 8."""
@@ -151,9 +152,7 @@ def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12:
     empty = np.zeros((0, 2)), np.zeros((0, 2))
     if len(rows) < 8:
         return empty
-    from bodyslam.vision import motion  # its _tube_c: the compiled loops, None where not built
-
-    if GUIDED_COMPILED and motion._tube_c is not None and hasattr(motion._tube_c, "guided_pairs"):
+    if _pairs_compiled():
         out_i, out_j = np.empty(len(rows), np.int64), np.empty(len(rows), np.int64)
         k = motion._tube_c.guided_pairs(np.ascontiguousarray(uv[rows], np.float64), rows.astype(np.int64),
                                         np.ascontiguousarray(pts2, np.float64),
@@ -169,11 +168,19 @@ def guided_candidates(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12:
     return p1[keep], p2[keep]
 
 
-def _window_pairs_numpy(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree, dist12: np.ndarray, uv: np.ndarray,
-                        rows: np.ndarray, window_px: float, min_sep_px: float) -> tuple[np.ndarray, np.ndarray]:
+def _pairs_compiled() -> bool:
+    """Whether the window's pairs are found by ``_tube_fit.guided_pairs`` (built, and :data:`GUIDED_COMPILED`)."""
+    return GUIDED_COMPILED and motion._tube_c is not None and hasattr(motion._tube_c, "guided_pairs")
+
+
+def _window_pairs_numpy(pts1: np.ndarray, pts2: np.ndarray, tree: cKDTree | None, dist12: np.ndarray,
+                        uv: np.ndarray, rows: np.ndarray, window_px: float,
+                        min_sep_px: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`guided_candidates`' pairs in numpy (``_tube_fit.guided_pairs`` where it is built): per predicted
-    keypoint the best descriptor in its window if it passes the ratio test, ``(p1, p2)`` in keypoint order."""
+    keypoint the best descriptor in its window if it passes the ratio test, ``(p1, p2)`` in keypoint order.
+    ``tree``: ``pts2``'s kd-tree (None: built here)."""
     empty = np.zeros((0, 2)), np.zeros((0, 2))
+    tree = cKDTree(pts2) if tree is None else tree
     # Candidate pairs (frame-1 keypoint i, frame-2 keypoint j) within the window, as arrays, grouped by i (a stable
     # sort: j ascending inside a group); per group the nearest descriptor (ties: the lower j) and the nearest
     # among the other points. Written with reductions over the groups: a list per keypoint from query_ball_point
@@ -215,7 +222,8 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
     (pts1, d1), (pts2, d2) = matcher.keypoints(f1, level), matcher.keypoints(f2, level)
     if d1 is None or d2 is None or len(pts1) < min_matches or len(pts2) < min_matches:
         return None
-    tree, dist12 = cKDTree(pts2), descriptor_distances(d1, d2)
+    # the frame-2 keypoints' kd-tree only where numpy finds the window's pairs
+    tree, dist12 = (None if _pairs_compiled() else cKDTree(pts2)), descriptor_distances(d1, d2)
 
     def matches(x, window_rad):
         return guided_matches(matcher, pts1, pts2, tree, dist12, x, camera, radius_m, window_rad, level=level)
@@ -244,7 +252,7 @@ def estimate_rotation(matcher: Matcher, f1, f2, camera: CameraModel, radius_m: f
     n_short = len(_most_verified(matcher, candidates(short_hypotheses(radius_m)), level)[0])
     slow = n_short >= SLOW_MATCH_RATIO * n_forward
     if slow:  # ... read both ways: a step backward overlaps as a rest does when read forward (MOVING_STEPS_R)
-        tree1, dist21 = cKDTree(pts1), np.ascontiguousarray(dist12.T)
+        tree1, dist21 = (None if _pairs_compiled() else cKDTree(pts1)), np.ascontiguousarray(dist12.T)
 
         def reversed_best(xs):
             c = [guided_candidates(pts2, pts1, tree1, dist21, x, camera, radius_m, WINDOW_RAD) for x in xs]
