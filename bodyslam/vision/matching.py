@@ -16,14 +16,17 @@ Modes
   lock on to it: 25% of a realistic exam's pairs lost their tracks, 3.5% on the local contrast; session 51), on
   frames shrunk to at most :data:`TRACK_WORK_PX` wide (its numbers are pixels; session 57);
   when fewer than 60 tracks verify, or the step's fit fails on them, SIFT
-  detected on the frame scaled by :data:`COARSE_SCALE` = 0.5, and when the fit fails on those too, by
-  ``detect_scale`` = 0.7 (SIFT doubles its input, so most of its cost is the first octave: 0.7 halves the
-  detection time), at most 800 keypoints, at most 200 matches to verify (:meth:`Matcher.cascade`). The 0.5 try
-  costs ~30 ms per pair against ~75 for 0.7 (both frames' detection, matching, fit; one core) and fits all 25
-  of the 250 first whole-exam pairs tracking fails on (distance error 0.0067 cm against 0.0059); on thesis
-  motion it fits fewer and 0.7 follows (README). Where those fail too, the *rescue* (``rescue``, on by default):
+  detected on the frame scaled by :data:`COARSE_SCALE` = 0.5, at most 800 keypoints, at most 200 matches to
+  verify (:meth:`Matcher.cascade`). The 0.5 try costs ~30 ms per pair against ~75 for ``detect_scale`` = 0.7
+  (both frames' detection, matching, fit; one core; SIFT doubles its input, so most of its cost is the first
+  octave) and fits all 25 of the 250 first whole-exam pairs tracking fails on (distance error 0.0067 cm against
+  0.0059). Where it fails, the *rescue* (``rescue``, on by default):
   SIFT on the full frame, at most :data:`RESCUE_FEATURES` = 3000 keypoints, FLANN, at most 400 matches to verify
-  (``sift`` mode's budget), and guided matching (:mod:`bodyslam.vision.guided`) on those keypoints. It costs only
+  (``sift`` mode's budget), and guided matching (:mod:`bodyslam.vision.guided`) on those keypoints. Without the
+  rescue the 0.7-scale try follows the 0.5 one instead. With it, the 0.7 try is skipped (session 70): it decided
+  3 of the 304 pairs of thesis seed 7 and 7 of the 206 of realistic tuning seed 595 (the rest went on to the
+  rescue), and its detection was about a quarter of fast mode's detection time; thesis seed 7 ran 8% faster
+  (25.7 -> 23.6 s, seven alternated runs, 2 jobs) with the same statuses (docs/RESULTS.md). The rescue costs only
   the pairs the cheaper tries fail on, and gives fast mode ``sift`` mode's coverage on fast motion (realistic
   tuning seeds 504-506, 200 frames each: steps with an estimate 64 / 61 / 63% -> 65 / 70 / 70%, ``sift`` 68 / 71 /
   69%; steps lost to motion 132 -> 65; thesis seed 7: 80.9 -> 85.6%, ``asift`` 83%; docs/RESULTS.md).
@@ -425,8 +428,8 @@ class Matcher:
     def cascade(self, f1: "FrameFeatures", f2: "FrameFeatures") -> Iterator[Matches]:
         """The matches to try for a pair, cheapest first; the caller stops at the first its estimator accepts.
         Fast mode: the Lucas-Kanade tracks (when at least ``lk_min_matches`` verify), then descriptors detected
-        at :data:`COARSE_SCALE`, then at ``detect_scale``, then (``rescue``) on the full frame (module docstring);
-        other modes: their descriptors."""
+        at :data:`COARSE_SCALE`, then on the full frame (``rescue``), or at ``detect_scale`` without the rescue
+        (module docstring); other modes: their descriptors."""
         if self.mode != "fast":
             yield self.match_features(f1, f2, "descriptors")
             return
@@ -434,9 +437,10 @@ class Matcher:
         if len(m) >= self.lk_min_matches:
             yield m
         yield self.match_features(f1, f2, "coarse")
-        yield self.match_features(f1, f2, "descriptors")
-        if self.rescue:
-            yield self.match_features(f1, f2, "full")
+        if not self.rescue:
+            yield self.match_features(f1, f2, "descriptors")
+            return
+        yield self.match_features(f1, f2, "full")
 
     def match(self, rgb1: np.ndarray, rgb2: np.ndarray) -> Matches:
         return self.match_features(self.features(rgb1), self.features(rgb2))

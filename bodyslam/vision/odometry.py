@@ -329,7 +329,8 @@ class VisualOdometry:
 
     def _textured(self, f) -> bool:
         """Whether a frame has the keypoints to match (:data:`LOST_MIN_KEYPOINTS_FRAC` of the matcher's budget;
-        detected once per frame, at the matcher's ``detect_scale``: every mode has them once its cascade failed)."""
+        detected once per frame, at the matcher's ``detect_scale``: the other modes and fast mode without its rescue
+        have them once the cascade failed; fast mode with it detects them here, only for the pairs it failed on)."""
         return len(self.matcher.keypoints(f)[0]) >= LOST_MIN_KEYPOINTS_FRAC * self.matcher.max_features
 
     def to_body(self, s: StepMotion) -> StepMotion:

@@ -85,18 +85,27 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
     mt.lk_min_matches = 0  # (thesis motion: tracking verifies few tracks on this pair) offer them anyway
     a, b = mt.features(f1), mt.features(f2)
     tries = list(mt.cascade(a, b))
-    assert [m.method for m in tries] == ["lk", "descriptors", "descriptors", "descriptors"]
+    # with the rescue on, the 0.7-scale try is skipped: tracking, 0.5 scale, then the full frame (session 70)
+    assert [m.method for m in tries] == ["lk", "descriptors", "descriptors"]
+    assert a.kp is None and b.kp is None  # the 0.7-scale keypoints were never detected
     # the coarse try detects on the frame scaled by COARSE_SCALE (fewer keypoints), in full-frame pixels
-    (pc, _), (pf, _) = a.kp_coarse, a.kp
-    assert 20 < len(pc) < len(pf)
+    (pc, _), (pr, _) = a.kp_coarse, a.kp_full
+    assert 20 < len(pc) < len(pr)
     assert pc.max() > COARSE_SCALE * cam.width  # not left in the small image's pixels
     ij = np.rint(pc).astype(int)
     assert (mt.mask[ij[:, 1], ij[:, 0]] > 0).all()
-    assert len(tries[1]) < 20 <= len(tries[2])  # a thesis-motion pair that needs the full-scale try
     # the rescue: SIFT on the full frame, up to sift mode's keypoint budget (more than the 0.7-scale try keeps)
-    (pr, _) = a.kp_full
-    assert len(pf) <= mt.max_features < len(pr) <= RESCUE_FEATURES and tries[3].n_candidates > tries[2].n_candidates
-    assert len(list(Matcher(cam, "fast", rescue=False).cascade(a, b))) == 3 - (len(tries[0]) < 60)
+    assert mt.max_features < len(pr) <= RESCUE_FEATURES and tries[2].n_candidates > tries[1].n_candidates
+    assert len(tries[1]) < 20 <= len(tries[2])  # a thesis-motion pair the coarse try fails on
+    # without the rescue the cascade ends at the 0.7 scale instead: fewer keypoints than the full frame's
+    nr = Matcher(cam, "fast", rescue=False)
+    nr.lk_min_matches = 0
+    c0, d0 = nr.features(f1), nr.features(f2)
+    tries_nr = list(nr.cascade(c0, d0))
+    assert [m.method for m in tries_nr] == ["lk", "descriptors", "descriptors"]
+    (pf, _) = c0.kp
+    assert len(pc) < len(pf) <= nr.max_features < len(pr) and c0.kp_full is None
+    assert len(tries_nr[1]) < 20 <= len(tries_nr[2])  # 0.7 verifies enough where 0.5 does not
     # tracking that verifies too few is not offered; a cascade stopped early detects nothing it did not need
     mt.lk_min_matches = len(tries[0]) + 1
     c, d = mt.features(f1), mt.features(f2)
