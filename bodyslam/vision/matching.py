@@ -437,10 +437,7 @@ class Matcher:
         if len(m) >= self.lk_min_matches:
             yield m
         yield self.match_features(f1, f2, "coarse")
-        if not self.rescue:
-            yield self.match_features(f1, f2, "descriptors")
-            return
-        yield self.match_features(f1, f2, "full")
+        yield self.match_features(f1, f2, "full" if self.rescue else "descriptors")
 
     def match(self, rgb1: np.ndarray, rgb2: np.ndarray) -> Matches:
         return self.match_features(self.features(rgb1), self.features(rgb2))
