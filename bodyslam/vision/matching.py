@@ -23,10 +23,13 @@ Modes
   0.0059). Where it fails, the *rescue* (``rescue``, on by default):
   SIFT on the full frame, at most :data:`RESCUE_FEATURES` = 3000 keypoints, FLANN, at most 400 matches to verify
   (``sift`` mode's budget), and guided matching (:mod:`bodyslam.vision.guided`) on those keypoints. Without the
-  rescue the 0.7-scale try follows the 0.5 one instead. With it, the 0.7 try is skipped (session 70): it decided
-  3 of the 304 pairs of thesis seed 7 and 7 of the 206 of realistic tuning seed 595 (the rest went on to the
-  rescue), and its detection was about a quarter of fast mode's detection time; thesis seed 7 ran 8% faster
-  (25.7 -> 23.6 s, seven alternated runs, 2 jobs) with the same statuses (docs/RESULTS.md). The rescue costs only
+  rescue the 0.7-scale try follows the 0.5 one instead. With it, the 0.7 try comes last (:meth:`Matcher.last_resort`),
+  only for the pairs whose rescue verified enough matches and did not fit
+  (:meth:`~bodyslam.vision.odometry.VisualOdometry.estimate_pair`): before the rescue it decided 3 of the 304
+  pairs of thesis seed 7 and 7 of the 206 of realistic tuning seed 595 (the rest went on to the rescue) while its
+  detection was about a quarter of fast mode's detection time; session 70 dropped it (thesis seed 7 8% faster),
+  which cost realistic seeds 912-915 six of their 579 fitted steps, all of them pairs whose rescue did not fit
+  (session 72; docs/RESULTS.md). The rescue costs only
   the pairs the cheaper tries fail on, and gives fast mode ``sift`` mode's coverage on fast motion (realistic
   tuning seeds 504-506, 200 frames each: steps with an estimate 64 / 61 / 63% -> 65 / 70 / 70%, ``sift`` 68 / 71 /
   69%; steps lost to motion 132 -> 65; thesis seed 7: 80.9 -> 85.6%, ``asift`` 83%; docs/RESULTS.md).
@@ -428,8 +431,8 @@ class Matcher:
     def cascade(self, f1: "FrameFeatures", f2: "FrameFeatures") -> Iterator[Matches]:
         """The matches to try for a pair, cheapest first; the caller stops at the first its estimator accepts.
         Fast mode: the Lucas-Kanade tracks (when at least ``lk_min_matches`` verify), then descriptors detected
-        at :data:`COARSE_SCALE`, then on the full frame (``rescue``), or at ``detect_scale`` without the rescue
-        (module docstring); other modes: their descriptors."""
+        at :data:`COARSE_SCALE`, then on the full frame (``rescue``; :meth:`last_resort` follows where that fails),
+        or at ``detect_scale`` without the rescue (module docstring); other modes: their descriptors."""
         if self.mode != "fast":
             yield self.match_features(f1, f2, "descriptors")
             return
@@ -438,6 +441,12 @@ class Matcher:
             yield m
         yield self.match_features(f1, f2, "coarse")
         yield self.match_features(f1, f2, "full" if self.rescue else "descriptors")
+
+    def last_resort(self, f1: "FrameFeatures", f2: "FrameFeatures") -> Matches | None:
+        """Fast mode with the rescue: the matches of the 0.7-scale try (``detect_scale``), for a pair the whole
+        cascade failed on (module docstring); None in the other modes and in fast mode without the rescue, whose
+        cascade ends with that try."""
+        return self.match_features(f1, f2, "descriptors") if self.rescue else None
 
     def match(self, rgb1: np.ndarray, rgb2: np.ndarray) -> Matches:
         return self.match_features(self.features(rgb1), self.features(rgb2))

@@ -106,6 +106,10 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
     (pf, _) = c0.kp
     assert len(pc) < len(pf) <= nr.max_features < len(pr) and c0.kp_full is None
     assert len(tries_nr[1]) < 20 <= len(tries_nr[2])  # 0.7 verifies enough where 0.5 does not
+    # with the rescue, the 0.7 try is the last resort, after the cascade (session 72): the same matches as without
+    last = mt.last_resort(a, b)
+    assert last is not None and len(a.kp[0]) == len(pf) and len(last) == len(tries_nr[2])
+    assert nr.last_resort(c0, d0) is None  # its cascade ends with that try already
     # tracking that verifies too few is not offered; a cascade stopped early detects nothing it did not need
     mt.lk_min_matches = len(tries[0]) + 1
     c, d = mt.features(f1), mt.features(f2)
@@ -113,6 +117,7 @@ def test_fast_mode_tries_tracking_then_coarse_then_full_descriptors():
     assert first.method == "descriptors" and c.kp_coarse is not None and c.kp is None and c.kp_full is None
     sift = Matcher(cam, "sift")
     assert len(list(sift.cascade(sift.features(f1), sift.features(f2)))) == 1
+    assert sift.last_resort(sift.features(f1), sift.features(f2)) is None
     with pytest.raises(ConfigError, match="coarse"):
         sift.keypoints(sift.features(f1), "coarse")
     with pytest.raises(ConfigError, match="level"):
