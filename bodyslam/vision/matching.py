@@ -28,8 +28,8 @@ Modes
   (:meth:`~bodyslam.vision.odometry.VisualOdometry.estimate_pair`): before the rescue it decided 3 of the 304
   pairs of thesis seed 7 and 7 of the 206 of realistic tuning seed 595 (the rest went on to the rescue) while its
   detection was about a quarter of fast mode's detection time; session 70 dropped it (thesis seed 7 8% faster),
-  which cost realistic seeds 912-915 six of their 579 fitted steps, all of them pairs whose rescue did not fit
-  (session 72; docs/RESULTS.md). The rescue costs only
+  which cost fresh realistic seeds 916-919 ten of their 574 fitted steps; in this order 573 (session 72, the same
+  speed within the runs' spread; docs/RESULTS.md). The rescue costs only
   the pairs the cheaper tries fail on, and gives fast mode ``sift`` mode's coverage on fast motion (realistic
   tuning seeds 504-506, 200 frames each: steps with an estimate 64 / 61 / 63% -> 65 / 70 / 70%, ``sift`` 68 / 71 /
   69%; steps lost to motion 132 -> 65; thesis seed 7: 80.9 -> 85.6%, ``asift`` 83%; docs/RESULTS.md).

@@ -381,7 +381,7 @@ def test_fast_mode_rescue_fits_a_step_the_cheaper_tries_lose_and_can_be_turned_o
 
 def test_fast_mode_tries_the_07_scale_last_where_the_rescues_fit_fails_and_keeps_its_result_else(monkeypatch):
     """With the rescue, a pair whose rescue verified enough matches but whose fit failed (``uncertain``) gets the
-    0.7-scale try last (session 72: skipping it cost realistic seeds 912-915 six of 579 fitted steps): its fit is
+    0.7-scale try last (session 72: skipping it cost realistic seeds 916-919 ten of 574 fitted steps): its fit is
     taken where it succeeds, and where it fails too the rescue's result stands (its match count, so ``lost`` keeps
     its meaning). A rescue with too few matches is not followed (0.7's fewer keypoints never fitted such a pair).
     In sift mode nothing follows."""
