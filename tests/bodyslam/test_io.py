@@ -71,6 +71,23 @@ def test_csv_rows_and_tables_number_the_lines_of_the_file(tmp_path):
                                                  (7, ["7", "8"])]
 
 
+@pytest.mark.parametrize("text, match", [
+    ("", r"x\.csv: empty file: no header line \(it needs the column\(s\) a, b\)"),
+    ("\n\n", r"x\.csv: empty file: no header line"),
+    ("a,c\n1,2\n", r"x\.csv: missing column\(s\) b; header is \['a', 'c'\]"),
+])
+def test_a_csv_without_its_columns_is_named_with_what_it_lacks(tmp_path, text, match):
+    # an empty file has no header line: said so, not as "header is None" (session 73's check of bad input)
+    from bodyslam.io import csv_rows, csv_table
+
+    p = tmp_path / "x.csv"
+    p.write_text(text)
+    for opener in (csv_rows, csv_table):
+        with pytest.raises(InputError, match=match):
+            with opener(p, ("a", "b")):
+                pass
+
+
 def test_motion_csv_keeps_a_fit_beside_the_wall_and_reads_files_without_the_column(tmp_path):
     """``beside_wall`` (StepMotion.beside_wall, odometry.BESIDE_WALL_RADII) goes through motion.csv as 0 / 1; a file
     written before the column existed, or by another tool, reads as not beside the wall; any other cell is refused
