@@ -373,7 +373,7 @@ def _open_csv(path, required: Sequence[str], reader):
         except (UnicodeDecodeError, csv.Error) as exc:
             raise InputError(f"{path}: not a CSV text file ({_decode_reason(exc)})") from None
         missing = [c for c in required if c not in (fields or [])]
-        if missing and not fields:  # no header line at all (csv gives None for an empty file)
+        if missing and not fields:  # no header line: an empty or blank file (DictReader gives None, reader [])
             raise InputError(f"{path}: empty file: no header line (it needs the column(s) {', '.join(missing)})")
         if missing:
             raise InputError(f"{path}: missing column(s) {', '.join(missing)}; header is {fields}")
