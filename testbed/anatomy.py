@@ -144,9 +144,13 @@ def extract_centerline(
     min_gain_mm: float = 50.0,
     min_piece_mm: float = 20.0,
     max_gap_mm: float = 80.0,
+    detail: dict | None = None,
 ) -> Centerline:
     """Centre line of a tubular mesh, closed or in open pieces (see module docstring). ``mesh_or_path``: a trimesh,
-    a mesh file, or a list of mesh files taken as one mesh (a model's segmented surfaces, one file per region)."""
+    a mesh file, or a list of mesh files taken as one mesh (a model's segmented surfaces, one file per region).
+    ``detail``: a dict that receives, for a mesh in open pieces, the skeleton branches chained (``pieces``: ``[(points
+    (k, 3) mm, radii (k,) mm)]``) and the chain's order (``order``: ``[(piece, reversed)]``), for diagnostics
+    (``benchmarks/bench_centerline.py --diagnose``)."""
     if isinstance(mesh_or_path, (str, Path)):
         mesh = load_mesh(mesh_or_path, repair, allow_open=True)
     elif isinstance(mesh_or_path, (list, tuple)):
@@ -185,7 +189,9 @@ def extract_centerline(
     if not pieces:
         raise InputError(f"mesh is in {len(parts)} open piece(s), none enclosing a tube of {min_piece_mm:.0f} mm "
                          "or more at this pitch")
-    pts_mm, r_mm, n_used = _chain_pieces(pieces, max_gap_mm)
+    pts_mm, r_mm, n_used = _chain_pieces(pieces, max_gap_mm, detail=detail)
+    if detail is not None:
+        detail["pieces"] = pieces
     log.warning("mesh is not watertight: %d piece(s), %d open boundaries capped (the largest %.0f mm across); "
                 "centre line chained from %d skeleton branch(es) over %d gap(s)", len(parts), n_loops, span, n_used,
                 n_used - 1)
@@ -325,14 +331,14 @@ def _bridge(a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray, step_m
     return h00 * a + h10 * gap * ta + h01 * b + h11 * gap * tb
 
 
-def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3):
+def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3, detail: dict | None = None):
     """One polyline from pieces ``[(points (k, 3) mm, radius (k,) mm)]``: ``(points, radii, pieces used)``.
 
     :func:`_link` joins them into chains; while more than one chain is left, the chains are linked again as pieces
     with the gap limit doubled (``rounds`` times at most: a piece that no end reaches within ``max_gap_mm`` may
     still belong between two chains). The longest chain's order is then improved (:func:`_improve_order`: the
     greedy matching leaves out-of-order joins that local moves undo, and side branches strung in at a cost) and
-    it is the centre line.
+    it is the centre line. ``detail``: a dict that receives that order (``order``, ``[(piece, reversed)]``).
     """
     chains = [(p, r, 1, [(i, False)]) for i, (p, r) in enumerate(pieces)]
     limit = max_gap_mm
@@ -347,6 +353,8 @@ def _chain_pieces(pieces: list, max_gap_mm: float, rounds: int = 3):
                     "%.0f mm for a branch under %.0f mm): left out", len(pieces) - best[2], len(pieces), limit / 2.0,
                     SHORT_GAP_MM, SHORT_MM)
     order = _improve_order(pieces, best[3])
+    if detail is not None:
+        detail["order"] = list(order)
     if order == best[3]:
         return best[:3]
     if len(order) < len(best[3]):

@@ -111,11 +111,19 @@ def test_a_tube_in_open_pieces_with_a_hole_keeps_its_centre_line(tmp_path):
     opened.export(path)
     with pytest.raises(InputError, match="not watertight"):
         load_mesh(path)  # as a closed mesh it is refused; the centre line takes it
-    got = extract_centerline(path, pitch_mm=0.5)
+    detail: dict = {}
+    got = extract_centerline(path, pitch_mm=0.5, detail=detail)
     sc = score_centerline(got.points_w * 1000.0, cl.points_w[10:-10] * 1000.0)
     # bridged gaps are cubic curves along the piece ends' directions: within a millimetre of a gently bending axis
     assert sc["mean_mm"] < 0.8 and sc["max_mm"] < 3.0 and sc["coverage"] == 1.0, sc
     assert abs(got.length_m - cl.length_m) < 0.015  # skeletons stop ~one radius short of each end cap
+    # what the chain was made of (benchmarks/bench_centerline.py --diagnose reads it): every branch it used is one
+    # of the pieces, once, and each lies within a few millimetres of the true axis (the tube's radius is 4 mm)
+    order, pieces = detail["order"], detail["pieces"]
+    assert len(order) >= 3 and len({i for i, _ in order}) == len(order)
+    assert all(0 <= i < len(pieces) for i, _ in order)
+    axis = cKDTree(cl.points_w * 1000.0)
+    assert all(np.median(axis.query(pieces[i][0])[0]) < 1.5 for i, _ in order)
 
 
 def test_open_piece_skeleton_splits_at_junctions_and_chains_straight_on():
