@@ -381,16 +381,23 @@ def _classify(args) -> int:
 
     import numpy as np
 
+    from bodyslam.errors import InputError
     from bodyslam.io import check_writable, read_image, write_csv, write_image
     from bodyslam.vision.classify import TunnelClassifier, features_of_frames
     from bodyslam.vision.odometry import MotionSettings, classify_work_px
 
     check_writable(args.out)
     paths, cam = _frames_of(args.input)
-    if cam is None:
-        cam = _camera_for(read_image(paths[0]), args.meta)
+    sample = _sample_frames(paths)
+    if cam is None and not args.meta and not sample:
+        if len(paths) == 1:
+            read_image(paths[0])  # says why it cannot be read
+        raise InputError(f"{args.input}: none of the {min(len(paths), 30)} frames sampled from its {len(paths)} can be "
+                         "decoded; give the camera with --meta")
+    if cam is None:  # the frames' size from the first that decodes: a corrupt first frame is listed, not fatal
+        cam = _camera_for(sample[0] if sample else None, args.meta)
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()
-    fov = _fov_of(_sample_frames(paths), cam, args.mask)
+    fov = _fov_of(sample, cam, args.mask)
     work_px = classify_work_px(MotionSettings(), model)  # the pipeline's rule: the size the model was trained at
     res = features_of_frames(paths, fov, work_px=work_px, jobs=args.jobs, progress=Progress("classify"),
                              photometric=model.photometric)

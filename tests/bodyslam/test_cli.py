@@ -74,6 +74,27 @@ def test_exit_codes_done_problems_unusable(tmp_path):
     assert not (tmp_path / "loc2").exists()
 
 
+def test_classify_takes_the_frame_size_from_a_frame_that_decodes(tmp_path):
+    """A plain folder whose first frame is corrupt: the camera's size comes from the first frame that decodes, so
+    the others are classified and the corrupt one is listed (exit 3); it used to stop the whole folder with exit 1.
+    A folder where nothing decodes is unusable input, and says that ``--meta`` gives the camera."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(4):
+        shutil.copy(DEMO / "frames" / f"{k:06d}.png", frames / f"{k:06d}.png")
+    (frames / "000000.png").write_bytes(b"garbage")
+    p = run("classify", str(frames), "--out", str(tmp_path / "c.csv"), "--jobs", "1")
+    assert p.returncode == 3 and "000000.png" in p.stdout, p.stdout + p.stderr
+    rows = (tmp_path / "c.csv").read_text().splitlines()[1:]
+    assert [r.split(",")[3] for r in rows] == ["unreadable", "ok", "ok", "ok"], rows
+    assert all(r.split(",")[1] in ("FT", "FL") for r in rows[1:])
+    for k in range(1, 4):
+        (frames / f"{k:06d}.png").write_bytes(b"garbage")
+    p = run("classify", str(frames), "--out", str(tmp_path / "c2.csv"))
+    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "--meta" in p.stderr, p.stderr
+    assert not (tmp_path / "c2.csv").exists()
+
+
 def test_a_worker_count_below_one_is_refused_by_name(tmp_path):
     """``--jobs 0`` (or less) is an argument error that says what to give, on every command that takes it; it was
     read as "one per core". Nothing is written."""
