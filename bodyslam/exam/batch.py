@@ -264,8 +264,11 @@ def _read_calibration(path: Path, width: int | None, height: int | None) -> dict
             fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
             opened = fs.isOpened()
         except (cv2.error, SystemError) as exc:
-            raise InputError(f"{path}: not a readable OpenCV calibration file (YAML/XML): "
-                             f"{str(exc).strip().splitlines()[-1][:120]}") from None
+            # a SystemError wraps the parser's cv2.error ("... returned a result with an exception set"): name that one
+            cause = exc if isinstance(exc, cv2.error) else (exc.__cause__ or exc.__context__ or exc)
+            why = str(cause).strip().splitlines()[-1]
+            why = why.split(" error: ", 1)[-1]  # OpenCV's source path and line are not the user's business
+            raise InputError(f"{path}: not a readable OpenCV calibration file (YAML/XML): {why[:120]}") from None
         if not opened:
             raise InputError(f"{path}: not a readable OpenCV calibration file (YAML/XML)")
 
