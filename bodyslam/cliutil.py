@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from typing import Callable
@@ -63,8 +64,13 @@ def jobs_count(text: str) -> int:
 
 def run_cli(main: Callable[[list[str] | None], int], argv: list[str] | None, verbose: bool = False) -> int:
     """Run a CLI body: a :class:`BodySlamError` becomes one line on stderr and exit code 1. Large freed arrays go
-    back to the system at once (:func:`bodyslam.parallel.return_large_frees`)."""
+    back to the system at once (:func:`bodyslam.parallel.return_large_frees`). FFmpeg's own log lines (OpenCV's video
+    reader prints e.g. "moov atom not found" above the command's one-line error) are silenced unless ``-v`` or the
+    user sets ``OPENCV_FFMPEG_LOGLEVEL``: a video that cannot be opened or a frame that cannot be decoded is named
+    by the command itself (pool workers inherit the setting)."""
     return_large_frees()
+    if not verbose:
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; OpenCV reads it when it opens a video
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         return main(argv)

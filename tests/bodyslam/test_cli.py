@@ -95,6 +95,15 @@ def test_classify_takes_the_frame_size_from_a_frame_that_decodes(tmp_path):
     assert not (tmp_path / "c2.csv").exists()
 
 
+def test_a_file_that_is_not_a_video_is_one_line_without_ffmpegs_own(tmp_path):
+    """OpenCV's FFmpeg reader printed its own log line ("moov atom not found") above the command's error; the
+    command names the file itself, so stderr is that one line (``-v`` or OPENCV_FFMPEG_LOGLEVEL keeps FFmpeg's)."""
+    (tmp_path / "clip.mp4").write_text("not a video")
+    p = run("batch", str(tmp_path / "clip.mp4"), "--out", str(tmp_path / "o"))
+    assert p.returncode == 1 and p.stderr.strip().splitlines() == [
+        f"error: {tmp_path / 'clip.mp4'}: cannot open the video (unsupported codec or not a video)"], p.stderr
+
+
 def test_a_worker_count_below_one_is_refused_by_name(tmp_path):
     """``--jobs 0`` (or less) is an argument error that says what to give, on every command that takes it; it was
     read as "one per core". Nothing is written."""
