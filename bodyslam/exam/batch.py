@@ -808,6 +808,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
     _prepare_out(out, plan, force)
     t0 = time.monotonic()
     tasks, reused, total = [], 0, sum(e.n_positions for e in exams)
+    ended: dict[str, int] = {}  # exam -> the position its video ended at, where it ended before its stated count
     done_frames = 0
     masks = {}
     study_problems = [["", *p] for p in (problems or [])]
@@ -831,9 +832,11 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
                   else guided_chunk_bounds(e.n_positions, settings.chunk_workers, after))
         for i, (a, b) in enumerate(bounds):
             f = out / e.name / "chunks" / f"chunk_{i:06d}.json"
-            if _valid_chunk(f, i, a, b):
+            old = _valid_chunk(f, i, a, b)
+            if old is not None:
                 reused += 1
                 done_frames += b - a + (a == 0)
+                _note_end(ended, e.name, old.get("eof"))
                 continue
             tasks.append({"exam": e.name, "chunk": i, "first": a, "last": b, "source": src.subset(a, b),
                           "camera": e.camera, "radius_m": e.radius_m, "settings": settings.motion, "mask": mask,
@@ -857,6 +860,7 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
             with atomic_path(path) as tmp:
                 tmp.write_text(json.dumps(res), encoding="utf-8")
             done_frames += task["last"] - task["first"] + (task["first"] == 0)
+            _note_end(ended, task["exam"], res.get("eof"))
             if progress:
                 progress(done_frames, total)
         phases["chunks"] = round(time.monotonic() - t0, 3)
@@ -886,8 +890,9 @@ def run_batch(exams: list[Exam], out: str | os.PathLike, settings: BatchSettings
         for i, e in enumerate(exams):
             start_fusion(i + 1)
             if stage:
-                stage(f"{e.name}: {'fusing vision with RF' if e.rf else 'dead reckoning'} over {e.n_positions} "
-                      "frames, writing the trajectory, marks and report (the per-step 1-sigma checked meanwhile)")
+                stage(f"{e.name}: {'fusing vision with RF' if e.rf else 'dead reckoning'} over "
+                      f"{ended.get(e.name, e.n_positions)} frames, writing the trajectory, marks and report (the "
+                      "per-step 1-sigma checked meanwhile)")
             s, probs = _finalize(e, out / e.name, settings, wait_check=lambda i=i: checked(i),
                                  fusion=fusions.pop(i, None), jobs=None if scheduler else jobs)
             summaries.append(s)
@@ -958,14 +963,23 @@ def _chunking_for(out: Path, plan: dict, exams: list[Exam], jobs: int | None) ->
     return {"chunk_frames": None, "chunk_workers": int(jobs or available_cores())}
 
 
-def _valid_chunk(path: Path, i: int, first: int, last: int) -> bool:
+def _note_end(ended: dict, name: str, eof) -> None:
+    """Keep in ``ended`` the earliest position at which an exam's video ended (a chunk's ``eof``; None: it did not):
+    the frames read, where the container's count (``Exam.n_positions``) was an estimate."""
+    if eof is not None:
+        ended[name] = min(int(eof), ended.get(name, int(eof)))
+
+
+def _valid_chunk(path: Path, i: int, first: int, last: int) -> dict | None:
+    """A chunk file of an earlier run that holds chunk ``i`` of ``first..last``, read; None where it does not."""
     if not path.is_file():
-        return False
+        return None
     try:
         d = json.loads(path.read_text(encoding="utf-8"))
-        return d.get("chunk") == i and d.get("first") == first and d.get("last") == last and "steps" in d
     except (OSError, ValueError):
-        return False
+        return None
+    ok = isinstance(d, dict) and d.get("chunk") == i and d.get("first") == first and d.get("last") == last
+    return d if ok and "steps" in d else None
 
 
 def _iter_chunks(exam_dir: Path) -> Iterator[dict]:

@@ -716,6 +716,10 @@ def resolve_mask(source: FrameSource, camera: CameraModel, mask: str | None, n_s
     frames, other_sizes = [], set()
     for k in np.unique(np.linspace(0, n - 1, min(n_sample, n)).astype(int)):
         fr = source.read_one(int(k))
+        if fr.end_of_video:  # a container's frame count is an estimate: the later samples lie past the end too (the
+            log.info("%s: %s (field of view detected from the frames before it)", fr.path,  # run reports the end)
+                     fr.notes[-1][1] if fr.notes else "the video ends here")
+            break
         if fr.image is not None and fr.image.shape[:2] == (camera.height, camera.width):
             frames.append(fr.image)
         elif fr.image is not None:
