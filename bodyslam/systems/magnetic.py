@@ -434,6 +434,11 @@ def load_recording(seq_dir) -> dict:
         rows = {}
         path = d / name
         lines = read_text(path).splitlines()
+        if not lines or not lines[0].strip():
+            raise InputError(f"{path}: empty file: no header line (it needs t and {n_cols} more columns)")
+        if len(lines[0].split(",")) != n_cols + 1:
+            raise InputError(f"{path}: the header has {len(lines[0].split(','))} columns, a recording of these "
+                             f"sensors needs {n_cols + 1} (t and {n_cols} more): {lines[0][:80]!r}")
         for ln, line in enumerate(lines[1:], start=2):
             try:
                 v = [float(x) for x in line.split(",")]
@@ -449,23 +454,56 @@ def load_recording(seq_dir) -> dict:
 
     hall = table("hall.csv", len(sensors.alpha))
     act = table("actuator.csv", 12)
+    for name, rows in (("hall.csv", hall), ("actuator.csv", act)):
+        if not rows:
+            raise InputError(f"{d / name}: no reading in it (every line is malformed or there is none)")
     return {"sensors": sensors, "prop": prop, "ekf": ekf_args, "dt": dt, "hall": hall, "actuator": act,
             "problems": problems}
 
 
+def _runs(ks: list[int]) -> list[tuple[int, int]]:
+    """Runs of consecutive integers in sorted ``ks``, as ``(first, last)``."""
+    out: list[tuple[int, int]] = []
+    for k in ks:
+        if out and k == out[-1][1] + 1:
+            out[-1] = (out[-1][0], k)
+        else:
+            out.append((k, k))
+    return out
+
+
 def replay(rec: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the EKF over a recording: ``(t (K+1,), states (K+1, 7), position covariances (K+1, 3, 3))``. A slot
-    without a reading is predicted only; one without its actuator pose ends the replay there."""
+    without a reading is predicted only. A slot without its actuator pose (a malformed line) takes the last pose
+    before it (the first one after, at the start), and each such run of slots is listed in ``rec["problems"]``:
+    the filter cannot predict without the field the actuator made. Where the actuator's record ends before the
+    readings do, the replay ends there, and that is listed too."""
     ekf = MagneticEkf(prop=rec["prop"], sensors=rec["sensors"], **rec["ekf"])
     K = max(rec["hall"]) if rec["hall"] else 0
+    act, dt = rec["actuator"], rec["dt"]
+    last = max(act) if act else -1
+    held = []  # slots whose actuator pose was held
+
+    def pose(k):
+        if k in act:
+            return act[k]
+        held.append(k)
+        before = [j for j in range(k - 1, -1, -1) if j in act][:1]
+        return act[before[0]] if before else act[min(act)]
+
     states, covs = [ekf.s.copy()], [ekf.P[:3, :3].copy()]
     for k in range(1, K + 1):
-        start, now = rec["actuator"].get(k - 1), rec["actuator"].get(k)
-        if start is None or now is None:
+        if k > last:
+            rec["problems"].append(("actuator.csv", "-", f"the actuator's poses end at t = {last * dt:g} s: the "
+                                    f"replay stops there, {K - k + 1} of {K} reading slots not used"))
             break
-        ekf.predict(start[6:9], start[9:12], rec["dt"])
+        start, now = pose(k - 1), pose(k)
+        ekf.predict(start[6:9], start[9:12], dt)
         if k in rec["hall"]:
             ekf.update(rec["hall"][k], now[0:3], now[3:6])
         states.append(ekf.s.copy())
         covs.append(ekf.P[:3, :3].copy())
+    for a, b in _runs(sorted(set(held))):
+        rec["problems"].append(("actuator.csv", "-", f"no actuator pose for t = {a * dt:g}"
+                                f"{'' if a == b else f'-{b * dt:g}'} s: the nearest recorded pose used in its place"))
     return np.arange(len(states)) * rec["dt"], np.array(states), np.array(covs)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from bodyslam.errors import InputError
 from bodyslam.systems.magnetic import load_recording, replay
 from testbed import popek
 from testbed.scenario import load_scenario
@@ -58,3 +59,21 @@ def test_recorded_logs_replay_to_the_closed_loop_estimates(short, tmp_path):
     assert [(f, ln) for f, ln, _ in rec["problems"]] == [("hall.csv", 11)]
     t2, states2, _ = replay(rec)  # the lost reading is predicted through; the run goes on
     assert len(t2) == len(t) and np.all(np.isfinite(states2))
+    # a malformed actuator line: its slot takes the nearest pose and the run goes on (it ended there, unlisted,
+    # with "0 problem(s)"); listed once, with its time
+    act = (tmp_path / "actuator.csv").read_text().splitlines()
+    (tmp_path / "actuator.csv").write_text("\n".join(act[:20] + ["oops"] + act[21:]) + "\n")
+    rec = load_recording(tmp_path)
+    t3, states3, _ = replay(rec)
+    assert len(t3) == len(t) and np.all(np.isfinite(states3))
+    assert [(f, str(ln)) for f, ln, _ in rec["problems"]] == [("hall.csv", "11"), ("actuator.csv", "21"),
+                                                             ("actuator.csv", "-")], rec["problems"]
+    assert "no actuator pose for t = 0.19 s" in rec["problems"][-1][2], rec["problems"]
+    # the actuator's record cut short: the replay ends with it, and says so; an empty file is unusable input
+    (tmp_path / "actuator.csv").write_text("\n".join(act[:31]) + "\n")
+    rec = load_recording(tmp_path)
+    t4, _, _ = replay(rec)
+    assert len(t4) == 30 and "the replay stops there" in rec["problems"][-1][2], rec["problems"]
+    (tmp_path / "actuator.csv").write_text("")
+    with pytest.raises(InputError, match="empty file"):
+        load_recording(tmp_path)
