@@ -424,11 +424,15 @@ def _rf_localize(args) -> int:
 
     import numpy as np
 
+    from bodyslam.errors import InputError
     from bodyslam.io import read_json, write_csv
     from bodyslam.fusion.rf import PathLossModel, locate_lls, locate_ml_frames, locate_nls, read_rf, read_sensors
 
     names, pos, nrm = read_sensors(args.sensors)
     stamps, rss, problems = read_rf(args.rf, names)
+    if len(stamps) == 0:  # nothing to locate (a header alone, or every line skipped): no empty fixes.csv
+        raise InputError(f"{args.rf}: no usable RSS reading"
+                         + (f" ({len(problems)} line(s) skipped; the first: {problems[0]})" if problems else ""))
     pl = PathLossModel()
     if args.meta:
         p = Path(args.meta)
@@ -436,7 +440,8 @@ def _rf_localize(args) -> int:
         if isinstance(meta.get("rf"), dict) and "pathloss" in meta["rf"]:
             pl = PathLossModel.from_dict(meta["rf"]["pathloss"])
     rows = []
-    prog = Progress("rf-localize")
+    # per-frame solves report progress; ML solves all frames at once before the loop, which then only tabulates
+    prog = Progress("rf-localize") if args.method != "ml" else None
     ml = locate_ml_frames(pos, nrm, rss, pl) if args.method == "ml" else None  # all frames in one solve
     for k, t in enumerate(stamps):
         if args.method == "lls":
@@ -448,7 +453,8 @@ def _rf_localize(args) -> int:
         c = fx.cov_m2
         rows.append([t, *fx.position_w_m, c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2], fx.n_sensors,
                      fx.status])
-        prog(k + 1, len(stamps))
+        if prog:
+            prog(k + 1, len(stamps))
     write_csv(args.out, ["t", "x_m", "y_m", "z_m", "cov_xx_m2", "cov_xy_m2", "cov_xz_m2", "cov_yy_m2", "cov_yz_m2",
                          "cov_zz_m2", "n_sensors", "status"], rows)
     _print_problems(problems)
@@ -497,6 +503,9 @@ def _rf_track(args) -> int:
     names, rx, _ = read_sensors(d / "sensors.csv")
     cols = ("rss_dbm",) if args.method == "rssi_pf" else ("toa_s", "uwb_field_db")
     stamps, readings, problems = read_rf_columns(d / "rf.csv", names, cols)
+    if len(stamps) == 0:  # nothing to track (a header alone, or every line skipped)
+        raise InputError(f"{d / 'rf.csv'}: no usable reading of {', '.join(cols)}"
+                         + (f" ({len(problems)} line(s) skipped; the first: {problems[0]})" if problems else ""))
     if "rss_dbm" in readings:
         readings["rss_db"] = readings.pop("rss_dbm")
     from bodyslam.io import prepare_output_dir

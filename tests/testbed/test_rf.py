@@ -100,6 +100,14 @@ def test_missing_sensors_and_bad_lines(tmp_path):
                        capture_output=True, text=True)
     assert p.returncode == 3  # done, with problems listed: the fixes were still written
     assert "skipped" in p.stdout and (tmp_path / "fixes.csv").exists()
+    # nothing usable (a header alone): unusable input, one line, and no empty fixes.csv written
+    (tmp_path / "rf.csv").write_text("t,sensor,rss_dbm\n")
+    p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "rf-localize", "--rf", str(tmp_path / "rf.csv"),
+                        "--sensors", str(tmp_path / "sensors.csv"), "--out", str(tmp_path / "fixes2.csv")],
+                       capture_output=True, text=True)
+    assert p.returncode == 1 and p.stderr.strip().splitlines() == [f"error: {tmp_path / 'rf.csv'}: no usable RSS "
+                                                                   "reading"], p.stderr
+    assert not (tmp_path / "fixes2.csv").exists()
 
 
 def test_realistic_channel_departs_from_the_calibration_as_configured():

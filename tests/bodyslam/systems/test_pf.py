@@ -106,7 +106,7 @@ def test_waypoint_method_beats_simple_integration_on_a_noisy_stop_and_go_track()
     assert np.sum(np.abs(heads[:, 1] - math.pi / 2) < 0.1) >= 2 and np.sum(np.abs(heads[:, 0] - math.pi / 2) < 0.1) >= 2
 
 
-def test_rf_track_cli_runs_on_recorded_files_and_reports_bad_lines(tmp_path):
+def test_rf_track_cli_runs_on_recorded_files_and_reports_bad_lines(tmp_path, capsys):
     # a 30 s ito2016 recording through the user's command: the files alone (no testbed), millimetre tracking
     from bodyslam.cli import main as bodyslam_main
     from testbed.rf_tracking import simulate_rf_tracking
@@ -130,6 +130,10 @@ def test_rf_track_cli_runs_on_recorded_files_and_reports_bad_lines(tmp_path):
     assert bodyslam_main(["rf-track", str(tmp_path / "rec"), "--out", str(tmp_path / "o2"), "--particles", "2000",
                           "--method", "rssi_pf"]) == 3  # the malformed line is reported, the run completes
     assert (tmp_path / "o2" / "trajectory.tum").exists()
+    # a recording with no usable reading is unusable input, one line, no output (it ended in an IndexError)
+    (tmp_path / "rec" / "rf.csv").write_text(lines[0] + "\n")
+    assert bodyslam_main(["rf-track", str(tmp_path / "rec"), "--out", str(tmp_path / "o3")]) == 1
+    assert "no usable reading" in capsys.readouterr().err and not (tmp_path / "o3").exists()
 
 
 def test_converged_from_finds_the_first_step_below_the_threshold():
