@@ -475,7 +475,15 @@ def load_recording(seq_dir) -> dict:
         k = int(round(t / delta))
         if 0 <= k < K:
             imu[k] = a
-    for k in np.flatnonzero(~np.all(np.isfinite(imu), axis=1)):
-        problems.append(("imu.csv", "-", f"no reading for the slot at t = {k * delta:g} s (predicted without one)"))
+    missing = np.flatnonzero(~np.all(np.isfinite(imu), axis=1))
+    if len(missing) and len(missing) == K:  # an IMU that gave nothing: one line, not one per slot
+        problems.append(("imu.csv", "-", f"no reading at all: every one of the {K} slots predicted without one"))
+        missing = missing[:0]
+    # each run of slots without a reading once (a gap of many seconds was one line per slot)
+    breaks = np.flatnonzero(np.diff(missing) != 1) + 1
+    for run in np.split(missing, breaks) if len(missing) else []:
+        a, b = int(run[0]), int(run[-1])
+        when = f"t = {a * delta:g} s" if a == b else f"t = {a * delta:g}-{b * delta:g} s ({b - a + 1} slots)"
+        problems.append(("imu.csv", "-", f"no reading for the slot at {when} (predicted without one)"))
     return {"arrays": arrays, "radio": radio, "sigma_acc": sigma, "delta_s": delta, "x0": x0, "P0": P0,
             "t": np.arange(K + 1) * delta, "y": y, "snr": snr, "imu": imu, "problems": problems}

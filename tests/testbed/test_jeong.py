@@ -63,6 +63,17 @@ def test_simulated_files_run_through_bodyslam_like_the_evaluation(short, tmp_pat
     rec = load_recording(tmp_path)
     assert [(f, ln) for f, ln, _ in rec["problems"]] == [("rf.csv", 4), ("rf.csv", 6)]
     assert np.isnan(rec["y"][2, 0]).all()
+    # IMU slots without a reading: a run of them is one problem with its span, an IMU that gave nothing one line
+    # (they were one line per slot: 100 for a 100-s recording)
+    imu = (tmp_path / "imu.csv").read_text().splitlines()
+    (tmp_path / "imu.csv").write_text("\n".join(imu[:4] + imu[9:]) + "\n")  # the slots at t = 3-7 s
+    rec = load_recording(tmp_path)
+    gaps = [m for f, _, m in rec["problems"] if f == "imu.csv"]
+    assert len(gaps) == 1 and "t = 3-7 s (5 slots)" in gaps[0], gaps
+    (tmp_path / "imu.csv").write_text(imu[0] + "\n")
+    rec = load_recording(tmp_path)
+    gaps = [m for f, _, m in rec["problems"] if f == "imu.csv"]
+    assert len(gaps) == 1 and gaps[0].startswith("no reading at all"), gaps
 
 
 def test_evaluate_writes_table2_and_sweeps(short, tmp_path):
