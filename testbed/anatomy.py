@@ -570,8 +570,11 @@ def load_reference_csv(path: str | Path, voxel_size_mm=(1.0, 1.0, 1.0)) -> np.nd
     rows = []
     for i, ln in enumerate(lines[1:], start=2):
         try:
-            rows.append([float(ln.split(",")[c]) for c in cols])
-        except (ValueError, IndexError) as exc:
+            cells = ln.split(",")
+            if len(cells) <= max(cols):
+                raise ValueError(f"{len(cells)} field(s), the header has {len(header)}")
+            rows.append([float(cells[c]) for c in cols])
+        except ValueError as exc:
             raise InputError(f"{path}: malformed row {i} (of the lines that are not comments): {ln!r} ({exc})") \
                 from None
     return _reference_mm(path, np.array(rows, dtype=np.float64).reshape(-1, 3), voxel_size_mm)

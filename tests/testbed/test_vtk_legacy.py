@@ -150,7 +150,7 @@ def test_gca_reference_paths_and_model_config(tmp_path):
         with pytest.raises(InputError, match=match):
             load_reference(tmp_path / "b.jsn")
     (tmp_path / "b.csv").write_text("x,y,z\n1,2,3\n1,2\n")
-    with pytest.raises(InputError, match="malformed row 3"):
+    with pytest.raises(InputError, match=r"malformed row 3 .* \(2 field\(s\), the header has 3\)"):
         load_reference(tmp_path / "b.csv")
     # the GCA config keeps the voxel size in its MODEL_PROP model object
     (tmp_path / "m.json").write_text('{"model_objects": [{"group": "DISC"}, {"group": "MODEL_PROP", '
