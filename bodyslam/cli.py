@@ -388,12 +388,13 @@ def _classify(args) -> int:
 
     check_writable(args.out)
     paths, cam = _frames_of(args.input)
-    sample = _sample_frames(paths)
+    n_sample = 30  # frames spread over the input, for the field of view (and the size, where no camera is given)
+    sample = _sample_frames(paths, n_sample)
     if cam is None and not args.meta and not sample:
         if len(paths) == 1:
             read_image(paths[0])  # says why it cannot be read
-        raise InputError(f"{args.input}: none of the {min(len(paths), 30)} frames sampled from its {len(paths)} can be "
-                         "decoded; give the camera with --meta")
+        raise InputError(f"{args.input}: none of the {min(len(paths), n_sample)} frames sampled from its {len(paths)} "
+                         "can be decoded; give the camera with --meta")
     if cam is None:  # the frames' size from the first that decodes: a corrupt first frame is listed, not fatal
         cam = _camera_for(sample[0] if sample else None, args.meta)
     model = TunnelClassifier.load(args.model) if args.model else TunnelClassifier.default()

@@ -483,27 +483,30 @@ def replay(rec: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     act, dt = rec["actuator"], rec["dt"]
     last = max(act) if act else -1
     held = []  # slots whose actuator pose was held
+    nearest = act[min(act)] if act else None  # the last pose seen so far (before any: the first one recorded)
 
     def pose(k):
+        nonlocal nearest
         if k in act:
-            return act[k]
-        held.append(k)
-        before = [j for j in range(k - 1, -1, -1) if j in act][:1]
-        return act[before[0]] if before else act[min(act)]
+            nearest = act[k]
+        else:
+            held.append(k)
+        return nearest
 
     states, covs = [ekf.s.copy()], [ekf.P[:3, :3].copy()]
+    now = pose(0)
     for k in range(1, K + 1):
         if k > last:
             rec["problems"].append(("actuator.csv", "-", f"the actuator's poses end at t = {last * dt:g} s: the "
                                     f"replay stops there, {K - k + 1} of {K} reading slots not used"))
             break
-        start, now = pose(k - 1), pose(k)
+        start, now = now, pose(k)
         ekf.predict(start[6:9], start[9:12], dt)
         if k in rec["hall"]:
             ekf.update(rec["hall"][k], now[0:3], now[3:6])
         states.append(ekf.s.copy())
         covs.append(ekf.P[:3, :3].copy())
-    for a, b in _runs(sorted(set(held))):
+    for a, b in _runs(held):
         rec["problems"].append(("actuator.csv", "-", f"no actuator pose for t = {a * dt:g}"
                                 f"{'' if a == b else f'-{b * dt:g}'} s: the nearest recorded pose used in its place"))
     return np.arange(len(states)) * rec["dt"], np.array(states), np.array(covs)
