@@ -430,7 +430,7 @@ def load_recording(seq_dir) -> dict:
         raise InputError(f"{d / 'meta.json'}: not a magnetic-capsule recording ({exc!r} missing or malformed)") from None
     problems = []
 
-    def table(name, n_cols):
+    def table(name, n_cols, nan_ok):
         rows = {}
         path = d / name
         lines = read_text(path).splitlines()
@@ -444,16 +444,21 @@ def load_recording(seq_dir) -> dict:
                 v = [float(x) for x in line.split(",")]
                 if len(v) != n_cols + 1:
                     raise ValueError(f"{len(v)} fields, expected {n_cols + 1}")
-                if not (math.isfinite(v[0]) and 0.0 <= v[0] <= 1e6):  # (a pose not yet commanded is NaN)
+                if not (math.isfinite(v[0]) and 0.0 <= v[0] <= 1e6):
                     raise ValueError(f"time {v[0]:g} s outside 0-1e6 s")
+                # a value that is not a number is not a reading (an actuator pose not yet reached is NaN: its first
+                # line's); an infinite one never is
+                bad = [x for x in v[1:] if math.isinf(x) or (math.isnan(x) and not nan_ok)]
+                if bad:
+                    raise ValueError(f"not a finite value: {bad[0]}")
             except ValueError as exc:
                 problems.append((name, ln, f"malformed line ({exc})"))
                 continue
             rows[int(round(v[0] / dt))] = np.asarray(v[1:])
         return rows
 
-    hall = table("hall.csv", len(sensors.alpha))
-    act = table("actuator.csv", 12)
+    hall = table("hall.csv", len(sensors.alpha), nan_ok=False)
+    act = table("actuator.csv", 12, nan_ok=True)
     for name, rows in (("hall.csv", hall), ("actuator.csv", act)):
         if not rows:
             raise InputError(f"{d / name}: no reading in it (every line is malformed or there is none)")

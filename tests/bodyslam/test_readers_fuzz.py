@@ -218,8 +218,10 @@ def test_imu_hall_and_actuator_logs(tmp_path, data, which, recordings):
         shutil.rmtree(d)
     shutil.copytree(src, d)
     (d / which[1]).write_bytes(data.draw(damaged((src / which[1]).read_text())))
-    load = toa_doa.load_recording if which[0] == "toa" else magnetic.load_recording
-    _only_documented_errors(lambda: load(d), d / which[1])
+    if which[0] == "toa":
+        _only_documented_errors(lambda: toa_doa.load_recording(d), d / which[1])
+    else:  # and replayed: a slot without its actuator pose is held and listed, a record cut short ends the replay
+        _only_documented_errors(lambda: magnetic.replay(magnetic.load_recording(d)), d / which[1])
 
 
 def test_a_frame_range_longer_than_any_exam_is_refused_at_once():

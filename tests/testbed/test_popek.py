@@ -77,3 +77,11 @@ def test_recorded_logs_replay_to_the_closed_loop_estimates(short, tmp_path):
     (tmp_path / "actuator.csv").write_text("")
     with pytest.raises(InputError, match="empty file"):
         load_recording(tmp_path)
+    # a reading that is not a finite number is a malformed line, not a NaN track from there on
+    (tmp_path / "actuator.csv").write_text("\n".join(act) + "\n")
+    cells = lines[12].split(",")
+    (tmp_path / "hall.csv").write_text("\n".join(lines[:12] + [",".join([cells[0], "inf", *cells[2:]])] + lines[13:])
+                                       + "\n")
+    rec = load_recording(tmp_path)
+    assert ("hall.csv", 13) in [(f, ln) for f, ln, _ in rec["problems"]], rec["problems"]
+    assert np.all(np.isfinite(replay(rec)[1]))
