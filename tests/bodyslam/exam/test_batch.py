@@ -278,8 +278,8 @@ def test_video_chunks_seek_exactly_and_a_broken_tail_is_reported(tmp_path):
                         "--radius-m", "0.015", "--jobs", "1"], capture_output=True, text=True)
     assert p.returncode == 0 and "container said 20" in p.stdout, p.stdout + p.stderr
     # the frames read, not the container's count, in what the run says it is doing (its stage lines, on stderr with
-    # the progress); and the field-of-view sample's
-    # frames past the end are not each a warning (they were, one line per sampled frame: 7 here)
+    # the progress); and the field-of-view sample's frames past the end are not each a warning (they were, one line
+    # per sampled frame past it)
     assert f"dead reckoning over {n} frames" in p.stderr and "dead reckoning over 20 frames" not in p.stderr, p.stderr
     assert "skipped for field-of-view detection" not in p.stderr, p.stderr
 
