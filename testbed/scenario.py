@@ -229,7 +229,8 @@ def _radius_fn(sec: dict, rng: np.random.Generator):
     var = float(sec.get("radius_variation_m", 0.0))
     wl = float(sec.get("radius_wavelength_m", 0.15))
     if not (0.002 <= min(r0, r1) and max(r0, r1) <= 0.05):
-        raise ConfigError(f"tube radius must be within 2-50 mm, got {r0} .. {r1} m")
+        raise ConfigError(f"[tube] radius_m and radius_end_m (the radius at the gut's start and end) must be within "
+                          f"0.002-0.05 m (2-50 mm), got {r0:g} and {r1:g} m")
     # contracted segments: narrowings by `contraction_frac` of the radius, `contraction_length_m` long, one every
     # `contraction_spacing_m` on average (positions drawn per seed); 0: none
     c_frac = float(sec.get("contraction_frac", 0.0))

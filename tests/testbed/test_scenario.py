@@ -58,3 +58,12 @@ def test_a_scenario_that_is_its_own_base_is_refused(tmp_path, monkeypatch):
                                           "name another shipped scenario, got 'loop2'"):
         load_scenario("loop")
     assert sc._loading == []  # nothing left behind for the next load
+
+
+def test_a_tube_radius_out_of_range_names_its_keys():
+    """``--set tube.radius_m=-1`` said "got -1.0 .. 0.015 m" (the start and end radii, unnamed); the keys and their
+    values are named."""
+    from testbed.scenario import build_world
+
+    with pytest.raises(ConfigError, match=r"\[tube\] radius_m and radius_end_m .* got -1 and 0.015 m"):
+        build_world(load_scenario("thesis", ["tube.radius_m=-1"]), 1, 5)
