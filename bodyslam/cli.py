@@ -433,7 +433,7 @@ def _rf_localize(args) -> int:
     stamps, rss, problems = read_rf(args.rf, names)
     if len(stamps) == 0:  # nothing to locate (a header alone, or every line skipped): no empty fixes.csv
         raise InputError(f"{args.rf}: no usable RSS reading"
-                         + (f" ({len(problems)} line(s) skipped; the first: {problems[0]})" if problems else ""))
+                         + (f" ({len(problems)} problem(s) in it; the first: {problems[0]})" if problems else ""))
     pl = PathLossModel()
     if args.meta:
         p = Path(args.meta)
@@ -462,7 +462,7 @@ def _rf_localize(args) -> int:
     ok = sum(r[-1] == "ok" for r in rows)
     sd = np.nanmedian([np.sqrt(r[4] + r[7] + r[9]) for r in rows]) if rows else float("nan")
     print(f"{args.out}: {len(rows)} fixes ({ok} ok, {args.method}); median predicted 1-sigma {sd * 100:.1f} cm; "
-          f"{len(problems)} RF line(s) skipped")
+          f"{len(problems)} RF problem(s) (lines skipped)")
     return PROBLEMS if problems else DONE
 
 
@@ -506,7 +506,7 @@ def _rf_track(args) -> int:
     stamps, readings, problems = read_rf_columns(d / "rf.csv", names, cols)
     if len(stamps) == 0:  # nothing to track (a header alone, or every line skipped)
         raise InputError(f"{d / 'rf.csv'}: no usable reading of {', '.join(cols)}"
-                         + (f" ({len(problems)} line(s) skipped; the first: {problems[0]})" if problems else ""))
+                         + (f" ({len(problems)} problem(s) in it; the first: {problems[0]})" if problems else ""))
     if "rss_dbm" in readings:
         readings["rss_db"] = readings.pop("rss_dbm")
     from bodyslam.io import prepare_output_dir
@@ -519,7 +519,7 @@ def _rf_track(args) -> int:
         write_csv(out / "permittivity.csv", ["t", "eps_r"], [[float(a), float(b)] for a, b in zip(stamps, eps)])
     print(f"{out}/trajectory.tum: {len(est)} positions ({args.method}, {args.particles} particles)"
           + (f"; permittivity at the end {eps[-1]:.1f}" if eps is not None else "")
-          + f"; {len(problems)} RF line(s) skipped")
+          + f"; {len(problems)} RF problem(s) (lines skipped)")
     return _print_problems(problems)
 
 
@@ -647,7 +647,7 @@ def _localize(args) -> int:
           f"{loc.filtered.n_updates} RF updates, {loc.filtered.n_rejected} readings rejected by the gate; "
           f"{sum(not s.has_estimate for s in steps)} steps without a visual estimate "
           f"({sum(s.has_rotation and not s.has_estimate for s in steps)} of them with their rotation); "
-          f"{len(loc.rf_problems)} RF line(s) skipped")
+          f"{len(loc.rf_problems)} RF problem(s) (lines skipped)")
     if scale:
         print(f"  {_lumen_scale_text(scale[0])}")
     if loc.rss_bias_db is not None:

@@ -168,16 +168,23 @@ def read_rf_columns(path: str | os.PathLike, sensor_names: tuple[str, ...],
         except (_NotPlain, UnicodeDecodeError, OSError):
             pass
         problems: list[tuple[int, str]] = []  # (line, message), reported in line order
+        unknown: dict[str, list[int]] = {}  # a sensor sensors.csv does not list: [its first line, its lines]
         blocks = iter(lambda: list(itertools.islice(lines, RF_BLOCK_LINES)), [])
-        stamps, cols = _rf_assemble((_rf_rows(b, header, it, js, jc, index, columns, problems) for b in blocks),
-                                    len(sensor_names), columns)
+        stamps, cols = _rf_assemble((_rf_rows(b, header, it, js, jc, index, columns, problems, unknown)
+                                     for b in blocks), len(sensor_names), columns)
+    # an unknown sensor once, at its first line, with how many lines it has (a sensor left out of sensors.csv was one
+    # problem per reading: 36,006 for six sensors of a 6,001-slot recording)
+    problems += [(first, f"unknown sensor {name!r}" if n == 1 else
+                  f"unknown sensor {name!r}: not in the sensor list, its {n} lines skipped (this the first)")
+                 for name, (first, n) in unknown.items()]
     return stamps, cols, [f"{path}:{line}: {msg}" for line, msg in sorted(problems, key=lambda p: p[0])]
 
 
 def _rf_rows(block: list, header: list[str], it: int, js: int, jc: list[int], index: dict[str, int],
-             columns: tuple[str, ...], problems: list) -> tuple[np.ndarray, np.ndarray]:
+             columns: tuple[str, ...], problems: list, unknown: dict) -> tuple[np.ndarray, np.ndarray]:
     """The good lines of a block of the CSV reader's ``(line number, cells)``, read one by one: ``(t and the
-    columns (N, 1 + c), sensor index (N,))``; each bad line's ``(line, reason)`` appended to ``problems``."""
+    columns (N, 1 + c), sensor index (N,))``; each bad line's ``(line, reason)`` appended to ``problems``, except a
+    sensor not in ``index``: ``unknown[name]`` counts its lines (``[first line, lines]``)."""
     tv_l, linenos_l, names = [], [], []
     for lineno, row in block:
         if not row:  # a blank line is skipped (as csv.DictReader does)
@@ -196,7 +203,8 @@ def _rf_rows(block: list, header: list[str], it: int, js: int, jc: list[int], in
     finite = np.isfinite(tv)
     for i in np.flatnonzero((sensor < 0) | ~finite.all(axis=1)):
         if sensor[i] < 0:
-            problems.append((int(linenos[i]), f"unknown sensor {names[i]!r}"))
+            seen = unknown.setdefault(names[i], [int(linenos[i]), 0])
+            seen[1] += 1
         else:  # nan/inf parse as numbers: a reading that is not one is listed, not silently lost
             bad = [f"{c}={x}" for c, x in zip(columns, tv[i, 1:]) if not math.isfinite(x)] + (
                 [] if finite[i, 0] else [f"t={tv[i, 0]}"])

@@ -98,6 +98,13 @@ def test_rf_csv_read_whole_equals_line_by_line(tmp_path):
     s2, c2, p2 = read_rf_columns(bad, names, ("rss_dbm", "extra"))
     assert p1 == [] and len(p2) == 1 and f"bad.csv:{len(lines) + 1}: unknown sensor 'XX'" in p2[0]
     assert np.array_equal(s1, s2) and len(s1) == 40
+    # a sensor the list lacks altogether is one problem, at its first line, with its count (it was one per line:
+    # 36,006 for six sensors left out of a 6,001-slot recording)
+    many = tmp_path / "many.csv"
+    many.write_text("\n".join(lines) + "".join(f"\n{20 + k},YY,-80,0" for k in range(5)) + "\n3.0,XX,-80,0\n")
+    _, _, p3 = read_rf_columns(many, names, ("rss_dbm", "extra"))
+    assert p3 == [f"{many}:{len(lines) + 1}: unknown sensor 'YY': not in the sensor list, its 5 lines skipped (this "
+                  "the first)", f"{many}:{len(lines) + 6}: unknown sensor 'XX'"], p3
     for c in ("rss_dbm", "extra"):
         assert np.array_equal(c1[c], c2[c], equal_nan=True)
     t0, j0 = float(lines[3].split(",")[0]), names.index(lines[3].split(",")[1])
