@@ -419,10 +419,22 @@ def load_recording(seq_dir) -> dict:
         sen, fl = meta["sensors"], meta["filter"]
         sensors = HallArray(np.asarray(sen["offsets_mm"], float) * 1e-3, np.asarray(sen["axes"], float))
         prop = Propulsion(float(fl["a"]), float(fl["e"]), float(fl["l"]), tuple(fl["m_c_capsule_am2"]))
-        ekf_args = {"s": np.asarray(fl["initial_state"], float), "P": np.asarray(fl["P0"], float),
-                    "Q_proc": np.diag(np.asarray(fl["q_diag"], float)), "N_meas": np.diag(np.asarray(fl["noise_var_t2"],
-                                                                                                    float)),
-                    "body_sd_rad": tuple(fl["body_sd_rad"]) if fl.get("body_sd_rad") else None}
+        # the filter's arrays sized for its state [p (3), Q (4)] and for the sensors, and numbers throughout (a
+        # mismatch was a numpy broadcast error in the first step of the replay)
+        n = len(sensors.alpha)
+        arrays = {"initial_state": (7,), "P0": (7, 7), "q_diag": (7,), "noise_var_t2": (n,), "m_c_capsule_am2": (3,)}
+        v = {k: np.asarray(fl[k], float) for k in arrays}
+        for k, shape in arrays.items():
+            if v[k].shape != shape:
+                raise ValueError(f"filter.{k} has shape {v[k].shape}, the 7-element state and {n} sensors need {shape}")
+        body = np.asarray(fl["body_sd_rad"], float) if fl.get("body_sd_rad") else None
+        if body is not None and body.shape != (3,):
+            raise ValueError(f"filter.body_sd_rad has shape {body.shape}, it needs (roll, pitch, yaw)")
+        if not all(np.all(np.isfinite(x)) for x in (*v.values(), sensors.delta_m, sensors.alpha, [prop.a, prop.e, prop.l],
+                                                     [] if body is None else body)):
+            raise ValueError("the filter's numbers or the sensors' offsets and axes hold a value that is not a number")
+        ekf_args = {"s": v["initial_state"], "P": v["P0"], "Q_proc": np.diag(v["q_diag"]),
+                    "N_meas": np.diag(v["noise_var_t2"]), "body_sd_rad": None if body is None else tuple(body)}
         dt = 1.0 / float(fl["rate_hz"])
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError("rate_hz must be a positive number")

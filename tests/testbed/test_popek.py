@@ -85,3 +85,12 @@ def test_recorded_logs_replay_to_the_closed_loop_estimates(short, tmp_path):
     rec = load_recording(tmp_path)
     assert ("hall.csv", 13) in [(f, ln) for f, ln, _ in rec["problems"]], rec["problems"]
     assert np.all(np.isfinite(replay(rec)[1]))
+    # the filter's arrays must fit its 7-element state and the sensors: one that does not is named (it was a numpy
+    # broadcast error in the replay's first step; found by the reader fuzz test)
+    import json
+
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    meta["filter"]["q_diag"] = meta["filter"]["q_diag"] + [1e-3]
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"filter.q_diag has shape \(8,\).*need \(7,\)"):
+        load_recording(tmp_path)
