@@ -428,6 +428,11 @@ def load_recording(seq_dir) -> dict:
         P0 = np.asarray(init["covariance"], float).reshape(6, 6)
         if not (math.isfinite(delta) and delta > 0 and math.isfinite(sigma) and sigma >= 0):
             raise ValueError("interval_s must be positive and imu.sigma_acc_mps2 >= 0")
+        if x0.shape != (6,) or not (np.all(np.isfinite(x0)) and np.all(np.isfinite(P0))):
+            raise ValueError("initial_state: position_m and velocity_mps need 3 numbers each, covariance 6 x 6 numbers")
+        # a covariance: symmetric and positive definite (one that is not made the filter's first solve singular)
+        if not np.allclose(P0, P0.T, rtol=1e-6, atol=0.0) or np.any(np.linalg.eigvalsh(0.5 * (P0 + P0.T)) <= 0):
+            raise ValueError("initial_state.covariance must be symmetric and positive definite")
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(f"{d / 'meta.json'}: not a TOA/DOA + IMU recording ({exc!r} missing or malformed)") from None
     names = {a.name: i for i, a in enumerate(arrays)}

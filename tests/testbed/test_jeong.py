@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from bodyslam.errors import InputError
 from bodyslam.systems.toa_doa import load_recording, run_scheme
 from testbed import jeong
 from testbed.scenario import load_scenario
@@ -74,6 +75,14 @@ def test_simulated_files_run_through_bodyslam_like_the_evaluation(short, tmp_pat
     rec = load_recording(tmp_path)
     gaps = [m for f, _, m in rec["problems"] if f == "imu.csv"]
     assert len(gaps) == 1 and gaps[0].startswith("no reading at all"), gaps
+    # an initial covariance that is none (asymmetric, or not positive definite) is named; it made the filter's first
+    # solve singular (a LinAlgError; found by the reader fuzz test, which now runs the scheme)
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    for bad in ([[0.0] * 6] * 6, [[1e40 if (i, j) == (4, 0) else float(i == j) for j in range(6)] for i in range(6)]):
+        meta["initial_state"]["covariance"] = bad
+        (tmp_path / "meta.json").write_text(json.dumps(meta))
+        with pytest.raises(InputError, match="symmetric and positive definite"):
+            load_recording(tmp_path)
 
 
 def test_evaluate_writes_table2_and_sweeps(short, tmp_path):
