@@ -96,7 +96,7 @@ def main() -> None:
         # our line's correct stretch along the duodenum would count as off the line
         summary.append((sc, cl.length_m, scores["whole path (ICV..POL)"]["precision"]))
         if args.diagnose and "order" in detail:
-            diagnose(detail, ref, args.pitch_mm)
+            diagnose(detail, ref)
     if len(summary) > 1:
         mean = np.array([s["mean_mm"] for s, _, _ in summary])
         cov = np.array([s["coverage"] for s, _, _ in summary])
@@ -110,7 +110,7 @@ def main() -> None:
               f"{length.max():.2f} m")
 
 
-def diagnose(detail: dict, ref_mm: np.ndarray, pitch_mm: float, tol_mm: float = 5.0, end_mm: float = 10.0) -> None:
+def diagnose(detail: dict, ref_mm: np.ndarray, tol_mm: float = 5.0, end_mm: float = 10.0) -> None:
     """Print where the chain of ``detail`` (:func:`~testbed.anatomy.extract_centerline`'s) lies farther than ``tol_mm``
     from ``ref_mm``, and the scores of the chain rebuilt without the branches off it (module docstring)."""
     from scipy.spatial import cKDTree
@@ -150,9 +150,8 @@ def diagnose(detail: dict, ref_mm: np.ndarray, pitch_mm: float, tol_mm: float = 
     print(f"  diagnose: chain {total:.0f} mm before smoothing, {sum(v[1] for v in parts.values()):.0f} mm of it over "
           f"{tol_mm:g} mm off the whole path: " + "; ".join(f"{k} {v[1]:.0f} of {v[0]:.0f}" for k, v in parts.items()))
     kept = [pc for pc, off in zip(pieces, off_branch) if not off]
-    pts, rad, _ = _chain_pieces(kept, 80.0)
-    sm = pitch_mm * 0.7  # extract_centerline's default smoothing
-    line = Centerline.from_points(pts / 1000.0, rad / 1000.0, ds_m=1e-3, smoothing_m=sm / 1000.0)
+    pts, rad, _ = _chain_pieces(kept, detail["max_gap_mm"])  # as the extraction chained and smoothed them
+    line = Centerline.from_points(pts / 1000.0, rad / 1000.0, ds_m=1e-3, smoothing_m=detail["smoothing_mm"] / 1000.0)
     sc = score_centerline(line.points_w * 1000.0, ref_mm)
     print(f"  oracle (the {sum(off_branch)} of {len(pieces)} branches off the path left out before chaining): "
           f"precision {sc['precision']:.2f}, coverage {sc['coverage']:.2f}, mean {sc['mean_mm']:.2f} mm, line "

@@ -149,8 +149,9 @@ def extract_centerline(
     """Centre line of a tubular mesh, closed or in open pieces (see module docstring). ``mesh_or_path``: a trimesh,
     a mesh file, or a list of mesh files taken as one mesh (a model's segmented surfaces, one file per region).
     ``detail``: a dict that receives, for a mesh in open pieces, the skeleton branches chained (``pieces``: ``[(points
-    (k, 3) mm, radii (k,) mm)]``) and the chain's order (``order``: ``[(piece, reversed)]``), for diagnostics
-    (``benchmarks/bench_centerline.py --diagnose``)."""
+    (k, 3) mm, radii (k,) mm)]``), the chain's order (``order``: ``[(piece, reversed)]``), and the gap limit and
+    smoothing used (``max_gap_mm``, ``smoothing_mm``), for diagnostics (``benchmarks/bench_centerline.py
+    --diagnose``)."""
     if isinstance(mesh_or_path, (str, Path)):
         mesh = load_mesh(mesh_or_path, repair, allow_open=True)
     elif isinstance(mesh_or_path, (list, tuple)):
@@ -191,7 +192,7 @@ def extract_centerline(
                          "or more at this pitch")
     pts_mm, r_mm, n_used = _chain_pieces(pieces, max_gap_mm, detail=detail)
     if detail is not None:
-        detail["pieces"] = pieces
+        detail.update(pieces=pieces, max_gap_mm=max_gap_mm, smoothing_mm=sm)
     log.warning("mesh is not watertight: %d piece(s), %d open boundaries capped (the largest %.0f mm across); "
                 "centre line chained from %d skeleton branch(es) over %d gap(s)", len(parts), n_loops, span, n_used,
                 n_used - 1)

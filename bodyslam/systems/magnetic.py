@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bodyslam.errors import ConfigError
+from bodyslam.systems import runs_of
 
 __all__ = ["MU0", "skew", "rotate", "rotate_inv", "Pi", "Pi_star", "Upsilon", "Upsilon_star", "quat_mul",
            "quat_from_rotvec", "dquat_drotvec", "field_at", "field_gradient", "torque_force", "HallArray",
@@ -478,17 +479,6 @@ def load_recording(seq_dir) -> dict:
             "problems": problems}
 
 
-def _runs(ks: list[int]) -> list[tuple[int, int]]:
-    """Runs of consecutive integers in sorted ``ks``, as ``(first, last)``."""
-    out: list[tuple[int, int]] = []
-    for k in ks:
-        if out and k == out[-1][1] + 1:
-            out[-1] = (out[-1][0], k)
-        else:
-            out.append((k, k))
-    return out
-
-
 def replay(rec: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run the EKF over a recording: ``(t (K+1,), states (K+1, 7), position covariances (K+1, 3, 3))``. A slot
     without a reading is predicted only. A slot without its actuator pose (a malformed line) takes the last pose
@@ -523,7 +513,7 @@ def replay(rec: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             ekf.update(rec["hall"][k], now[0:3], now[3:6])
         states.append(ekf.s.copy())
         covs.append(ekf.P[:3, :3].copy())
-    for a, b in _runs(held):
+    for a, b in runs_of(held):
         rec["problems"].append(("actuator.csv", "-", f"no actuator pose for t = {a * dt:g}"
                                 f"{'' if a == b else f'-{b * dt:g}'} s: the nearest recorded pose used in its place"))
     return np.arange(len(states)) * rec["dt"], np.array(states), np.array(covs)

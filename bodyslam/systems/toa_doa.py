@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bodyslam.errors import ConfigError
+from bodyslam.systems import runs_of
 
 __all__ = ["C_MPS", "Ura", "Radio", "toa_doa", "jacobian", "transition", "q_continuous", "q_discrete",
            "MEASUREMENTS", "HybridEkf", "snapshot_fix", "channel_draws", "measurement_information", "pcrb",
@@ -481,13 +482,10 @@ def load_recording(seq_dir) -> dict:
         if 0 <= k < K:
             imu[k] = a
     missing = np.flatnonzero(~np.all(np.isfinite(imu), axis=1))
-    if len(missing) and len(missing) == K:  # an IMU that gave nothing: one line, not one per slot
+    if K and len(missing) == K:  # an IMU that gave nothing: one line, not one per slot
         problems.append(("imu.csv", "-", f"no reading at all: every one of the {K} slots predicted without one"))
         missing = missing[:0]
-    # each run of slots without a reading once (a gap of many seconds was one line per slot)
-    breaks = np.flatnonzero(np.diff(missing) != 1) + 1
-    for run in np.split(missing, breaks) if len(missing) else []:
-        a, b = int(run[0]), int(run[-1])
+    for a, b in runs_of(missing):  # each run of slots without a reading once (a long gap was a line per slot)
         when = f"t = {a * delta:g} s" if a == b else f"t = {a * delta:g}-{b * delta:g} s ({b - a + 1} slots)"
         problems.append(("imu.csv", "-", f"no reading for the slot at {when} (predicted without one)"))
     return {"arrays": arrays, "radio": radio, "sigma_acc": sigma, "delta_s": delta, "x0": x0, "P0": P0,
