@@ -34,7 +34,9 @@ from bodyslam.io import frame_name
 __all__ = ["Frame", "FrameSource", "list_frames", "decode_frame", "IMAGE_EXTS", "VIDEO_EXTS", "SIDECARS"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
-VIDEO_EXTS = (".mp4", ".avi", ".wmv", ".mov", ".mkv", ".mpg", ".mpeg", ".m4v", ".asf")
+# the containers OpenCV's FFmpeg reads (it probes the content; the name only says a file is meant as a video)
+VIDEO_EXTS = (".mp4", ".avi", ".wmv", ".mov", ".mkv", ".mpg", ".mpeg", ".m4v", ".asf", ".webm", ".ogv", ".flv",
+              ".3gp", ".ts", ".m2ts", ".mts")
 SIDECARS = {"meta.json", "rf.csv", "sensors.csv", "labels.csv", "groundtruth.tum", "motion_truth.csv",
             "centerline.csv", "truth.json", "calibration.json", "mask.png"}
 

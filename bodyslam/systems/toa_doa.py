@@ -419,9 +419,18 @@ def load_recording(seq_dir) -> dict:
     d = Path(seq_dir)
     meta = read_json(d / "meta.json")
     try:
-        arrays = [Ura(a["name"], tuple(a["ref_m"]), int(a["n_x"]), int(a["n_z"]), float(a["dx_m"]),
-                      float(a["dz_m"])) for a in meta["arrays"]]
+        arrays = [Ura(str(a["name"]), tuple(float(v) for v in a["ref_m"]), int(a["n_x"]), int(a["n_z"]),
+                      float(a["dx_m"]), float(a["dz_m"])) for a in meta["arrays"]]
+        for a in arrays:  # an array's place and geometry enter every measurement model: refuse them here
+            if len(a.ref_m) != 3 or not all(math.isfinite(v) for v in a.ref_m):
+                raise ValueError(f"array {a.name!r}: ref_m needs 3 finite numbers, got {len(a.ref_m)}")
+            if a.n_x < 2 or a.n_z < 2 or not (math.isfinite(a.dx_m) and a.dx_m > 0
+                                              and math.isfinite(a.dz_m) and a.dz_m > 0):
+                raise ValueError(f"array {a.name!r}: needs n_x, n_z >= 2 and positive, finite dx_m, dz_m")
         radio = Radio(**{k: float(v) for k, v in meta["radio"].items()})
+        if not all(math.isfinite(v) for v in (radio.pt_dbm, radio.n0_dbm_hz)) or not all(
+                math.isfinite(v) and v > 0 for v in (radio.fc_hz, radio.beta_hz, radio.c_avg_mps)):
+            raise ValueError("radio: finite pt_dbm and n0_dbm_hz, positive finite fc_hz, beta_hz and c_avg_mps")
         sigma = float(meta["imu"]["sigma_acc_mps2"])
         delta = float(meta["interval_s"])
         init = meta["initial_state"]

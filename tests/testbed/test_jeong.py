@@ -83,6 +83,20 @@ def test_simulated_files_run_through_bodyslam_like_the_evaluation(short, tmp_pat
         (tmp_path / "meta.json").write_text(json.dumps(meta))
         with pytest.raises(InputError, match="symmetric and positive definite"):
             load_recording(tmp_path)
+    # an array's reference element of the wrong length was a numpy broadcast error in the scheme's first update, and
+    # a radio constant of zero a division by zero (found by the reader fuzz test at 800 examples): both are named
+    meta["initial_state"]["covariance"] = np.diag([5e-4] * 3 + [1e-5] * 3).tolist()
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    assert load_recording(tmp_path)["x0"].shape == (6,)  # meta.json loads again: each check below damages one thing
+    bad_arrays = [{**meta["arrays"][0], "ref_m": [-0.2, -0.2, 0.2, -0.5]}, {**meta["arrays"][0], "n_x": 1},
+                  {**meta["arrays"][0], "dz_m": float("nan")}]
+    for arr, why in zip(bad_arrays, ("ref_m needs 3 finite numbers", "n_x, n_z >= 2", "n_x, n_z >= 2")):
+        (tmp_path / "meta.json").write_text(json.dumps({**meta, "arrays": [arr] + meta["arrays"][1:]}))
+        with pytest.raises(InputError, match=why):
+            load_recording(tmp_path)
+    (tmp_path / "meta.json").write_text(json.dumps({**meta, "radio": {**meta["radio"], "c_avg_mps": 0}}))
+    with pytest.raises(InputError, match="positive finite fc_hz"):
+        load_recording(tmp_path)
 
 
 def test_evaluate_writes_table2_and_sweeps(short, tmp_path):

@@ -284,6 +284,16 @@ def test_video_chunks_seek_exactly_and_a_broken_tail_is_reported(tmp_path):
     assert "skipped for field-of-view detection" not in p.stderr, p.stderr
 
 
+def test_a_webm_or_transport_stream_is_a_video(tmp_path):
+    # a user's WebM was "not a frame folder, a video (...) or a manifest"; the name's case does not matter either
+    vid = tmp_path / "clip.avi"
+    _write_video(vid, 4)
+    for name in ("clip.webm", "CLIP.TS"):
+        (tmp_path / name).write_bytes(vid.read_bytes())  # FFmpeg probes the content, the name says "a video"
+        exam = open_exams([str(tmp_path / name)], radius_m=0.015)[0]
+        assert exam.kind == "video" and exam.n_frames == 4
+
+
 def _calib_json(tmp_path: Path) -> Path:
     meta = json.loads((DEMO / "meta.json").read_text())
     c = meta["camera"]
