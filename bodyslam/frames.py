@@ -31,7 +31,8 @@ import numpy as np
 from bodyslam.errors import InputError
 from bodyslam.io import frame_name
 
-__all__ = ["Frame", "FrameSource", "list_frames", "decode_frame", "IMAGE_EXTS", "VIDEO_EXTS", "SIDECARS"]
+__all__ = ["Frame", "FrameSource", "list_frames", "decode_frame", "collapse_format_notes", "IMAGE_EXTS", "VIDEO_EXTS",
+           "SIDECARS", "FORMAT_NOTES"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 # the containers OpenCV's FFmpeg reads (it probes the content; the name only says a file is meant as a video)
@@ -179,6 +180,33 @@ def decode_frame(data: bytes, name: str) -> tuple[np.ndarray | None, list[tuple[
     else:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     return img, notes
+
+
+# decode notes that describe how an exam was stored rather than a fault of one frame: listed once per exam, at the
+# first frame that has one, with how many frames have it (a 50,000-frame grayscale exam gave 50,000 lines)
+FORMAT_NOTES = ("16-bit frame: scaled to 8 bits", "grayscale frame: read as RGB")
+
+
+def collapse_format_notes(problems: list[list]) -> list[list]:
+    """Problem rows ``[file, frame, severity, reason]`` with each of :data:`FORMAT_NOTES` kept at its first row only,
+    its reason saying how many frames have it and from which to which; every other row unchanged, in order."""
+    seen: dict[str, list] = {}
+    out = []
+    for row in problems:
+        reason = row[3] if len(row) > 3 else None
+        if reason not in FORMAT_NOTES:
+            out.append(row)
+            continue
+        if reason not in seen:
+            seen[reason] = [list(row), 0, row[1], row[1]]
+            out.append(seen[reason][0])
+        entry = seen[reason]
+        entry[1] += 1
+        entry[3] = row[1]
+    for reason, (row, count, first, last) in seen.items():
+        if count > 1:
+            row[3] = f"{reason} ({count} frames, {first} to {last})"
+    return out
 
 
 _NUM = re.compile(r"(\d+)")

@@ -87,7 +87,7 @@ import numpy as np
 
 from bodyslam.camera import FisheyeCamera, camera_from_dict
 from bodyslam.errors import ConfigError, InputError
-from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, list_frames
+from bodyslam.frames import SIDECARS, VIDEO_EXTS, FrameSource, collapse_format_notes, list_frames
 from bodyslam.io import (MOTION_COLUMNS, atomic_path, csv_rows, motion_row, motion_values, read_json, step_from_row,
                          write_csv, write_image, write_json)
 from bodyslam.parallel import available_cores, shared_pool, submit
@@ -1257,6 +1257,7 @@ def _finalize(exam: Exam, d: Path, settings: BatchSettings, wait_check: Callable
               world="body frame" if fused is not None else "first camera frame")
     write_uncertainty(d / "uncertainty.csv", frame_idx, t, cov, sd_head, path_m, path_var)
     marks = _marks(exam, d, frame_idx, t, P, sd, path_m, path_var, problems, rel)
+    problems = collapse_format_notes(problems)  # how the exam was stored: once, not once per frame
     classified = settings.motion.classify
     if wait_check is not None:  # the k-step check, run meanwhile, is in consistency.json from here on
         wait_check()

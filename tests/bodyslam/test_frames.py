@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 
 from bodyslam import frames
-from bodyslam.frames import FrameSource
+from bodyslam.frames import FrameSource, collapse_format_notes
 
 
 def test_video_frames_are_timed_by_their_presentation_times(tmp_path, monkeypatch):
@@ -45,3 +45,18 @@ def test_video_frames_are_timed_by_their_presentation_times(tmp_path, monkeypatc
     # a backend without presentation times (0 after the first frame): index / frame rate
     Capture.pts_ms = [0.0, 0.0, 0.0]
     assert [f.t_s for f in FrameSource("video", "x.avi", 5.0, n_frames=3).read()] == [0.0, 0.2, 0.4]
+
+
+def test_how_an_exam_was_stored_is_one_problem_not_one_per_frame():
+    # a grayscale or 16-bit exam gave one warning per frame (50,000 lines for a whole exam); now the first frame's
+    # row says how many frames have it, other problems keep their rows and their order
+    rows = [["a/000000.png", 0, "warning", "grayscale frame: read as RGB"],
+            ["a/000001.png", 1, "error", "empty file (0 bytes)"],
+            ["a/000002.png", 2, "warning", "grayscale frame: read as RGB"],
+            ["a/000007.png", 7, "warning", "grayscale frame: read as RGB"],
+            ["a/000008.png", 8, "warning", "16-bit frame: scaled to 8 bits"]]
+    out = collapse_format_notes(rows)
+    assert out == [["a/000000.png", 0, "warning", "grayscale frame: read as RGB (3 frames, 0 to 7)"],
+                   ["a/000001.png", 1, "error", "empty file (0 bytes)"],
+                   ["a/000008.png", 8, "warning", "16-bit frame: scaled to 8 bits"]]
+    assert rows[0][3] == "grayscale frame: read as RGB"  # the caller's rows are not changed

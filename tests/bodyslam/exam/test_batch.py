@@ -188,6 +188,18 @@ def test_bad_files_are_listed_and_the_run_completes(tmp_path, capsys):
     assert "problem(s)" in capsys.readouterr().out
 
 
+def test_a_grayscale_exam_is_one_warning(tmp_path, capsys):
+    d = tmp_path / "gray"
+    _plain_folder(d, 6)
+    for f in d.glob("*.png"):
+        cv2.imwrite(str(f), cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+    assert cli_main(["batch", str(d), "--out", str(tmp_path / "out"), "--jobs", "1", "--chunk-frames", "3",
+                     "--calib", str(_calib_json(tmp_path))]) == 3
+    probs = _rows(tmp_path / "out" / "problems.csv")
+    assert len(probs) == 1 and probs[0]["reason"] == "grayscale frame: read as RGB (6 frames, 0 to 5)", probs
+    assert "1 problem(s)" in capsys.readouterr().out
+
+
 def test_unusable_input_is_one_clear_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert cli_main(["batch", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 1
