@@ -137,14 +137,19 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
         raise ValueError(f"{len(steps)} steps need {len(steps) + 1} frame stamps, got {len(stamps_s)}")
     rss = rss_per_frame(rf.stamps_s, rf.rss_dbm, stamps_s, frame_rate_hz)
     fixes = FixesOnDemand(rf.sensors_w_m, rf.normals_w, rss, rf.pathloss)  # solved where the fusion reads them
-    n_ok = 0
+    n_ok, why = 0, {"too_few_sensors": 0, "failed": 0}
     for f in fixes:  # (stops at the third: usually within the first block)
         n_ok += f.status == "ok"
+        why[f.status] = why.get(f.status, 0) + 1
         if n_ok == 3:
             break
-    if n_ok < 3:
-        raise InputError(f"RF not usable: {n_ok} frame(s) with an RF fix, "
-                         f"need at least 3 (readings in time with the frames, from 3+ sensors)")
+    if n_ok < 3:  # every frame was solved: say what stopped them
+        reasons = [f"{why['too_few_sensors']} with readings from fewer than 3 sensors in time with the frames"]
+        if why["failed"]:
+            reasons.append(f"{why['failed']} whose solve found no position (readings that this sensor layout "
+                           "cannot place: sensors.csv or rf.csv wrong?)")
+        raise InputError(f"RF not usable: {n_ok} of {len(fixes)} frame(s) with an RF fix, need at least 3; "
+                         + ", ".join(reasons))
     floor = lost_step_floor_m(radius_m)
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel,
                lost_floor_m=floor, **(RSS_BIAS_STATES if bias_states else {}))

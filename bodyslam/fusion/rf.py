@@ -138,8 +138,36 @@ def read_sensors(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray, 
             nrm.append(n if n is not None else list(np.asarray(p) / max(float(np.linalg.norm(p)), 1e-9)))
     if not names:
         raise InputError(f"{path}: no sensors")
+    pos_a = np.array(pos, float)
+    _check_sensor_layout(path, names, pos_a)
     nrm = np.array(nrm, float)
-    return tuple(names), np.array(pos, float), nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    return tuple(names), pos_a, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+# sensors are worn on a body: none lies further than this from the others' median place (metres; a torso is < 0.6 m
+# across). A file in millimetres -- positions 1000x too far apart -- ran with a 2.5 m 1-sigma and no word of why
+MAX_SENSOR_REACH_M = 2.0
+# the sensors must span a plane to place the capsule: the layout's second principal spread at least this (metres).
+# All at one point, the fusion's alignment to the fixes failed with numpy's "SVD did not converge"
+MIN_SENSOR_SPREAD_M = 1e-3
+
+
+def _check_sensor_layout(path, names: list[str], pos_m: np.ndarray) -> None:
+    """Refuse a sensor layout no body wears: a sensor over :data:`MAX_SENSOR_REACH_M` from the median sensor place
+    (wrong units, most likely), or three or more sensors that do not span a plane (:data:`MIN_SENSOR_SPREAD_M`)."""
+    reach = np.linalg.norm(pos_m - np.median(pos_m, axis=0), axis=1)
+    if reach.max() > MAX_SENSOR_REACH_M:
+        j = int(np.argmax(reach))
+        hint = (" -- positions are in metres (SPEC); these look like millimetres"
+                if np.median(reach) > 1000 * 0.02 else "")
+        raise InputError(f"{path}: sensor {names[j]!r} is {reach[j]:.3g} m from the sensors' median place (at most "
+                         f"{MAX_SENSOR_REACH_M:g} m on a body){hint}")
+    if len(pos_m) >= 3:
+        spread = np.linalg.svd(pos_m - pos_m.mean(axis=0), compute_uv=False) / math.sqrt(len(pos_m))
+        if spread[1] < MIN_SENSOR_SPREAD_M:
+            raise InputError(f"{path}: the {len(pos_m)} sensors lie "
+                             f"{'at one point' if spread[0] < MIN_SENSOR_SPREAD_M else 'on one line'}: a position "
+                             f"needs them spread over the body")
 
 
 def read_rf(path: str | os.PathLike, sensor_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, list[str]]:

@@ -171,3 +171,23 @@ def test_uncertainty_csv_keeps_the_whole_position_covariance(tmp_path):
         assert np.allclose(c * np.outer(sd, sd), cov[k], rtol=1e-7, atol=1e-15)
         assert abs(float(r["corr_xy"])) > 0.01  # these covariances do correlate their axes
     assert rows[4]["corr_xy"] == "" and rows[4]["corr_yz"] == "" and float(rows[4]["corr_xz"]) == 0.0
+
+
+def test_rf_that_places_nothing_says_why(demo):
+    # "RF not usable: 0 frame(s) with an RF fix" named no reason; it now counts the frames by what stopped them
+    from dataclasses import replace
+
+    from bodyslam.errors import InputError
+    from bodyslam.fusion.localize import RfInput, localize
+    from bodyslam.io import read_json
+
+    steps, *_ = demo
+    rf = RfInput.read(DEMO / "rf.csv", DEMO / "sensors.csv", read_json(DEMO / "meta.json")["rf"]["pathloss"])
+    stamps = np.arange(len(steps) + 1) / 2.0
+    late = replace(rf, stamps_s=rf.stamps_s + 1e4)  # readings that are not in time with the frames
+    with pytest.raises(InputError, match=f"0 of {len(stamps)} frame.s. with an RF fix, need at least 3; "
+                                         f"{len(stamps)} with readings from fewer than 3 sensors"):
+        localize(steps, stamps, late, 2.0)
+    flat = replace(rf, sensors_w_m=rf.sensors_w_m * np.array([1.0, 1.0, 0.0]))  # one plane through the capsule
+    with pytest.raises(InputError, match="whose solve found no position"):
+        localize(steps, stamps, flat, 2.0)

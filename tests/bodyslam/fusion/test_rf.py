@@ -1,5 +1,7 @@
 """RF fixes for many frames at once (bodyslam.fusion.rf.locate_ml_frames) against the per-frame scipy solves."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -157,3 +159,32 @@ def test_rf_csv_short_line_with_the_sensor_column_last(tmp_path):
     assert len(problems) == 1 and "rf.csv:3: not a number" in problems[0], problems
     assert np.array_equal(stamps, [0.0, 0.5])
     assert np.array_equal(cols["rss_dbm"], [[-80.0, -82.0], [-83.0, np.nan]], equal_nan=True)
+
+
+def test_a_sensor_layout_no_body_wears_is_refused(tmp_path):
+    """sensors.csv in millimetres ran with a 2.5 m 1-sigma and no word of why; all sensors at one point ended in
+    numpy's "SVD did not converge". Both are named, and a layout on a plane (one side of the body) still reads."""
+    from bodyslam.errors import InputError
+    from bodyslam.fusion.rf import read_sensors
+
+    demo = (Path(__file__).resolve().parents[3] / "data_samples" / "demo_seed0" / "sensors.csv").read_text()
+    header, rows = demo.splitlines()[0], [r.split(",") for r in demo.splitlines()[1:]]
+
+    def write(rows_, name):
+        p = tmp_path / name
+        p.write_text("\n".join([header] + [",".join(r) for r in rows_]) + "\n")
+        return p
+
+    mm = [[r[0]] + [f"{1000 * float(v):g}" for v in r[1:4]] + r[4:] for r in rows]
+    with pytest.raises(InputError, match="look like millimetres"):
+        read_sensors(write(mm, "mm.csv"))
+    far = [r[:1] + ["3.0"] + r[2:] if i == 5 else r for i, r in enumerate(rows)]
+    with pytest.raises(InputError, match=r"sensor 'F05' is 2\.95 m from") as exc:
+        read_sensors(write(far, "far.csv"))
+    assert "millimetres" not in str(exc.value)  # one sensor astray is not a units mistake
+    with pytest.raises(InputError, match="lie at one point"):
+        read_sensors(write([r[:1] + ["0.1", "0.1", "0.1"] + r[4:] for r in rows], "point.csv"))
+    with pytest.raises(InputError, match="lie on one line"):
+        read_sensors(write([r[:1] + [f"{0.01 * i:g}", "0", "0"] + r[4:] for i, r in enumerate(rows)], "line.csv"))
+    names, pos, _ = read_sensors(write([r for r in rows if r[0].startswith("F")], "front.csv"))
+    assert len(names) == 16 and np.ptp(pos[:, 1]) == 0.0  # the front plane alone: a layout some systems wear
