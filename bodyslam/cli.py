@@ -427,7 +427,8 @@ def _rf_localize(args) -> int:
 
     from bodyslam.errors import InputError
     from bodyslam.io import read_json, write_csv
-    from bodyslam.fusion.rf import PathLossModel, locate_lls, locate_ml_frames, locate_nls, read_rf, read_sensors
+    from bodyslam.fusion.rf import (PathLossModel, check_rss_units, locate_lls, locate_ml_frames, locate_nls, read_rf,
+                                    read_sensors)
 
     names, pos, nrm = read_sensors(args.sensors)
     stamps, rss, problems = read_rf(args.rf, names)
@@ -440,6 +441,7 @@ def _rf_localize(args) -> int:
         meta = read_json(p / "meta.json" if p.is_dir() else p)
         if isinstance(meta.get("rf"), dict) and "pathloss" in meta["rf"]:
             pl = PathLossModel.from_dict(meta["rf"]["pathloss"])
+    check_rss_units(args.rf, rss, pl)
     rows = []
     # per-frame solves report progress; ML solves all frames at once before the loop, which then only tabulates
     prog = Progress("rf-localize") if args.method != "ml" else None

@@ -45,7 +45,8 @@ from bodyslam.fusion.channel import (POSITION_DOF, STATED_MAX_LAG_FRAMES, Residu
                                      filter_memory, inflate, normalised_residuals, residual_correlation,
                                      smoother_inflation)
 from bodyslam.io import write_csv, write_image, write_tum
-from bodyslam.fusion.rf import Fix, FixesOnDemand, PathLossModel, read_rf, read_sensors, rss_per_frame
+from bodyslam.fusion.rf import (Fix, FixesOnDemand, PathLossModel, check_rss_units, read_rf, read_sensors,
+                               rss_per_frame)
 from bodyslam.steps import StepMotion, lost_step_floor_m
 from bodyslam.vision.tracking import path_travelled
 
@@ -78,6 +79,7 @@ class RfInput:
         names, pos, nrm = read_sensors(sensors_path)
         stamps, rss, problems = read_rf(rf_path, names)
         pl = PathLossModel.from_dict(pathloss) if pathloss else PathLossModel()
+        check_rss_units(rf_path, rss, pl)
         return cls(names, pos, nrm, stamps, rss, pl, problems)
 
 
@@ -148,8 +150,10 @@ def localize(steps: list[StepMotion], stamps_s: np.ndarray, rf: RfInput, frame_r
         if why["failed"]:
             reasons.append(f"{why['failed']} whose solve found no position (readings that this sensor layout "
                            "cannot place: sensors.csv or rf.csv wrong?)")
+        span = (f"; the readings at t = {rf.stamps_s.min():g}-{rf.stamps_s.max():g} s, the frames at "
+                f"{stamps_s.min():g}-{stamps_s.max():g} s" if len(rf.stamps_s) and len(stamps_s) else "")
         raise InputError(f"RF not usable: {n_ok} of {len(fixes)} frame(s) with an RF fix, need at least 3; "
-                         + ", ".join(reasons))
+                         + ", ".join(reasons) + span)
     floor = lost_step_floor_m(radius_m)
     ekf = fuse(steps, fixes, rss, rf.sensors_w_m, rf.normals_w, rf.pathloss, mode=mode, scale_sd_rel=radius_sd_rel,
                lost_floor_m=floor, **(RSS_BIAS_STATES if bias_states else {}))

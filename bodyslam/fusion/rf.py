@@ -43,7 +43,7 @@ from scipy.optimize import least_squares
 from bodyslam.errors import InputError
 from bodyslam.io import csv_rows, csv_table
 
-__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "read_rf_columns", "rss_per_frame", "rss_to_range",
+__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "check_rss_units", "read_rf_columns", "rss_per_frame", "rss_to_range",
            "locate_lls", "locate_nls", "locate_ml", "locate_ml_frames", "FixesOnDemand", "RF_METHODS"]
 
 RF_METHODS = ("lls", "nls", "ml")
@@ -168,6 +168,18 @@ def _check_sensor_layout(path, names: list[str], pos_m: np.ndarray) -> None:
             raise InputError(f"{path}: the {len(pos_m)} sensors lie "
                              f"{'at one point' if spread[0] < MIN_SENSOR_SPREAD_M else 'on one line'}: a position "
                              f"needs them spread over the body")
+
+
+def check_rss_units(path: str | os.PathLike, rss_dbm: np.ndarray, pl: "PathLossModel") -> None:
+    """Refuse readings that are not in dBm as a whole: their median above the transmit power ``pl.pt_dbm``, which
+    no path loss allows (readings in mW or another linear unit are small positive numbers: such a file ran with a
+    154-km 1-sigma and exit 0). A few readings above it are outliers, left to the solvers' robust loss and gate."""
+    v = np.asarray(rss_dbm, float)
+    v = v[np.isfinite(v)]
+    if len(v) and float(np.median(v)) > pl.pt_dbm:
+        raise InputError(f"{path}: the readings' median, {float(np.median(v)):.4g}, lies above the transmit power "
+                         f"({pl.pt_dbm:g} dBm), which no path loss allows: rss_dbm must be in dBm (these look like a "
+                         f"linear unit, e.g. mW)")
 
 
 def read_rf(path: str | os.PathLike, sensor_names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, list[str]]:

@@ -188,6 +188,8 @@ def test_rf_that_places_nothing_says_why(demo):
     with pytest.raises(InputError, match=f"0 of {len(stamps)} frame.s. with an RF fix, need at least 3; "
                                          f"{len(stamps)} with readings from fewer than 3 sensors"):
         localize(steps, stamps, late, 2.0)
+    with pytest.raises(InputError, match=r"the readings at t = 10000-10019\.5 s, the frames at 0-19\.5 s"):
+        localize(steps, stamps, late, 2.0)  # the two spans side by side: times in ms, or another clock, show at once
     flat = replace(rf, sensors_w_m=rf.sensors_w_m * np.array([1.0, 1.0, 0.0]))  # one plane through the capsule
     with pytest.raises(InputError, match="whose solve found no position"):
         localize(steps, stamps, flat, 2.0)

@@ -188,3 +188,18 @@ def test_a_sensor_layout_no_body_wears_is_refused(tmp_path):
         read_sensors(write([r[:1] + [f"{0.01 * i:g}", "0", "0"] + r[4:] for i, r in enumerate(rows)], "line.csv"))
     names, pos, _ = read_sensors(write([r for r in rows if r[0].startswith("F")], "front.csv"))
     assert len(names) == 16 and np.ptp(pos[:, 1]) == 0.0  # the front plane alone: a layout some systems wear
+
+
+def test_readings_in_a_linear_unit_are_refused(tmp_path):
+    """rss_dbm in mW (small positive numbers) ran with a 154-km 1-sigma and exit 0: a median above the transmit
+    power, which no path loss allows, is refused; a few readings above it are outliers and pass to the solvers."""
+    from bodyslam.errors import InputError
+    from bodyslam.fusion.rf import check_rss_units
+
+    pl = PathLossModel()
+    dbm = np.array([[-80.0, -95.0, np.nan], [-70.0, -101.0, -88.0]])
+    check_rss_units("rf.csv", dbm, pl)
+    check_rss_units("rf.csv", np.where(np.arange(6).reshape(2, 3) == 0, 5.0, dbm), pl)  # one outlier above Pt
+    with pytest.raises(InputError, match=r"rf\.csv: the readings' median, 1\.\d+e-09, lies above the transmit power "
+                                         r"\(-16 dBm\).*linear unit"):
+        check_rss_units("rf.csv", 10 ** (dbm / 10), pl)
