@@ -587,9 +587,6 @@ def _localize(args) -> int:
 
     import numpy as np
 
-    import math
-
-    from bodyslam.errors import ConfigError
     from bodyslam.io import prepare_output_dir, read_motion_steps, write_motion_csv
     from bodyslam.fusion.localize import RfInput, localize, write_localization
     from bodyslam.meta import read_meta
@@ -609,8 +606,6 @@ def _localize(args) -> int:
     fov: list = []
     scale: list = []
     if args.motion:  # the steps are given: meta.json is all that is read of the sequence (no frames needed)
-        if args.radius_m is not None and not (math.isfinite(args.radius_m) and args.radius_m > 0):
-            raise ConfigError(f"lumen radius must be a positive number of metres, got {args.radius_m!r}")
         n, rate = meta.n_frames, meta.frame_rate_hz
         radius_m = meta.tube_radius_m if args.radius_m is None else args.radius_m
         # a radius on the command line has no spread, unless --radius-from gave one
@@ -902,6 +897,12 @@ def _check(args) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
+    if getattr(args, "radius_m", None) is not None:  # every command that takes it: a unit mistake stops here
+        from bodyslam.errors import ConfigError
+        from bodyslam.meta import lumen_radius_problem
+
+        if why := lumen_radius_problem(args.radius_m, "--radius-m"):
+            raise ConfigError(why)
     return {"check": _check, "match": _match, "unroll": _unroll, "motion": _motion_or_track,
             "track": _motion_or_track, "speed-stats": _speed_stats, "segment": _segment,
             "train-classifier": _train_classifier, "classify": _classify, "rf-localize": _rf_localize,

@@ -21,7 +21,8 @@ from bodyslam.camera import CameraModel, camera_from_dict
 from bodyslam.errors import InputError
 from bodyslam.io import read_json, write_json
 
-__all__ = ["SequenceMeta", "RfMeta", "RearCamera", "read_meta", "write_meta", "meta_from_dict"]
+__all__ = ["SequenceMeta", "RfMeta", "RearCamera", "read_meta", "write_meta", "meta_from_dict", "lumen_radius_problem",
+           "LUMEN_RADIUS_RANGE_M"]
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,27 @@ def _where(path: Path | None) -> str:
     return f"{path}" if path is not None else "meta.json"
 
 
+# a gut lumen's radius, metres: from a contracted small bowel to a distended stomach (the testbed's magnetic-capsule
+# scenario is 10 cm). Outside it a radius is a unit mistake: 1.25 given for 1.25 cm made every step 80x too long
+LUMEN_RADIUS_RANGE_M = (1e-3, 0.15)
+
+
+def lumen_radius_problem(radius_m: float, what: str) -> str | None:
+    """Why ``radius_m`` is no lumen radius in metres (not finite, not positive, or outside
+    :data:`LUMEN_RADIUS_RANGE_M`; with the likely unit where it is off by 100 or 1000), or None where it is one."""
+    lo, hi = LUMEN_RADIUS_RANGE_M
+    if isinstance(radius_m, bool) or not isinstance(radius_m, (int, float)) or not math.isfinite(radius_m):
+        return f"{what} must be a number of metres, got {radius_m!r}"
+    if lo <= radius_m <= hi:
+        return None
+    hint = ""
+    for unit, per_m in (("centimetres", 100), ("millimetres", 1000)):  # the unit that gives a gut's 0.5-5 cm
+        if 0.005 <= radius_m / per_m <= 0.05:
+            hint = f" (in metres: {radius_m:g} {unit} is {radius_m / per_m:g})"
+            break
+    return f"{what} must be a lumen radius in metres, {lo:g}-{hi:g}, got {radius_m:g}{hint}"
+
+
 def _number(d: dict, key: str, where: str, positive: bool = True, required: bool = True) -> float | None:
     v = d.get(key)
     if v is None:
@@ -113,6 +135,8 @@ def meta_from_dict(d: Any, path: Path | None = None) -> SequenceMeta:
     except InputError as exc:
         raise InputError(f"{where}: camera: {exc}") from None
     radius = _number(d, "tube_radius_m", where, required=False)
+    if radius is not None and (why := lumen_radius_problem(radius, "tube_radius_m")):
+        raise InputError(f"{where}: {why}")
     radius_sd = _number(d, "tube_radius_sd_m", where, positive=False, required=False)
     radius_sd = 0.0 if radius_sd is None else radius_sd
     if radius_sd < 0 or (radius is not None and radius_sd >= radius):

@@ -66,7 +66,12 @@ def test_exit_codes_done_problems_unusable(tmp_path):
     # unusable input: 1, one line, and a failed run leaves no output directory behind
     p = run("localize", str(seq), "--out", str(tmp_path / "loc3"), "--motion", str(tmp_path / "loc" / "motion.csv"),
             "--radius-m", "-0.01")
-    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "positive" in p.stderr
+    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1 and "lumen radius in metres" in p.stderr
+    assert not (tmp_path / "loc3").exists()
+    # a radius in centimetres (every step 80x too long, without a word) is named with the metres it meant
+    p = run("localize", str(seq), "--out", str(tmp_path / "loc3"), "--motion", str(tmp_path / "loc" / "motion.csv"),
+            "--radius-m", "1.25")
+    assert p.returncode == 1 and "1.25 centimetres is 0.0125" in p.stderr, p.stderr
     assert not (tmp_path / "loc3").exists()
     (seq / "rf.csv").write_text("t,sensor,rss_dbm\n")
     p = run("localize", str(seq), "--out", str(tmp_path / "loc2"), "--motion", str(tmp_path / "loc" / "motion.csv"))

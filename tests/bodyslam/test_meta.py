@@ -39,7 +39,8 @@ def _seq(tmp_path: Path, n: int = 4, **changes) -> Path:
 
 
 @pytest.mark.parametrize("field,value", [("frame_rate_hz", "two"), ("frame_rate_hz", None), ("frame_rate_hz", -2),
-                                         ("tube_radius_m", -0.01), ("tube_radius_m", "wide"), ("tube_radius_sd_m", -0.001),
+                                         ("tube_radius_m", -0.01), ("tube_radius_m", "wide"), ("tube_radius_m", 1.25),
+                                         ("tube_radius_sd_m", -0.001),
                                          ("tube_radius_sd_m", 0.5), ("lumen_shape_sd_rel", -0.1),
                                          ("lumen_shape_sd_rel", 1.5), ("lumen_shape_sd_rel", "folded"),
                                          ("n_frames", "forty"),
