@@ -309,6 +309,25 @@ def equidistant_on_field(field: np.ndarray, fov_deg: float) -> FisheyeCamera | N
     return FisheyeCamera(width=w, height=h, fx=f, fy=f, cx=cx, cy=cy, fov_deg=float(fov_deg), name="equidistant")
 
 
+# a described fisheye's field of view (its image circle, radius fx theta_d(fov / 2)) must reach at least this share of
+# half the image's shorter side: a capsule camera's fills most of its frame. fov_deg given in radians (2.72 for a
+# 156-degree lens) made a circle of 3 px, every step lost, and exit 0
+DESCRIBED_FIELD_MIN_SHARE = 0.25
+
+
+def _field_that_shows(cam: "FisheyeCamera") -> "FisheyeCamera":
+    """``cam``, refused where its field of view covers a speck of the image (:data:`DESCRIBED_FIELD_MIN_SHARE`)."""
+    r_px = min(cam.fx, cam.fy) * float(cam._theta_d(np.array([math.radians(cam.fov_deg) / 2.0]))[0])
+    half = min(cam.width, cam.height) / 2.0
+    if r_px < DESCRIBED_FIELD_MIN_SHARE * half:
+        hint = (f"; fov_deg is in degrees ({cam.fov_deg:g} rad is {math.degrees(cam.fov_deg):.0f} deg)"
+                if cam.fov_deg <= 2 * math.pi else "")
+        raise InputError(f"fov_deg {cam.fov_deg:g} with fx {cam.fx:g} px leaves a field of view of radius "
+                         f"{r_px:.0f} px on a {cam.width}x{cam.height} image (a capsule camera's fills most of it)"
+                         f"{hint}")
+    return cam
+
+
 def camera_from_dict(d: dict[str, Any]) -> CameraModel:
     """Build a camera from its ``meta.json`` / scenario description.
 
@@ -328,7 +347,7 @@ def camera_from_dict(d: dict[str, Any]) -> CameraModel:
         if model == "equidistant" and "fx" not in d:
             return FisheyeCamera.equidistant(d["width"], d["height"], float(d["fov_deg"]), d.get("cx"), d.get("cy"))
         if model in ("equidistant", "opencv_fisheye", "kannala_brandt"):
-            return FisheyeCamera(
+            return _field_that_shows(FisheyeCamera(
                 width=int(d["width"]),
                 height=int(d["height"]),
                 fx=float(d["fx"]),
@@ -338,7 +357,7 @@ def camera_from_dict(d: dict[str, Any]) -> CameraModel:
                 fov_deg=float(d["fov_deg"]),
                 k=tuple(float(x) for x in d.get("k", (0.0, 0.0, 0.0, 0.0))),
                 name=str(model),
-            )
+            ))
         if model == "pinhole":
             if "hfov_deg" in d:
                 return PinholeCamera.from_fov(int(d["width"]), int(d["height"]), float(d["hfov_deg"]))

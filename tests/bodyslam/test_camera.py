@@ -73,6 +73,9 @@ def test_to_dict_round_trip():
         ({"model": "pinhole", "width": 1, "height": 4, "fx": 1, "fy": 1, "cx": 0, "cy": 0}, "image size"),
         ({"model": "opencv_fisheye", "width": 64, "height": 64, "fx": 30, "fy": 30, "cx": 32, "cy": 32,
           "fov_deg": 180, "k": [-1.0, 0, 0, 0]}, "not monotonic"),
+        # fov_deg in radians: a field of radius 3 px, every step lost and exit 0 before it was refused
+        ({"model": "opencv_fisheye", "width": 320, "height": 320, "fx": 117.5, "fy": 117.5, "cx": 159.5, "cy": 159.5,
+          "fov_deg": 2.72}, r"radius 3 px on a 320x320 image .*2\.72 rad is 156 deg"),
     ],
 )
 def test_bad_camera_descriptions_raise(desc, match):
