@@ -347,6 +347,7 @@ def _train_classifier(args) -> int:
 
     from bodyslam.vision.classify import FEATURES_9, FEATURES_RICH, features_of_frames, train
     from bodyslam.errors import ConfigError, InputError
+    from bodyslam.io import read_labels
 
     if not 16 <= args.work_px <= 1024:
         raise ConfigError(f"--work-px must be 16-1024 px, got {args.work_px}")
@@ -356,7 +357,7 @@ def _train_classifier(args) -> int:
         lab_path = __import__("pathlib").Path(sd) / "labels.csv"
         if not lab_path.exists():
             raise InputError(f"{sd}: no labels.csv (training needs testbed sequences with FT/FL labels)")
-        labels = {int(r.split(",")[0]): r.split(",")[2] for r in lab_path.read_text().splitlines()[1:] if r}
+        labels = read_labels(lab_path)
         fov = _fov_of(_sample_frames(paths), cam, "auto")  # the field the pipeline will use on such frames
         res = features_of_frames(paths, fov, work_px=args.work_px, jobs=args.jobs, progress=Progress(f"features {sd}"),
                                  photometric=args.photometric)

@@ -29,6 +29,7 @@ from bodyslam.geometry import matrix_to_rotvec, rotvec_to_matrix
 from bodyslam.steps import StepMotion, StepStatus
 
 __all__ = [
+    "read_labels",
     "atomic_path",
     "prepare_output_dir",
     "check_writable",
@@ -410,6 +411,30 @@ def read_text(path: str | os.PathLike) -> str:
         raise InputError(f"{path}: not a text file ({_decode_reason(exc)})") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+
+
+FRAME_LABELS = ("FT", "FL")
+
+
+def read_labels(path: str | os.PathLike) -> dict[int, str]:
+    """A testbed sequence's ``labels.csv`` (``frame,label,...``): frame number -> ``FT`` or ``FL``. A frame without a
+    label (empty) is left out; any other row (a frame that is not a whole number, a label that is neither, a frame
+    listed twice) is an :class:`~bodyslam.errors.InputError` naming the file and line: the labels are what a model
+    learns from, so none is guessed."""
+    out: dict[int, str] = {}
+    with csv_rows(path, ("frame", "label")) as rows:
+        for line, r in rows:
+            frame, label = (r.get("frame") or "").strip(), (r.get("label") or "").strip()
+            if not frame.isdigit():
+                raise InputError(f"{path}:{line}: frame must be a whole number, got {r.get('frame')!r}")
+            if label == "":
+                continue
+            if label not in FRAME_LABELS:
+                raise InputError(f"{path}:{line}: label must be FT or FL (or empty), got {r.get('label')!r}")
+            if int(frame) in out:
+                raise InputError(f"{path}:{line}: frame {int(frame)} listed twice")
+            out[int(frame)] = label
+    return out
 
 
 def read_motion_csv(path: str | os.PathLike) -> dict[int, dict[str, float | str]]:

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from bodyslam.errors import InputError
-from bodyslam.io import frame_name, read_image, write_image
+from bodyslam.io import frame_name, read_image, read_labels, write_image
 from bodyslam.meta import read_meta
 
 
@@ -22,12 +21,8 @@ def contact_sheet(seq_dir: str | Path, out_png: str | Path, count: int = 24, col
     if count < 1 or cols < 1:
         raise InputError("--count and --cols must be >= 1")
     idx = np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int))
-    labels = {}
     lab_path = seq / "labels.csv"
-    if lab_path.exists():
-        with lab_path.open() as f:
-            for row in csv.DictReader(f):
-                labels[int(row["frame"])] = row["label"]
+    labels = read_labels(lab_path) if lab_path.exists() else {}
     rows = -(-len(idx) // cols)
     sheet = np.zeros((rows * tile_px, cols * tile_px, 3), np.uint8)
     frames_dir = seq / meta.frames_dir

@@ -289,6 +289,9 @@ def train(X_rich: np.ndarray, y: np.ndarray, features: tuple[str, ...] = FEATURE
     pipe = Pipeline([("scale", StandardScaler()), ("svm", svc)])
     grid = {"svm__C": [0.3, 1, 3, 10, 30, 100], "svm__gamma": [0.01, 0.03, 0.1, 0.3, 1.0]}
     n_min = int(min(np.sum(yy == 1), np.sum(yy == -1)))
+    if n_min < 2:  # a class with one frame cannot be split for cross-validation: sklearn's fits failed, a model came out
+        raise InputError(f"training needs at least 2 frames of each class to cross-validate, got "
+                         f"{int(np.sum(yy == 1))} FT and {int(np.sum(yy == -1))} FL")
     cv = StratifiedKFold(n_splits=max(2, min(folds, n_min)), shuffle=True, random_state=seed)
     search = GridSearchCV(pipe, grid, cv=cv, scoring="balanced_accuracy" if balanced else "accuracy", n_jobs=1)
     search.fit(X, yy)

@@ -221,3 +221,23 @@ def test_segment_shows_the_regions_a_normalised_classifier_reads(tmp_path):
     p = run("segment", str(tmp_path / "a.png"), "--meta", str(DEMO), "--photometric", "histogram",
             "--out", str(tmp_path / "x.png"))
     assert p.returncode == 2 and "--photometric" in p.stderr and not (tmp_path / "x.png").exists()
+
+
+def test_train_classifier_on_labels_it_can_read_and_none_it_cannot(tmp_path):
+    # labels.csv was split by hand: a short row ended in an IndexError traceback, and any label was learnt
+    seq = tmp_path / "seq"
+    shutil.copytree(DEMO, seq, ignore=shutil.ignore_patterns("depth"))
+    rows = (DEMO / "labels.csv").read_text().splitlines()
+    flipped = [r.replace(",FT,", ",FL,") if i % 3 == 0 else r for i, r in enumerate(rows[1:])]  # both classes
+    (seq / "labels.csv").write_text("\n".join(rows[:1] + flipped) + "\n")
+    p = run("train-classifier", str(seq), "--out", str(tmp_path / "m.npz"), "--jobs", "1")
+    assert p.returncode == 0 and "FL)" in p.stdout and (tmp_path / "m.npz").is_file(), p.stdout + p.stderr
+    (seq / "labels.csv").write_text("\n".join(rows[:1] + flipped[:3] + ["3,1.0", flipped[4].replace("FT", "ft")]))
+    p = run("train-classifier", str(seq), "--out", str(tmp_path / "m2.npz"), "--jobs", "1")
+    assert p.returncode == 1 and p.stderr.strip().splitlines() == [
+        f"error: {seq / 'labels.csv'}:6: label must be FT or FL (or empty), got 'ft'"], p.stderr
+    assert not (tmp_path / "m2.npz").exists()
+    # one FL frame cannot be cross-validated: sklearn's fits failed with a page of warnings and a model came out
+    (seq / "labels.csv").write_text("\n".join(rows[:1] + flipped[:3]) + "\n")
+    p = run("train-classifier", str(seq), "--out", str(tmp_path / "m3.npz"), "--jobs", "1")
+    assert p.returncode == 1 and "at least 2 frames of each class" in p.stderr and "Warning" not in p.stderr, p.stderr

@@ -167,3 +167,19 @@ def test_motion_csv_keeps_a_steps_scale_link_and_chain_factor(tmp_path):
         (tmp_path / "bad.csv").write_text("\n".join(",".join(r) for r in bad[:2]) + "\n")
         with pytest.raises(InputError, match=rf"bad\.csv:2: {col} '{cell}' is {what}"):
             read_motion_steps(tmp_path / "bad.csv", [1])
+
+
+@pytest.mark.parametrize("row, match", [("2,1.0", None), ("2,1.0,XX,fast,0.1", "label must be FT or FL"),
+                                        ("two,1.0,FT,fast,0.1", "frame must be a whole number"),
+                                        ("0,1.0,FL,fast,0.1", "frame 0 listed twice")])
+def test_labels_csv_names_what_a_model_would_learn_wrong(tmp_path, row, match):
+    # train-classifier split the lines by hand: a short row was an IndexError traceback, any label was learnt
+    from bodyslam.io import read_labels
+
+    p = tmp_path / "labels.csv"
+    p.write_text(f"frame,t,label,phase,s_m\n0,0,FT,fast,0.1\n1,0.5,,fast,0.1\n{row}\n")
+    if match is None:  # a short row has no label: left out, as an empty one
+        assert read_labels(p) == {0: "FT"}
+        return
+    with pytest.raises(InputError, match=rf"labels\.csv:4: {match}"):
+        read_labels(p)

@@ -146,6 +146,16 @@ def test_tum(tmp_path, data):
 
 @FUZZ
 @given(data=st.data())
+def test_labels_csv(tmp_path, data):
+    from bodyslam.io import read_labels
+
+    p = tmp_path / "labels.csv"
+    p.write_bytes(data.draw(damaged((DEMO / "labels.csv").read_text())))
+    _only_documented_errors(lambda: read_labels(p), p)
+
+
+@FUZZ
+@given(data=st.data())
 def test_motion_csv(tmp_path, data, sample):
     from bodyslam.io import read_motion_steps
 
