@@ -1129,7 +1129,8 @@ def _consistency_exam(exam: Exam, d: Path, settings: BatchSettings, mask, jobs, 
     steps = [step_from_row(dict(zip(MOTION_COLUMNS, row))) if i in keep else None
              for i, row in enumerate(_step_rows(d))]
     res = step_consistency(steps, settings.motion, _engine_base(exam, settings, mask), jobs=jobs, pairs=pairs,
-                           run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True))
+                           run_tasks=lambda func, tasks: _run_tasks(func, tasks, jobs, scheduler, ordered=True),
+                           shape_sd_rel=exam.shape_sd_rel)
     with atomic_path(f) as tmp:
         tmp.write_text(json.dumps({"step_consistency": res}), encoding="utf-8")
 
@@ -1334,8 +1335,13 @@ def _consistency_text(c: dict | None) -> str:
     ratio = c.get("median_distance_ratio_pair_over_singles")
     # no ratio where every pair's single steps add up to no length (a capsule at rest, frames repeated)
     ratio_text = "n/a (the single steps add up to no length)" if ratio is None else f"{ratio:.2f}"
-    return (f"{c['pairs_estimated']} three-frame motions against their single steps: {c['within_1sigma']:.0%} "
-            f"within 1-sigma, {c['within_2sigma']:.0%} within 2 (68% / 95% if it holds); distance ratio "
+    stated = ("" if c.get("stated_within_1sigma") is None else
+              f"; with the lumen shape's {c['lumen_shape_sd_rel']:.0%} of each step (the 1-sigma motion.csv states, "
+              f"less the radius's; generous: a pair and its steps see much of the same wall) "
+              f"{c['stated_within_1sigma']:.0%} / {c['stated_within_2sigma']:.0%}")
+    own = "the fit's own 1-sigma: " if stated else ""
+    return (f"{c['pairs_estimated']} three-frame motions against their single steps, {own}{c['within_1sigma']:.0%} "
+            f"within 1-sigma, {c['within_2sigma']:.0%} within 2{stated} (68% / 95% if it holds); distance ratio "
             f"{ratio_text}")
 
 

@@ -242,6 +242,9 @@ def test_repeated_frames_give_steps_at_rest_and_a_report(tmp_path, capsys):
     c = json.loads((tmp_path / "out" / "exam" / "summary.json").read_text())["step_consistency"]
     assert c["pairs_estimated"] >= 1 and c["median_distance_ratio_pair_over_singles"] is None
     assert "distance ratio n/a" in (tmp_path / "out" / "exam" / "report.html").read_text()
+    # a folder assumes a lumen that is not a cylinder (13% of each step): the check is read with that share too
+    assert c["lumen_shape_sd_rel"] == pytest.approx(0.13) and c["stated_within_1sigma"] is not None
+    assert "own 1-sigma: " in (tmp_path / "out" / "exam" / "report.html").read_text()  # (its ' escaped)
 
 
 def test_frames_too_dark_to_classify_are_counted_apart_from_the_wall(tmp_path, capsys):

@@ -154,6 +154,21 @@ def test_the_k_step_check_tells_an_honest_1sigma_from_an_optimistic_one():
     assert optimistic["within_1sigma"] < 0.3
     assert honest["median_distance_ratio_pair_over_singles"] == pytest.approx(1.0, abs=0.01)
     assert consistency_diagnostic([[StepMotion.failed(bad)] * 3], [None])["pairs_estimated"] == 0
+    assert "stated_within_1sigma" not in honest  # no lumen-shape share (the ideal tube): the fit's own only
+
+    # the fit's own 1-sigma (0.05 mm) leaves out a lumen-shape share of 2% of each estimate's distance; counted as
+    # the steps state it, the check reads honest, where the fit's own alone reads optimistic
+    shape, fit_sd = 0.02, 5e-5
+    singles, totals = [], []
+    for _ in range(2000):
+        singles.append([motion_from_transform(Rotation.identity(), [0, 0, 0.003], 50, fit_sd, 0.01)
+                        for _ in range(3)])
+        true_sd = np.sqrt(4 * fit_sd**2 + 3 * (shape * 0.003) ** 2 + (shape * 0.009) ** 2)
+        totals.append(motion_from_transform(Rotation.identity(), [0, 0, 0.009 + rng.normal(0, true_sd)], 50, fit_sd,
+                                            0.01))
+    c = consistency_diagnostic(singles, totals, shape_sd_rel=shape)
+    assert c["within_1sigma"] < 0.45 and c["lumen_shape_sd_rel"] == shape
+    assert abs(c["stated_within_1sigma"] - 0.683) < 0.04 and abs(c["stated_within_2sigma"] - 0.954) < 0.03
 
 
 @pytest.mark.parametrize("settings_kw, status", [({}, "wall"), ({"wall_steps": "drop"}, "no_lumen"),
