@@ -1473,20 +1473,24 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
            rel: float) -> list[list]:
     from bodyslam.vision.tracking import segment_variance
 
-    if not exam.marks:
-        return []
     where = {f: k for k, f in enumerate(frame_idx)}
     lms = [lm for lm in exam.landmarks if lm in where]
 
     def absent(f: int) -> str:
         r = exam.frame_range
-        if r is not None and not (r[0] <= f <= (frame_idx[-1] if r[1] is None else r[1])):
+        if r is not None and not (r[0] <= f <= ((frame_idx[-1] if frame_idx else f) if r[1] is None else r[1])):
             return f"not in the exam: outside its frame range {_range_text(r)}"
         return "not in the exam (or unreadable)"
 
+    # a landmark is checked whether or not there are marks (an absent one, given alone, was not mentioned)
     for lm in exam.landmarks:
         if lm not in where:
             problems.append([exam.source, lm, "error", f"landmark frame {absent(lm)}"])
+    if not exam.marks:
+        if lms:
+            problems.append([exam.source, lms[0], "warning", "landmark(s) given without a marked frame: no path is "
+                                                             "measured from them (--mark, --mark-file)"])
+        return []
     header = ["frame", "label", "t", "x_m", "y_m", "z_m", "sd_position_m", "path_from_start_m",
               "sd_path_from_start_m"]
     for lm in lms:

@@ -650,6 +650,11 @@ def test_a_frame_range_is_a_stretch_of_the_recording_with_its_own_numbers_and_ti
     again = run_batch(open_exams([str(DEMO)], frame_range=(5, 30), marks=[(12, ""), (3, "")], landmarks=[8]),
                       tmp_path / "cut", FAST, jobs=1)  # the same command resumes its own run
     assert again.chunks_computed == 0 and again.chunks_reused > 0
+    # landmarks alone: one outside the stretch is an error, one inside a warning that nothing is measured from it
+    # (neither was mentioned: the landmarks were read only where there were marks)
+    run_batch(open_exams([str(DEMO)], frame_range=(5, 30), landmarks=[8, 35]), tmp_path / "lm", FAST, jobs=1)
+    assert [(p["frame"], p["severity"]) for p in _rows(tmp_path / "lm" / "problems.csv")] == [("35", "error"),
+                                                                                              ("8", "warning")]
     # a folder's gaps outside the stretch are not its problems; to the end with "FIRST-"
     folder = _plain_folder(tmp_path / "plain", 12)
     (folder / "capsule_00003.png").unlink()
