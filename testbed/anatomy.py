@@ -94,6 +94,10 @@ def load_mesh(path: str | Path, repair: bool = False, allow_open: bool = False):
     else:
         try:
             mesh = trimesh.load(path, force="mesh", process=True)
+        except ImportError as exc:  # trimesh decodes text that is not UTF-8 with an optional module: not a mesh file
+            raise InputError(f"{path}: not a readable mesh (neither its binary format nor UTF-8 text; trimesh "
+                             f"would try other text encodings with {exc.name or 'an optional module'}, which the "
+                             f"toolkit does not install)") from None
         except Exception as exc:  # trimesh raises many types for unreadable files
             raise InputError(f"{path}: not a readable mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:

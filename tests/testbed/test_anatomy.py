@@ -61,6 +61,13 @@ def test_bad_meshes_get_one_clear_error(tmp_path):
     junk.write_bytes(b"\x00\x01 this is not a mesh" * 10)
     with pytest.raises(InputError, match=str(junk.name)):
         load_mesh(junk)
+    # bytes that are neither binary STL nor UTF-8 text: trimesh's fallback import of an optional module was the
+    # message ("ModuleNotFoundError: No module named 'charset_normalizer'"), as if the toolkit were broken
+    noise = tmp_path / "noise.stl"
+    noise.write_bytes(np.random.default_rng(0).integers(0, 256, 2000, dtype=np.uint8).tobytes())
+    with pytest.raises(InputError, match="noise.stl: (not a readable mesh|contains no triangles)") as exc:
+        load_mesh(noise)
+    assert "ModuleNotFoundError" not in str(exc.value)
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing\n")
     with pytest.raises(InputError, match="no triangles|not a readable mesh"):
