@@ -425,7 +425,7 @@ def read_labels(path: str | os.PathLike) -> dict[int, str]:
     with csv_rows(path, ("frame", "label")) as rows:
         for line, r in rows:
             frame, label = (r.get("frame") or "").strip(), (r.get("label") or "").strip()
-            if not frame.isdigit():
+            if not (frame.isascii() and frame.isdigit()):  # ("²".isdigit() is true, and int() refuses it)
                 raise InputError(f"{path}:{line}: frame must be a whole number, got {r.get('frame')!r}")
             if label == "":
                 continue

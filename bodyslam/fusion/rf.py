@@ -43,8 +43,8 @@ from scipy.optimize import least_squares
 from bodyslam.errors import InputError
 from bodyslam.io import csv_rows, csv_table
 
-__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "check_rss_units", "read_rf_columns", "rss_per_frame", "rss_to_range",
-           "locate_lls", "locate_nls", "locate_ml", "locate_ml_frames", "FixesOnDemand", "RF_METHODS"]
+__all__ = ["PathLossModel", "Fix", "read_sensors", "read_rf", "check_rss_units", "read_rf_columns", "rss_per_frame",
+           "rss_to_range", "locate_lls", "locate_nls", "locate_ml", "locate_ml_frames", "FixesOnDemand", "RF_METHODS"]
 
 RF_METHODS = ("lls", "nls", "ml")
 
@@ -158,8 +158,8 @@ def _check_sensor_layout(path, names: list[str], pos_m: np.ndarray) -> None:
     reach = np.linalg.norm(pos_m - np.median(pos_m, axis=0), axis=1)
     if reach.max() > MAX_SENSOR_REACH_M:
         j = int(np.argmax(reach))
-        hint = (" -- positions are in metres (SPEC); these look like millimetres"
-                if np.median(reach) > 1000 * 0.02 else "")
+        # a body's sensors lie ~0.2 m from their median place; a whole file 1000x out reads ~200 m
+        hint = " -- positions are in metres (SPEC); these look like millimetres" if np.median(reach) > 20.0 else ""
         raise InputError(f"{path}: sensor {names[j]!r} is {reach[j]:.3g} m from the sensors' median place (at most "
                          f"{MAX_SENSOR_REACH_M:g} m on a body){hint}")
     if len(pos_m) >= 3:
