@@ -83,8 +83,9 @@ def test_simulated_files_run_through_bodyslam_like_the_evaluation(short, tmp_pat
         (tmp_path / "meta.json").write_text(json.dumps(meta))
         with pytest.raises(InputError, match="symmetric and positive definite"):
             load_recording(tmp_path)
-    # an array's reference element of the wrong length was a numpy broadcast error in the scheme's first update, and
-    # a radio constant of zero a division by zero (found by the reader fuzz test at 800 examples): both are named
+    # an array's reference element of the wrong length was a numpy broadcast error in the scheme's first update
+    # (found by the reader fuzz test at 800 examples); a URA of one column, a NaN spacing or a radio constant of zero
+    # (the speed of light divides every TOA) were checked nowhere either: each is named
     meta["initial_state"]["covariance"] = np.diag([5e-4] * 3 + [1e-5] * 3).tolist()
     (tmp_path / "meta.json").write_text(json.dumps(meta))
     assert load_recording(tmp_path)["x0"].shape == (6,)  # meta.json loads again: each check below damages one thing
