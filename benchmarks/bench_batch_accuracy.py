@@ -13,7 +13,13 @@ the sequence keeps (scoring only; the pipeline never reads it):
 - FT/FL (`frames.csv` against `labels.csv`): lumen-facing frames called FL, wall-facing frames found;
 - the fused trajectory (`trajectory.tum` against `groundtruth.tum`): mean position error, and the share of frames
   inside the 68% ellipsoid of their stated covariance (`uncertainty.csv`: the per-axis 1-sigma and, since session 63,
-  their correlations; an older file's per-axis 1-sigma alone).
+  their correlations; an older file's per-axis 1-sigma alone);
+- how far along the gut a marked frame lies between two landmarks (session 78): the run is given landmarks at 5%
+  and 95% of its frames (`--landmark`) and a mark every 10 frames between them (`--mark`); `marks.csv`'s fraction
+  by the path travelled (with its 1-sigma) and by the time (the transit-time convention) against the true fraction
+  of the centre line's length between the landmarks (`labels.csv` `s_m`): mean and p90 absolute error, the share
+  inside the stated 1-sigma, and the fraction a perfect odometer would give (the true path travelled: the capsule's
+  back-and-forth and wobble, which no path travelled removes).
 
 Prints a line per seed and the mean over seeds; ``--json`` writes them. Use tuning seeds (500-599) to choose
 anything and reporting seeds (700-799) to report (README, "Seeds"). ``--frames`` and ``--set`` change the scenario as
@@ -96,6 +102,32 @@ def score_exam(seq: Path, ex: Path) -> dict:
     }
 
 
+def landmark_frames(n: int) -> tuple[int, int, list[int]]:
+    """The landmarks (5% and 95% of ``n`` frames) and the marks (every 10 frames strictly between them)."""
+    a, b = round(0.05 * (n - 1)), round(0.95 * (n - 1))
+    return a, b, list(range(a + 10, b, 10))
+
+
+def score_fractions(seq: Path, ex: Path, a: int, b: int) -> dict:
+    """``marks.csv``'s fractions between landmarks ``a`` and ``b`` against the truth (module docstring)."""
+    s = {int(r["frame"]): float(r["s_m"]) for r in csv.DictReader(open(seq / "labels.csv", newline=""))}
+    step = {int(r["frame"]): abs(float(r["distance_m"]))
+            for r in csv.DictReader(open(seq / "motion_truth.csv", newline=""))}
+    odo = np.r_[0.0, np.cumsum([step.get(k, 0.0) for k in range(1, max(s) + 1)])]
+    rows = list(csv.DictReader(open(ex / "marks.csv", newline="")))
+    k = np.array([int(r["frame"]) for r in rows])
+    f_true = np.array([(s[i] - s[a]) / (s[b] - s[a]) for i in k])
+    f = np.array([float(r[f"fraction_{a}_{b}"]) for r in rows])
+    sd = np.array([float(r[f"sd_fraction_{a}_{b}"]) for r in rows])
+    ft = np.array([float(r[f"time_fraction_{a}_{b}"]) for r in rows])
+    fo = (odo[k] - odo[a]) / (odo[b] - odo[a])
+    e, et, eo = np.abs(f - f_true), np.abs(ft - f_true), np.abs(fo - f_true)
+    return {"fraction_error": float(np.mean(e)), "fraction_error_p90": float(np.percentile(e, 90)),
+            "fraction_inside_1sigma": float(np.mean(e <= sd)), "fraction_sd": float(np.mean(sd)),
+            "time_fraction_error": float(np.mean(et)), "time_fraction_error_p90": float(np.percentile(et, 90)),
+            "odometer_fraction_error": float(np.mean(eo)), "marks": len(rows)}
+
+
 def fmt(r: dict) -> str:
     fl = "--" if r["wall_facing_found"] is None else f"{r['wall_facing_found']:.2f}"
     ft = "--" if r["lumen_facing_called_fl"] is None else f"{r['lumen_facing_called_fl']:.3f}"
@@ -107,7 +139,10 @@ def fmt(r: dict) -> str:
             f"{r['steps_estimated']:.3f} estimated, {r['step_distance_error_cm']:.4f} cm, beside the wall "
             f"{r['steps_beside_wall']:.2f}, rotation {r['steps_rotation']} (+{r['steps_rotation_slow']} slow), lost "
             f"{r['steps_lost']}; lumen-facing called FL {ft}, wall-facing found {fl}; fused "
-            f"{r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}")
+            f"{r['fused_mean_error_cm']:.2f} cm, inside 68% {r['fused_inside_68']:.2f}; between the landmarks by the "
+            f"path {100 * r['fraction_error']:.1f} points (p90 {100 * r['fraction_error_p90']:.1f}, inside 1-sigma "
+            f"{r['fraction_inside_1sigma']:.2f}), by the time {100 * r['time_fraction_error']:.1f} (p90 "
+            f"{100 * r['time_fraction_error_p90']:.1f}), a perfect odometer {100 * r['odometer_fraction_error']:.1f}")
 
 
 def main() -> None:
@@ -138,19 +173,24 @@ def main() -> None:
         if not (seq / "meta.json").exists():
             simulate(scn, seed, seq, n_frames=args.frames, force=True)
         out = root / f"out_{args.scenario}{variant}_{seed}"
+        n = json.loads((seq / "truth.json").read_text())["n_frames"]
+        a, b, marks = landmark_frames(n)
         t0 = time.perf_counter()
-        p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", str(out), "--force"],
+        p = subprocess.run([sys.executable, "-m", "bodyslam.cli", "batch", str(seq), "--out", str(out), "--force",
+                            "--landmark", f"{a},{b}", "--mark", ",".join(map(str, marks))],
                            capture_output=True, text=True)
         el = time.perf_counter() - t0
         ex = out / seq.name
         if not (ex / "summary.json").exists():
             raise SystemExit(f"bodyslam batch failed on {seq} (exit {p.returncode}): {p.stderr.strip()[-500:]}")
-        rows[seed] = dict(score_exam(seq, ex), batch_s=el, exit=p.returncode)
+        rows[seed] = dict(score_exam(seq, ex), **score_fractions(seq, ex, a, b), batch_s=el, exit=p.returncode)
         print(f"{args.scenario} {seed}: {fmt(rows[seed])} ({el:.0f} s)", flush=True)
     errs = np.array([r["path_error_rel"] for r in rows.values()])
     keys = ("path_inside_1sigma", "path_without_estimate_share", "path_beside_wall_share", "steps_estimated",
             "step_distance_error_cm", "steps_beside_wall", "lumen_facing_called_fl", "wall_facing_found",
-            "fused_mean_error_cm", "fused_inside_68")
+            "fused_mean_error_cm", "fused_inside_68", "fraction_error", "fraction_error_p90",
+            "fraction_inside_1sigma", "fraction_sd", "time_fraction_error", "time_fraction_error_p90",
+            "odometer_fraction_error")
     mean = {k: float(np.mean([r[k] for r in rows.values() if r[k] is not None])) for k in keys}
     mean.update(path_error_rel=float(np.mean(errs)), path_error_median=float(np.median(errs)),
                 path_error_abs=float(np.mean(np.abs(errs))), path_error_worst=float(np.max(np.abs(errs))))
@@ -164,7 +204,11 @@ def main() -> None:
           f"{mean['step_distance_error_cm']:.4f} cm, beside the wall {mean['steps_beside_wall']:.2f}, in all rotation "
           f"{total['steps_rotation']} (+{total['steps_rotation_slow']} slow), lost {total['steps_lost']}; lumen-facing "
           f"called FL {mean['lumen_facing_called_fl']:.3f}, wall-facing found {mean['wall_facing_found']:.2f}; fused "
-          f"{mean['fused_mean_error_cm']:.2f} cm, inside 68% {mean['fused_inside_68']:.2f}")
+          f"{mean['fused_mean_error_cm']:.2f} cm, inside 68% {mean['fused_inside_68']:.2f}; between the landmarks "
+          f"by the path {100 * mean['fraction_error']:.1f} points (p90 {100 * mean['fraction_error_p90']:.1f}, inside "
+          f"1-sigma {mean['fraction_inside_1sigma']:.2f}, 1-sigma {100 * mean['fraction_sd']:.1f}), by the time "
+          f"{100 * mean['time_fraction_error']:.1f} (p90 {100 * mean['time_fraction_error_p90']:.1f}), a perfect "
+          f"odometer {100 * mean['odometer_fraction_error']:.1f}")
     if args.json:
         args.json.write_text(json.dumps({"scenario": args.scenario, "frames": args.frames, "overrides": args.overrides,
                                          "seeds": rows, "mean": mean, "total": total}, indent=1))

@@ -227,7 +227,9 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--sensors", default=None, help="sensors.csv for --rf")
     ba.add_argument("--mark", default=None, help="frames to locate, e.g. 120,455,1000-1002")
     ba.add_argument("--mark-file", default=None, help="CSV of marked frames: frame[,label][,exam]")
-    ba.add_argument("--landmark", default=None, help="landmark frames (e.g. 310 = pylorus): path from each")
+    ba.add_argument("--landmark", default=None,
+                    help="landmark frames (e.g. 310 = pylorus): path from each; with two or more, how far each mark "
+                         "lies from the first to the last (0-1) by the path and by the time")
     ba.add_argument("--frame-range", default=None, metavar="FIRST-LAST",
                     help="process frames FIRST..LAST of each exam only (frame numbers, both kept; FIRST- to the end), "
                          "e.g. the small bowel between its first duodenal and first caecal frame; they keep their "

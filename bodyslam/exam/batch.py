@@ -1469,9 +1469,14 @@ def _fuse(exam: Exam, d: Path, t: np.ndarray, frame_idx: list[int], steps: list,
     return loc
 
 
+def _landmark_span(landmarks: list[int]) -> tuple[int, int] | None:
+    """The first and the last of an exam's landmark frames that it holds, where they are two frames or more."""
+    return (min(landmarks), max(landmarks)) if len(set(landmarks)) >= 2 else None
+
+
 def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var, problems,
            rel: float) -> list[list]:
-    from bodyslam.vision.tracking import segment_variance
+    from bodyslam.vision.tracking import LOCAL_SCALE_SD_REL, fraction_between, segment_variance
 
     where = {f: k for k, f in enumerate(frame_idx)}
     lms = [lm for lm in exam.landmarks if lm in where]
@@ -1495,6 +1500,13 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
               "sd_path_from_start_m"]
     for lm in lms:
         header += [f"path_from_{lm}_m", f"sd_path_from_{lm}_m"]
+    # two landmarks or more: how far along the stretch between the first and the last (the pylorus and the
+    # ileocaecal valve, say) by the path travelled, free of the radius's scale, and by the time (the clinical
+    # convention, a share of the transit time) beside it
+    span = _landmark_span(lms)
+    if span is not None:
+        header += [f"fraction_{span[0]}_{span[1]}", f"sd_fraction_{span[0]}_{span[1]}",
+                   f"time_fraction_{span[0]}_{span[1]}"]
     rows = []
     for f, label in exam.marks:
         k = where.get(f)
@@ -1506,6 +1518,12 @@ def _marks(exam: Exam, d: Path, frame_idx: list[int], t, P, sd, path_m, path_var
             j = where[lm]
             row += [path_m[k] - path_m[j],
                     math.sqrt(segment_variance(path_m, path_var, j, k, rel))]
+        if span is not None:
+            a, b = where[span[0]], where[span[1]]
+            # the lumen's local scale does not cancel, unless the lumen is taken as a cylinder (no shape share)
+            local = LOCAL_SCALE_SD_REL if exam.shape_sd_rel > 0 else 0.0
+            row += [*fraction_between(path_m, path_var, a, b, k, rel, local_sd_rel=local),
+                    (t[k] - t[a]) / (t[b] - t[a]) if t[b] > t[a] else math.nan]
         rows.append(row)
     write_csv(d / "marks.csv", header, rows)
     return rows
@@ -1621,9 +1639,16 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
             ["problems", f"{sm['problems']} (problems.csv)"]]
     body = table(None, rows)
     if marks:
-        body += "<h2>Marked frames</h2>" + table(
-            ["frame", "label", "t (s)", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)",
-             "1-sigma (cm)"], [[r[0], r[1], f"{r[2]:.1f}", *(f"{v * 100:.1f}" for v in r[3:9])] for r in marks])
+        span = _landmark_span([lm for lm in exam.landmarks if lm in where])
+        head = ["frame", "label", "t (s)", "x (cm)", "y (cm)", "z (cm)", "1-sigma (cm)", "path from start (cm)",
+                "1-sigma (cm)"]
+        cells = [[r[0], r[1], f"{r[2]:.1f}", *(f"{v * 100:.1f}" for v in r[3:9])] for r in marks]
+        if span is not None:  # the last three cells: fraction, its 1-sigma, time fraction (_marks)
+            head += [f"from frame {span[0]} to {span[1]}: by the path (1-sigma)", "by the time"]
+            for c, r in zip(cells, marks):
+                c += [f"{r[-3]:.0%} +- {r[-2]:.0%}" if math.isfinite(r[-3]) else "-",
+                      f"{r[-1]:.0%}" if math.isfinite(r[-1]) else "-"]
+        body += "<h2>Marked frames</h2>" + table(head, cells)
     body += "<h2>3-D view</h2>" + view_3d(paths, mk, t, np.asarray(frame_idx), body_frame=fused) + "<h2>Plots</h2>"
     write_page(d / "report.html", f"Exam {exam.name}", f"{name}; positions in the {frame_txt}"
                + (". The 1-sigma is dead reckoning's: it grows with every step" if not fused else

@@ -26,12 +26,21 @@ from bodyslam.steps import (BESIDE_WALL_LOG_SD, HAMPERED_ENTER_PROB, HAMPERED_ST
                             lost_step_floor_m, lost_to_motion)
 
 __all__ = ["dead_reckon", "path_travelled", "path_from_lengths", "missing_step_lengths", "step_length",
-           "scale_path_variance", "segment_variance", "share_without_estimate", "share_beside_wall", "path_share_text",
-           "SCALE_CORR_M"]
+           "scale_path_variance", "segment_variance", "fraction_between", "share_without_estimate",
+           "share_beside_wall", "path_share_text",
+           "SCALE_CORR_M", "LOCAL_SCALE_SD_REL", "LOCAL_SCALE_CORR_M"]
 
 # the distance along the gut over which the lumen radius (the visual scale) changes: the fusion's scale state and
 # the path's variance share it (stated choice, as the realistic testbed's 20 cm radius wavelength)
 SCALE_CORR_M = 0.2
+# how far along the stretch between two landmarks (fraction_between): the exam-wide scale cancels there, and what is
+# left is the lumen's local scale, which the steps read in units of the radius they assume. Its 1-sigma and the
+# distance over which it changes, for a lumen that is not a cylinder: on the realistic testbed the steps err by
+# ~25% of their length at every distance, following the local radius, and a window of 11-21 frames (2.6-5 cm of gut
+# at the dissertation's pace) follows it best (session 40, docs/RESULTS.md "Each step's scale tied to its
+# neighbours'"). Stated from those measurements, not fitted to the fractions' coverage (session 78)
+LOCAL_SCALE_SD_REL = 0.25
+LOCAL_SCALE_CORR_M = 0.05
 
 
 def _step_transform(s: StepMotion) -> tuple[Rotation, np.ndarray]:
@@ -85,6 +94,35 @@ def segment_variance(path_m: np.ndarray, var_m2: np.ndarray, j: int, k: int, sca
     sv = (lambda L: float(scale_path_variance(L, scale_sd_rel, corr_m))) if scale_sd_rel > 0 else (lambda L: 0.0)
     own = abs((var_m2[k] - sv(path_m[k])) - (var_m2[j] - sv(path_m[j])))
     return own + sv(path_m[k] - path_m[j])
+
+
+def fraction_between(path_m: np.ndarray, var_m2: np.ndarray, a: int, b: int, k: int,
+                     scale_sd_rel: float = 0.0, corr_m: float = SCALE_CORR_M,
+                     local_sd_rel: float = 0.0, local_corr_m: float = LOCAL_SCALE_CORR_M) -> tuple[float, float]:
+    """``(fraction, 1-sigma)``: how far frame ``k`` lies along the path from frame ``a`` to frame ``b`` (two
+    landmarks: the pylorus and the ileocaecal valve, say), ``(path[k] - path[a]) / (path[b] - path[a])``; 0 at
+    ``a``, 1 at ``b``, outside [0, 1] for a frame outside them. A scale error common to the whole stretch (the lumen
+    radius assumed) cancels; its share in the 1-sigma is what the Gauss-Markov scale model
+    (:func:`scale_path_variance`) leaves uncorrelated between the two parts. ``local_sd_rel`` (0: none;
+    :data:`LOCAL_SCALE_SD_REL` for a lumen that is not a cylinder) adds the lumen's local scale as a second such
+    process over ``local_corr_m``, on top of the steps' own variances (which hold an independent share of it, so
+    this errs on the wide side). Delta method on ``A / C``, ``A`` the path from ``a`` to ``k`` and ``C`` from ``a``
+    to ``b``, their covariance by polarisation from :func:`segment_variance`. ``(nan, nan)`` when the path from
+    ``a`` to ``b`` is zero."""
+    C = float(path_m[b] - path_m[a])
+    if not C > 0:
+        return math.nan, math.nan
+    A = float(path_m[k] - path_m[a])
+
+    def local(L: float) -> float:
+        return float(scale_path_variance(L, local_sd_rel, local_corr_m)) if local_sd_rel > 0 else 0.0
+
+    va = segment_variance(path_m, var_m2, a, k, scale_sd_rel, corr_m) + local(A)
+    vc = segment_variance(path_m, var_m2, a, b, scale_sd_rel, corr_m) + local(C)
+    vd = segment_variance(path_m, var_m2, k, b, scale_sd_rel, corr_m) + local(C - A)
+    cov = 0.5 * (va + vc - vd)
+    var = va / C**2 + A**2 * vc / C**4 - 2.0 * A * cov / C**3
+    return A / C, math.sqrt(max(var, 0.0))
 
 
 # the speed model's grid: step lengths from 1/1000 of the lumen radius to STEP_MAX_R radii, log-spaced

@@ -84,6 +84,29 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     assert list(ph) == ["first_chunk", "chunks", "bridges", "exams"] and list(ph.values()) == sorted(ph.values())
 
 
+def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_time(tmp_path):
+    """Two landmarks (the pylorus and the ileocaecal valve, say): each mark's fraction of the path travelled
+    from the first to the last, with its 1-sigma, and of the time (the clinical convention) beside it. A landmark
+    is at 0 or 1 exactly, with no spread; a mark past the last lies above 1; the fraction is the ratio of the
+    paths ``uncertainty.csv`` gives, and the page shows it. One landmark: no fraction columns (the first test)."""
+    rep = run_batch(open_exams([str(DEMO)], marks=[(5, ""), (20, "lesion"), (35, ""), (38, "")],
+                               landmarks=[35, 5]), tmp_path / "out", FAST, jobs=1)
+    assert rep.n_problems == 0
+    d = tmp_path / "out" / "demo_seed0"
+    marks = {int(m["frame"]): m for m in _rows(d / "marks.csv")}
+    path = {int(r["frame"]): float(r["path_m"]) for r in _rows(d / "uncertainty.csv")}
+    f = {k: float(m["fraction_5_35"]) for k, m in marks.items()}
+    sd = {k: float(m["sd_fraction_5_35"]) for k, m in marks.items()}
+    assert f[5] == pytest.approx(0.0, abs=1e-12) and f[35] == pytest.approx(1.0, abs=1e-9)
+    assert sd[5] == pytest.approx(0.0, abs=1e-9) and sd[35] == pytest.approx(0.0, abs=1e-6)
+    assert f[20] == pytest.approx((path[20] - path[5]) / (path[35] - path[5]), rel=1e-6) and 0 < f[20] < 1
+    assert 0 < sd[20] < 0.5 and f[38] > 1
+    t = {k: float(m["time_fraction_5_35"]) for k, m in marks.items()}
+    assert t == pytest.approx({5: 0.0, 20: 0.5, 35: 1.0, 38: 1.1})  # the demo's frames are evenly spaced
+    page = (d / "report.html").read_text()
+    assert "from frame 5 to 35: by the path" in page and f"{f[20]:.0%} +- {sd[20]:.0%}" in page
+
+
 def test_chunking_and_workers_do_not_change_results(tmp_path, monkeypatch):
     e = open_exams([str(DEMO)])
     run_batch(e, tmp_path / "a", BatchSettings(chunk_frames=40), jobs=1)
