@@ -11,7 +11,8 @@ folder of image files), or a video file. For each exam the run writes, under ``O
 - ``trajectory.tum``: fused and smoothed (RF given: :func:`bodyslam.fusion.body_slam.fuse` + RTS) or dead reckoning (the
   first camera frame is the world frame), and ``uncertainty.csv`` (:data:`bodyslam.fusion.localize.UNCERTAINTY_COLUMNS`);
 - ``marks.csv`` for marked frames (``--mark``): position, 1-sigma, path travelled from the first frame and from
-  each landmark frame, with 1-sigma;
+  each landmark frame, with 1-sigma; with two landmarks or more, the fraction of the way from the first to the
+  last by the path (with 1-sigma) and by the time;
 - ``summary.json``, ``trajectory.png``, ``path.png`` and ``report.html`` (:func:`_report`). ``OUT/problems.csv`` lists every problem of every exam
   (``exam,file,frame,severity,reason``); ``OUT/summary.json`` gathers the exams.
 
