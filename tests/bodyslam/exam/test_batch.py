@@ -88,7 +88,7 @@ def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_tim
     """Two landmarks (the pylorus and the ileocaecal valve, say): each mark's fraction of the path travelled
     from the first to the last, with its 1-sigma, and of the time (the clinical convention) beside it. A landmark
     is at 0 or 1 exactly, with no spread; a mark past the last lies above 1; the fraction is the ratio of the
-    paths ``uncertainty.csv`` gives, and the page shows it. One landmark: no fraction columns (the first test)."""
+    paths ``uncertainty.csv`` gives, and the page shows it."""
     rep = run_batch(open_exams([str(DEMO)], marks=[(5, ""), (20, "lesion"), (35, ""), (38, "")],
                                landmarks=[35, 5]), tmp_path / "out", FAST, jobs=1)
     assert rep.n_problems == 0
