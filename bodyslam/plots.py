@@ -175,10 +175,16 @@ class Mark:
 def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n_ellipses: int = 12,
                       size=(1200, 1000), body_frame: bool = True, max_points: int = 4000) -> np.ndarray:
     """A 3-D view and the coronal (x-z), axial (x-y) and sagittal (y-z) projections of ``paths`` (body frame, cm,
-    equal axes). The first path with a covariance gets ``n_ellipses`` 1-sigma ellipses along it; the first path
-    gets start (triangle) and end (square) markers; each mark is a star with its 1-sigma ellipse. ``body_frame``
-    False: the axes are the first camera frame's (dead reckoning), named as such. Paths are thinned to
-    ``max_points`` (a plot needs no more points than pixels)."""
+    equal axes), as an RGB image. The first path with a covariance gets ``n_ellipses`` 1-sigma ellipses along it;
+    the first path gets start (triangle) and end (square) markers; each mark is a star with its 1-sigma ellipse.
+    ``body_frame`` False: the axes are the first camera frame's (dead reckoning), named as such. Paths are thinned
+    to ``max_points`` (a plot needs no more points than pixels). One legend, below the panels."""
+    return _to_rgb(_trajectory_mpl(title, paths, marks, n_ellipses, size, body_frame, max_points))
+
+
+def _trajectory_mpl(title: str, paths: list[Path3D], marks, n_ellipses: int, size, body_frame: bool,
+                    max_points: int):
+    """:func:`trajectory_figure`'s matplotlib figure, before it is drawn."""
     paths = [Path3D(p.label, p.p[:: max(1, len(p.p) // max_points)], p.colour, p.width,
                     None if p.cov is None else p.cov[:: max(1, len(p.p) // max_points)]) for p in paths]
     axes = BODY_AXES if body_frame else ("x, first camera frame (cm)", "y, first camera frame (cm)",
@@ -228,8 +234,14 @@ def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n
                      [m.label])
             if m.cov is not None:
                 f.ellipse(m.p[[a, b]] * 100, m.cov[np.ix_([a, b], [a, b])] * 1e4, colour=(200, 150, 0), width=1.5)
-        f.draw(fig.add_subplot(2, 2, slot), legend=slot == 2)  # one legend: the coronal view's
-    return _to_rgb(fig)
+        ax = fig.add_subplot(2, 2, slot)
+        f.draw(ax, legend=False)
+        if slot == 2:  # one legend, the coronal view's items, below the panels: inside one it hid the path's end
+            handles, labels = ax.get_legend_handles_labels()
+            if handles:
+                fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 6), fontsize=9,
+                           frameon=False)
+    return fig
 
 
 def cm_text(value_cm: float) -> str:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from bodyslam.plots import Figure, Mark, Path3D, cm_text, path_figure, trajectory_figure
+from bodyslam.plots import Figure, Mark, Path3D, _trajectory_mpl, cm_text, path_figure, trajectory_figure
 
 
 def _count(img: np.ndarray, rgb, tol: int = 40) -> int:
@@ -62,3 +62,18 @@ def test_the_path_band_stays_at_or_above_zero(monkeypatch):
     path_figure("clip", t, [0.0, 0.001, 0.002, 0.01, 0.02, 0.03], np.full(6, 0.005 ** 2))
     (lo, hi), = bands
     assert lo.min() == 0.0 and np.allclose(lo[3:], [0.5, 1.5, 2.5]) and np.allclose(hi, [0.5, 0.6, 0.7, 1.5, 2.5, 3.5])
+
+
+def test_trajectory_figure_keeps_its_legend_off_the_panels():
+    """A short clip's path ends in the middle of its panels, where a legend inside one hid the end marker (a real
+    four-frame clip, session 79): the one legend lies below every panel and no panel has its own."""
+    p = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.004], [-0.001, 0.0007, 0.005]])
+    cov = np.repeat((np.eye(3) * 0.003**2)[None], 3, axis=0)
+    fig = _trajectory_mpl("clip", [Path3D("dead reckoning", p, (214, 39, 40), 1.8, cov)], [], 12, (1200, 1000),
+                          False, 4000)
+    fig.canvas.draw()
+    assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in fig.axes)
+    legend_top = fig.legends[0].get_window_extent().y1
+    assert all(legend_top <= ax.get_window_extent().y0 + 1e-6 for ax in fig.axes[1:])  # the 2-D panels
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["dead reckoning", "1-sigma (dead reckoning)",
+                                                                  "start", "end"]
