@@ -98,8 +98,13 @@ class Figure:
                            dict(step=False, width=width, marker=False)))
         return self
 
-    def vline(self, x: float, label: str | None = None, colour=None):
-        self.items.append(("vline", float(x), None, self._colour(colour), label, {}))
+    def vspan(self, x0: float, x1: float, label: str | None = None, colour=None, alpha: float = 0.12):
+        """A shaded stretch of the x axis, the axes' whole height."""
+        self.items.append(("vspan", float(x0), float(x1), self._colour(colour), label, dict(alpha=alpha)))
+        return self
+
+    def vline(self, x: float, label: str | None = None, colour=None, dashed: bool = True):
+        self.items.append(("vline", float(x), None, self._colour(colour), label, dict(dashed=dashed)))
         return self
 
     def draw(self, ax, legend: bool = True) -> None:
@@ -121,8 +126,10 @@ class Figure:
                            edgecolors="black", linewidths=0.6)
                 for x, y, t in zip(a, b, kw["texts"] or []):
                     ax.annotate(t, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
+            elif kind == "vspan":
+                ax.axvspan(a, b, color=c, alpha=kw["alpha"], lw=0, label=label)
             elif kind == "vline":
-                ax.axvline(a, color=c, lw=1, ls="--", label=label)
+                ax.axvline(a, color=c, lw=1, ls="--" if kw.get("dashed", True) else "-", label=label)
         if self.log_y:
             ax.set_yscale("log")
         if self.equal:
@@ -253,9 +260,10 @@ def cm_text(value_cm: float) -> str:
 
 
 def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tuple[float, str]] = (),
-                size=(900, 420)) -> np.ndarray:
+                size=(900, 420), landmarks: list[tuple[float, str]] = ()) -> np.ndarray:
     """The path travelled from the first frame against time (minutes when the exam is longer than 10 minutes),
-    with its 1-sigma band (cut at zero) and a dashed line at each marked frame ``(time s, label)``."""
+    with its 1-sigma band (cut at zero), a dashed line at each marked frame ``(time s, label)`` and a solid grey
+    one at each landmark frame ``(time s, label)``, the stretch between the first and the last landmark shaded."""
     t = np.asarray(stamps_s, float)
     minutes = len(t) > 1 and t[-1] - t[0] > 600
     tt = t / 60.0 if minutes else t
@@ -267,6 +275,13 @@ def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tupl
         # steps' share), and a band below zero would show a distance no capsule can have
         f.band(tt, np.maximum(pm - sd, 0.0), pm + sd, "1-sigma", (31, 119, 180))
     f.line(tt, pm, "path travelled", (31, 119, 180))
+    lm_x = [ts / 60.0 if minutes else ts for ts, _ in landmarks]
+    if len(set(lm_x)) >= 2:  # the stretch between the first and the last landmark (the small bowel, say)
+        f.vspan(min(lm_x), max(lm_x), "between the landmarks", (150, 150, 150))
+    for j, (x, (ts, label)) in enumerate(zip(lm_x, landmarks)):
+        f.vline(x, None, (110, 110, 110), dashed=False)
+        k = int(np.clip(np.searchsorted(t, ts), 0, len(pm) - 1)) if len(pm) else 0
+        f.points(x, pm[k] if len(pm) else 0.0, "landmark" if j == 0 else None, (110, 110, 110), "D", 50, [label])
     for j, (ts, label) in enumerate(marks):
         x = ts / 60.0 if minutes else ts
         f.vline(x, None, (200, 150, 0))

@@ -1563,8 +1563,8 @@ def _vision_text(m: MotionSettings) -> str:
 
 
 def _path_png(task: dict) -> None:
-    """``path.png``: how far along the gut against time, with its 1-sigma and the marked frames (a worker's task:
-    ``exam``, ``dir``, ``t``, ``frame_idx``, ``path_m``, ``path_var``)."""
+    """``path.png``: how far along the gut against time, with its 1-sigma, the marked frames and the landmarks (a
+    worker's task: ``exam``, ``dir``, ``t``, ``frame_idx``, ``path_m``, ``path_var``)."""
     from bodyslam.plots import path_figure
 
     exam, d, t, frame_idx = task["exam"], Path(task["dir"]), task["t"], task["frame_idx"]
@@ -1573,7 +1573,9 @@ def _path_png(task: dict) -> None:
         return
     where = {f: k for k, f in enumerate(frame_idx)}
     write_image(d / "path.png", path_figure(f"{exam.name}: how far along the gut", t, path_m, path_var,
-                                            [(t[where[f]], f"frame {f}") for f, _ in exam.marks if f in where]))
+                                            [(t[where[f]], f"frame {f}") for f, _ in exam.marks if f in where],
+                                            landmarks=[(t[where[f]], f"landmark {f}") for f in exam.landmarks
+                                                       if f in where]))
 
 
 def _trajectory_png(task: dict) -> None:

@@ -44,6 +44,20 @@ def test_path_figure_of_a_long_exam_is_in_minutes_with_the_mark():
     assert img.shape == (420, 900, 3) and _count(img, (255, 200, 0), 30) > 20
 
 
+def test_path_figure_shows_the_landmarks_and_the_stretch_between_them():
+    """Each landmark is a full-height grey line with its marker (~500 grey pixels each on a 900 x 420 figure); two or
+    more shade the stretch from the first to the last (the axes' height over 60% of the time axis: ~150,000 light
+    grey pixels), one alone shades nothing."""
+    t = np.arange(0, 100, 0.5)
+    plain = path_figure("exam", t, t * 1e-3)
+    one = path_figure("exam", t, t * 1e-3, landmarks=[(20.0, "landmark 40")])
+    two = path_figure("exam", t, t * 1e-3, landmarks=[(20.0, "landmark 40"), (80.0, "landmark 160")])
+    grey, shade = (110, 110, 110), (240, 240, 240)
+    assert _count(one, grey, 15) > _count(plain, grey, 15) + 300
+    assert _count(two, grey, 15) > _count(one, grey, 15) + 300
+    assert _count(one, shade, 4) < _count(plain, shade, 4) + 1000 < _count(two, shade, 4) - 100_000
+
+
 def test_a_marks_path_label_keeps_the_digits_a_short_clip_needs():
     """A short clip's marked frame 0.34 cm along read "0 cm" with whole centimetres; a whole exam's stay whole."""
     assert cm_text(0.3396) == "0.34 cm"

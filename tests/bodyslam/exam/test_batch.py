@@ -84,11 +84,16 @@ def test_batch_on_a_sequence_directory_writes_every_output(tmp_path):
     assert list(ph) == ["first_chunk", "chunks", "bridges", "exams"] and list(ph.values()) == sorted(ph.values())
 
 
-def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_time(tmp_path):
+def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_time(tmp_path, monkeypatch):
     """Two landmarks (the pylorus and the ileocaecal valve, say): each mark's fraction of the path travelled
     from the first to the last, with its 1-sigma, and of the time (the clinical convention) beside it. A landmark
     is at 0 or 1 exactly, with no spread; a mark past the last lies above 1; the fraction is the ratio of the
-    paths ``uncertainty.csv`` gives, and the page shows it."""
+    paths ``uncertainty.csv`` gives, and the page shows it; path.png draws both landmarks at their times."""
+    import bodyslam.plots
+
+    drawn = []
+    path_figure = bodyslam.plots.path_figure
+    monkeypatch.setattr(bodyslam.plots, "path_figure", lambda *a, **k: drawn.append(k) or path_figure(*a, **k))
     rep = run_batch(open_exams([str(DEMO)], marks=[(5, ""), (20, "lesion"), (35, ""), (38, "")],
                                landmarks=[35, 5]), tmp_path / "out", FAST, jobs=1)
     assert rep.n_problems == 0
@@ -105,6 +110,7 @@ def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_tim
     assert t == pytest.approx({5: 0.0, 20: 0.5, 35: 1.0, 38: 1.1})  # the demo's frames are evenly spaced
     page = (d / "report.html").read_text()
     assert "from frame 5 to 35: by the path" in page and f"{f[20]:.0%} +- {sd[20]:.0%}" in page
+    assert drawn[0]["landmarks"] == [(17.5, "landmark 35"), (2.5, "landmark 5")]  # the demo: 2 frames/s
 
 
 def test_chunking_and_workers_do_not_change_results(tmp_path, monkeypatch):
