@@ -7,9 +7,9 @@ with their units (SPEC.md: human-readable outputs say cm, deg ...), and plots of
   2-D plots).
 - :func:`trajectory_figure`: a trajectory in the body frame as a 3-D view and its three anatomical projections
   (coronal, axial, sagittal), with the truth where it exists, the 1-sigma as ellipses along the path, start and end,
-  and each marked frame (a lesion) with its own 1-sigma ellipse.
-- :func:`path_figure`: how far along the gut -- the path travelled against time with its 1-sigma band and the
-  marked frames.
+  each marked frame (a lesion) with its own 1-sigma ellipse, and each landmark frame.
+- :func:`path_figure`: how far along the gut -- the path travelled against time with its 1-sigma band, the
+  marked frames and the landmark frames.
 - :data:`BODY_AXES`: what the body frame's axes mean (SPEC.md), for labels.
 """
 
@@ -172,11 +172,17 @@ def cube_cm(paths: list[Path3D], marks: list = ()) -> tuple[np.ndarray, float]:
 
 
 class Mark:
-    """A marked frame (a lesion): its label, position (m) and 3x3 covariance (m^2)."""
+    """A marked frame (a lesion): its label, position (m) and 3x3 covariance (m^2); ``landmark``: a landmark frame
+    (the pylorus, say), drawn as a grey diamond without its 1-sigma, not as a marked frame's star."""
 
-    def __init__(self, label: str, position_m, cov_m2=None):
+    def __init__(self, label: str, position_m, cov_m2=None, landmark: bool = False):
         self.label, self.p = label, np.asarray(position_m, float)
         self.cov = None if cov_m2 is None else np.asarray(cov_m2, float)
+        self.landmark = bool(landmark)
+
+    def style(self) -> tuple[tuple[int, int, int], str, float]:
+        """``(rgb, matplotlib marker, size)``."""
+        return ((110, 110, 110), "D", 70) if self.landmark else ((255, 200, 0), "*", 220)
 
 
 def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n_ellipses: int = 12,
@@ -210,7 +216,8 @@ def _trajectory_mpl(title: str, paths: list[Path3D], marks, n_ellipses: int, siz
         ax3.scatter(*ends[0], color="green", marker="^", s=70, edgecolors="black", label="start")
         ax3.scatter(*ends[1], color="red", marker="s", s=60, edgecolors="black", label="end")
     for m in marks:
-        ax3.scatter(*(m.p * 100), color="gold", marker="*", s=220, edgecolors="black")
+        rgb, marker, size = m.style()
+        ax3.scatter(*(m.p * 100), color=_rgb(rgb), marker=marker, s=size, edgecolors="black")
         ax3.text(*(m.p * 100), f"  {m.label}", fontsize=8)
     mid, half = cube_cm(paths, marks)
     ax3.set_xlim(mid[0] - half, mid[0] + half)
@@ -236,10 +243,13 @@ def _trajectory_mpl(title: str, paths: list[Path3D], marks, n_ellipses: int, siz
         if ends is not None:
             f.points(ends[0][a], ends[0][b], "start", (44, 160, 44), "^")
             f.points(ends[1][a], ends[1][b], "end", (214, 39, 40), "s")
-        for j, m in enumerate(marks):
-            f.points(m.p[a] * 100, m.p[b] * 100, "marked frame" if j == 0 else None, (255, 200, 0), "*", 220,
-                     [m.label])
-            if m.cov is not None:
+        for kind in (False, True):  # the marked frames, then the landmarks; each kind named once in the legend
+            for j, m in enumerate(m for m in marks if m.landmark == kind):
+                rgb, marker, size = m.style()
+                f.points(m.p[a] * 100, m.p[b] * 100, None if j else "landmark" if kind else "marked frame", rgb,
+                         marker, size, [m.label])
+        for m in marks:
+            if m.cov is not None and not m.landmark:
                 f.ellipse(m.p[[a, b]] * 100, m.cov[np.ix_([a, b], [a, b])] * 1e4, colour=(200, 150, 0), width=1.5)
         ax = fig.add_subplot(2, 2, slot)
         f.draw(ax, legend=False)

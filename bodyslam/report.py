@@ -96,10 +96,11 @@ def view_3d(paths: list[Path3D], marks: list[Mark] = (), stamps_s: np.ndarray | 
         sd = f" +- {np.sqrt(np.trace(m.cov)) * 100:.1f} cm (1-sigma)" if m.cov is not None else ""
         traces.append(go.Scatter3d(x=[q[0]], y=[q[1]], z=[q[2]], mode="markers+text", name=m.label,
                                    text=[m.label], textposition="top center",
-                                   marker=dict(color="gold", size=7, symbol="diamond", line=dict(color="black")),
+                                   marker=dict(color="grey" if m.landmark else "gold", size=5 if m.landmark else 7,
+                                               symbol="diamond", line=dict(color="black")),
                                    hovertemplate=f"{html.escape(m.label)}: x %{{x:.1f}}, y %{{y:.1f}}, z %{{z:.1f}} "
                                                  f"cm{sd}<extra></extra>"))
-        if m.cov is not None and np.isfinite(m.cov).all():
+        if m.cov is not None and np.isfinite(m.cov).all() and not m.landmark:
             pts, i, jj, k = _ellipsoid(q, m.cov * 1e4)
             traces.append(go.Mesh3d(x=pts[:, 0], y=pts[:, 1], z=pts[:, 2], i=i, j=jj, k=k, opacity=0.25,
                                     color="orange", name=f"{m.label}: 1-sigma", showlegend=True, hoverinfo="skip"))

@@ -1611,6 +1611,7 @@ def _report(exam: Exam, d: Path, summary: dict, t, P, cov, frame_idx, marks: lis
     name = "Body-SLAM (RF + vision, smoothed)" if fused else "dead reckoning (vision only)"
     paths = [Path3D(name, P, (214, 39, 40), 1.8, cov)]
     mk = [Mark(f"frame {r[0]}" + (f" {r[1]}" if r[1] else ""), P[where[r[0]]], cov[where[r[0]]]) for r in marks]
+    mk += [Mark(f"landmark {f}", P[where[f]], cov[where[f]], landmark=True) for f in exam.landmarks if f in where]
     frame_txt = "body frame" if fused else "first camera frame: no RF, so no body frame"
     drawn = submit(_trajectory_png, {"path": d / "trajectory.png",
                                      "args": (f"{exam.name}: where the capsule was ({frame_txt})", paths, mk),

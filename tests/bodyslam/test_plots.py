@@ -91,3 +91,23 @@ def test_trajectory_figure_keeps_its_legend_off_the_panels():
     assert all(legend_top <= ax.get_window_extent().y0 + 1e-6 for ax in fig.axes[1:])  # the 2-D panels
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["dead reckoning", "1-sigma (dead reckoning)",
                                                                   "start", "end"]
+
+
+def test_a_landmark_is_a_grey_diamond_without_its_1sigma():
+    """A landmark frame (the pylorus, say) beside a marked frame: the legend names both kinds once, the landmark is
+    grey and adds no ellipse (the marked frame's gold ring is drawn; a landmark's would be grey)."""
+    t = np.linspace(0, np.pi, 100)
+    p = np.stack([0.05 * np.cos(t), 0.05 * np.sin(t), 0.01 * t], axis=1)
+    cov = np.eye(3) * 0.01**2
+    marks = [Mark("frame 50", p[50], cov), Mark("landmark 10", p[10], cov, landmark=True),
+             Mark("landmark 90", p[90], cov, landmark=True)]
+    fig = _trajectory_mpl("arc", [Path3D("est", p, (31, 119, 180), 1.8)], marks, 12, (1200, 1000), True, 4000)
+    fig.canvas.draw()
+    assert [x.get_text() for x in fig.legends[0].get_texts()] == ["est", "start", "end", "marked frame", "landmark"]
+    grey = (110, 110, 110)
+    img = trajectory_figure("arc", [Path3D("est", p, (31, 119, 180), 1.8)], marks)
+    no_landmarks = trajectory_figure("arc", [Path3D("est", p, (31, 119, 180), 1.8)], marks[:1])
+    assert _count(img, grey, 12) > _count(no_landmarks, grey, 12) + 800  # two diamonds (~140 px) in four views
+    coronal = [ax for ax in fig.axes if ax.get_title() == "coronal (front) view"][0]
+    rings = [ln for ln in coronal.get_lines() if len(ln.get_xdata()) == 48]  # _ellipse_xy's 48 points
+    assert len(rings) == 1  # the marked frame's only

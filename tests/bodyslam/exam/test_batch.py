@@ -88,7 +88,7 @@ def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_tim
     """Two landmarks (the pylorus and the ileocaecal valve, say): each mark's fraction of the path travelled
     from the first to the last, with its 1-sigma, and of the time (the clinical convention) beside it. A landmark
     is at 0 or 1 exactly, with no spread; a mark past the last lies above 1; the fraction is the ratio of the
-    paths ``uncertainty.csv`` gives, and the page shows it; path.png draws both landmarks at their times."""
+    paths ``uncertainty.csv`` gives, and the page shows it; path.png and the 3-D view draw both landmarks."""
     import bodyslam.plots
 
     drawn = []
@@ -111,6 +111,7 @@ def test_two_landmarks_give_each_mark_its_fraction_of_the_way_by_path_and_by_tim
     page = (d / "report.html").read_text()
     assert "from frame 5 to 35: by the path" in page and f"{f[20]:.0%} +- {sd[20]:.0%}" in page
     assert drawn[0]["landmarks"] == [(17.5, "landmark 35"), (2.5, "landmark 5")]  # the demo: 2 frames/s
+    assert '"name":"landmark 5"' in page and '"name":"landmark 35"' in page  # in the 3-D view too
 
 
 def test_chunking_and_workers_do_not_change_results(tmp_path, monkeypatch):
