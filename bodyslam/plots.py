@@ -189,7 +189,8 @@ def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n
                       size=(1200, 1000), body_frame: bool = True, max_points: int = 4000) -> np.ndarray:
     """A 3-D view and the coronal (x-z), axial (x-y) and sagittal (y-z) projections of ``paths`` (body frame, cm,
     equal axes), as an RGB image. The first path with a covariance gets ``n_ellipses`` 1-sigma ellipses along it;
-    the first path gets start (triangle) and end (square) markers; each mark is a star with its 1-sigma ellipse.
+    the first path gets start (triangle) and end (square) markers; each mark is a star with its 1-sigma ellipse
+    (a landmark, :class:`Mark`, a grey diamond).
     ``body_frame`` False: the axes are the first camera frame's (dead reckoning), named as such. Paths are thinned
     to ``max_points`` (a plot needs no more points than pixels). One legend, below the panels."""
     return _to_rgb(_trajectory_mpl(title, paths, marks, n_ellipses, size, body_frame, max_points))
@@ -244,7 +245,7 @@ def _trajectory_mpl(title: str, paths: list[Path3D], marks, n_ellipses: int, siz
             f.points(ends[0][a], ends[0][b], "start", (44, 160, 44), "^")
             f.points(ends[1][a], ends[1][b], "end", (214, 39, 40), "s")
         for kind in (False, True):  # the marked frames, then the landmarks; each kind named once in the legend
-            for j, m in enumerate(m for m in marks if m.landmark == kind):
+            for j, m in enumerate([mk for mk in marks if mk.landmark == kind]):
                 rgb, marker, size = m.style()
                 f.points(m.p[a] * 100, m.p[b] * 100, None if j else "landmark" if kind else "marked frame", rgb,
                          marker, size, [m.label])
