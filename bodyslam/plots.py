@@ -171,6 +171,9 @@ def cube_cm(paths: list[Path3D], marks: list = ()) -> tuple[np.ndarray, float]:
     return (pts.min(axis=0) + pts.max(axis=0)) / 2, max(float(np.ptp(pts, axis=0).max()) / 2, 1.0) * 1.1
 
 
+LANDMARK_RGB = (110, 110, 110)  # a landmark frame's grey in every plot (Mark, path_figure)
+
+
 class Mark:
     """A marked frame (a lesion): its label, position (m) and 3x3 covariance (m^2); ``landmark``: a landmark frame
     (the pylorus, say), drawn as a grey diamond without its 1-sigma, not as a marked frame's star."""
@@ -182,7 +185,7 @@ class Mark:
 
     def style(self) -> tuple[tuple[int, int, int], str, float]:
         """``(rgb, matplotlib marker, size)``."""
-        return ((110, 110, 110), "D", 70) if self.landmark else ((255, 200, 0), "*", 220)
+        return (LANDMARK_RGB, "D", 70) if self.landmark else ((255, 200, 0), "*", 220)
 
 
 def trajectory_figure(title: str, paths: list[Path3D], marks: list[Mark] = (), n_ellipses: int = 12,
@@ -286,17 +289,22 @@ def path_figure(title: str, stamps_s, path_m, path_var_m2=None, marks: list[tupl
         # steps' share), and a band below zero would show a distance no capsule can have
         f.band(tt, np.maximum(pm - sd, 0.0), pm + sd, "1-sigma", (31, 119, 180))
     f.line(tt, pm, "path travelled", (31, 119, 180))
-    lm_x = [ts / 60.0 if minutes else ts for ts, _ in landmarks]
+
+    def at(ts: float) -> tuple[float, float | None]:
+        """A frame's time on the plot's axis and the path travelled then (cm; None: no path)."""
+        k = int(np.clip(np.searchsorted(t, ts), 0, len(pm) - 1)) if len(pm) else None
+        return (ts / 60.0 if minutes else ts), (None if k is None else float(pm[k]))
+
+    lm_x = [at(ts)[0] for ts, _ in landmarks]
     if len(set(lm_x)) >= 2:  # the stretch between the first and the last landmark (the small bowel, say)
         f.vspan(min(lm_x), max(lm_x), "between the landmarks", (150, 150, 150))
-    for j, (x, (ts, label)) in enumerate(zip(lm_x, landmarks)):
-        f.vline(x, None, (110, 110, 110), dashed=False)
-        k = int(np.clip(np.searchsorted(t, ts), 0, len(pm) - 1)) if len(pm) else 0
-        f.points(x, pm[k] if len(pm) else 0.0, "landmark" if j == 0 else None, (110, 110, 110), "D", 50, [label])
+    for j, (ts, label) in enumerate(landmarks):
+        x, p_cm = at(ts)
+        f.vline(x, None, LANDMARK_RGB, dashed=False)
+        f.points(x, p_cm or 0.0, "landmark" if j == 0 else None, LANDMARK_RGB, "D", 50, [label])
     for j, (ts, label) in enumerate(marks):
-        x = ts / 60.0 if minutes else ts
+        x, p_cm = at(ts)
         f.vline(x, None, (200, 150, 0))
-        k = int(np.clip(np.searchsorted(t, ts), 0, len(pm) - 1)) if len(pm) else 0
-        f.points(x, pm[k] if len(pm) else 0.0, "marked frame" if j == 0 else None, (255, 200, 0), "*", 200,
-                 [f"{label}: {cm_text(pm[k])}" if len(pm) else label])
+        f.points(x, p_cm or 0.0, "marked frame" if j == 0 else None, (255, 200, 0), "*", 200,
+                 [label if p_cm is None else f"{label}: {cm_text(p_cm)}"])
     return f.image()
