@@ -51,6 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
+from machine import machine_info, machine_line  # benchmarks/machine.py, beside this script
+
 
 EXAM_FRAMES = 10_000  # the exam scenario's length: its 6 m path at its 0.06 cm mean step
 LONG_EXAM_PATH_M = 5.5  # a longer exam covers the same small bowel, at a slower pace
@@ -199,6 +201,8 @@ def main() -> None:
     size = ["--set", f"camera.width={args.size}", "--set", f"camera.height={args.size}"] if args.size else []
     px = args.size or 320
     args.keep.mkdir(parents=True, exist_ok=True)
+    machine = machine_info()  # before any work: the reference times on an idle machine
+    print(machine_line(machine), flush=True)
     res = {}
     for n in lengths:
         # (the exam's caches keep their names)
@@ -304,7 +308,7 @@ def main() -> None:
         print(f"peak memory {max(lengths)} vs {min(lengths)} frames: "
               f"{b['peak_tree_rss_mib'] / a['peak_tree_rss_mib']:.3f}x")
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1))
+        args.json.write_text(json.dumps({"machine": machine, **res}, indent=1))
 
 
 if __name__ == "__main__":

@@ -38,6 +38,8 @@ from testbed.scenario import load_scenario
 from testbed.score import score_motion
 from testbed.simulate import simulate
 
+from machine import machine_info, machine_line  # benchmarks/machine.py, beside this script
+
 KEYS = ("mae_distance_cm", "mae_roll_deg", "mae_tilt_deg", "mae_tilt_vector_deg")
 
 
@@ -176,7 +178,8 @@ def main() -> None:
             runs = [(a, b, int(c)) for a, b, c in (r.split("/") for r in args.speed_runs.split(","))]
         except ValueError:
             raise SystemExit(f"--speed-runs {args.speed_runs!r}: expected SCENARIO/MODE/FRAMES,...") from None
-    report = {}
+    report = {"machine": machine_info()}  # before any work: the reference times on an idle machine
+    print(machine_line(report["machine"]), flush=True)
     if not args.speed_only:
         report["accuracy"] = acc = accuracy(parse_seeds(args.seeds), args.mode, args.frames, args.keep)
         print(f"\nTable 4.1 over {len(acc['seeds'])} thesis seeds ({args.frames} frames, matcher {args.mode}):")

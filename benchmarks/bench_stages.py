@@ -31,6 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from machine import machine_info, machine_line  # noqa: E402  (benchmarks/machine.py, beside this script)
+
 # (label, file the function is in, function names, the direct caller's (file, names) for an "of which" row, else
 # None): an "of which" row lies inside the row above it and counts only the calls from that caller (the ring fits
 # run the fitting loop too)
@@ -100,6 +102,8 @@ def run(a: argparse.Namespace, tmp: str) -> int:
     except BodySlamError as e:
         print(f"bench_stages: {e}", file=sys.stderr)
         return 2
+    machine = machine_info()  # before any work: the reference times on an idle machine
+    print(machine_line(machine), flush=True)
     set_worker_threads()
     prof = cProfile.Profile()
     t0 = time.perf_counter()
@@ -120,7 +124,7 @@ def run(a: argparse.Namespace, tmp: str) -> int:
     if a.top:
         stats.sort_stats("tottime").print_stats(a.top)
     if a.json:
-        a.json.write_text(json.dumps({"seq": shown, "frames": n, "mode": a.mode, "wall_s": wall,
+        a.json.write_text(json.dumps({"machine": machine, "seq": shown, "frames": n, "mode": a.mode, "wall_s": wall,
                                       "ms_per_frame": {k: 1e3 * v / n for k, v in secs.items()}}, indent=1))
     return 0
 
