@@ -201,7 +201,7 @@ def main() -> None:
     size = ["--set", f"camera.width={args.size}", "--set", f"camera.height={args.size}"] if args.size else []
     px = args.size or 320
     args.keep.mkdir(parents=True, exist_ok=True)
-    machine = machine_info()  # before any work: the reference times on an idle machine
+    machine = machine_info()  # before the benchmark's own work
     print(machine_line(machine), flush=True)
     res = {}
     for n in lengths:

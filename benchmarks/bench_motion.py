@@ -178,7 +178,7 @@ def main() -> None:
             runs = [(a, b, int(c)) for a, b, c in (r.split("/") for r in args.speed_runs.split(","))]
         except ValueError:
             raise SystemExit(f"--speed-runs {args.speed_runs!r}: expected SCENARIO/MODE/FRAMES,...") from None
-    report = {"machine": machine_info()}  # before any work: the reference times on an idle machine
+    report = {"machine": machine_info()}  # before the benchmark's own work
     print(machine_line(report["machine"]), flush=True)
     if not args.speed_only:
         report["accuracy"] = acc = accuracy(parse_seeds(args.seeds), args.mode, args.frames, args.keep)

@@ -102,7 +102,7 @@ def run(a: argparse.Namespace, tmp: str) -> int:
     except BodySlamError as e:
         print(f"bench_stages: {e}", file=sys.stderr)
         return 2
-    machine = machine_info()  # before any work: the reference times on an idle machine
+    machine = machine_info()  # before the benchmark's own work
     print(machine_line(machine), flush=True)
     set_worker_threads()
     prof = cProfile.Profile()

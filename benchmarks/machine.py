@@ -95,9 +95,13 @@ def machine_info() -> dict:
     process: what a process did before (its imports, its allocations) moves the SIFT time by up to a quarter through
     glibc's malloc state (session 80: 88-95 ms after the pipeline's imports, 111-123 ms in a fresh process, minutes
     apart), so every benchmark takes it the same way."""
-    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--json"], capture_output=True, text=True,
-                         check=True)
-    return json.loads(out.stdout)
+    try:
+        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--json"], capture_output=True,
+                             text=True, check=True)
+        return json.loads(out.stdout)
+    except (OSError, subprocess.CalledProcessError, ValueError):  # the benchmark goes on without its reference
+        return {"cpu": cpu_model(), "cores": cores(), "python": platform.python_version(), "opencv": None,
+                "sift_ms": None, "python_ms": None}
 
 
 def _measure(sift_repeats: int = SIFT_REPEATS, python_repeats: int = PYTHON_REPEATS) -> dict:
@@ -115,10 +119,11 @@ def _measure(sift_repeats: int = SIFT_REPEATS, python_repeats: int = PYTHON_REPE
 def machine_line(info: dict | None = None) -> str:
     """One line for a benchmark's output: :func:`machine_info` (measured now when not given)."""
     info = machine_info() if info is None else info
-    sift = "n/a (no OpenCV or no sample frame)" if info["sift_ms"] is None else f"{info['sift_ms']:.1f} ms"
+    sift = "n/a (no OpenCV, no sample frame, or the measurement failed)" if info["sift_ms"] is None else f"{info['sift_ms']:.1f} ms"
+    loop = "n/a" if info["python_ms"] is None else f"{info['python_ms']:.0f} ms"
     return (f"machine: {info['cpu']}, {info['cores']} core(s), Python {info['python']}, OpenCV {info['opencv']}; "
-            f"one core: SIFT on the sample's 320-px frame {sift}, a 10^6-step Python loop {info['python_ms']:.0f} ms "
-            f"(benchmarks/machine.py: frames/s of two machines compare through these)")
+            f"one core: SIFT on the sample's 320-px frame {sift}, a 10^6-step Python loop {loop} "
+            f"(benchmarks/machine.py: read two machines' frames/s with these)")
 
 
 if __name__ == "__main__":
