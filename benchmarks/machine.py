@@ -119,7 +119,8 @@ def _measure(sift_repeats: int = SIFT_REPEATS, python_repeats: int = PYTHON_REPE
 def machine_line(info: dict | None = None) -> str:
     """One line for a benchmark's output: :func:`machine_info` (measured now when not given)."""
     info = machine_info() if info is None else info
-    sift = "n/a (no OpenCV, no sample frame, or the measurement failed)" if info["sift_ms"] is None else f"{info['sift_ms']:.1f} ms"
+    sift = ("n/a (no OpenCV, no sample frame, or the measurement failed)" if info["sift_ms"] is None
+            else f"{info['sift_ms']:.1f} ms")
     loop = "n/a" if info["python_ms"] is None else f"{info['python_ms']:.0f} ms"
     return (f"machine: {info['cpu']}, {info['cores']} core(s), Python {info['python']}, OpenCV {info['opencv']}; "
             f"one core: SIFT on the sample's 320-px frame {sift}, a 10^6-step Python loop {loop} "
