@@ -21,13 +21,14 @@ nothing of what else runs on the machine meanwhile.
 from __future__ import annotations
 
 import json
-import os
 import platform
 import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from bodyslam.parallel import available_cores  # the cores a worker pool would use
 
 REFERENCE_FRAME = Path(__file__).resolve().parent.parent / "data_samples" / "demo_seed0" / "frames" / "000000.png"
 SIFT_REPEATS, PYTHON_REPEATS = 9, 5
@@ -43,14 +44,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine() or "unknown CPU"
-
-
-def cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def _sift_ms(repeats: int) -> float | None:
@@ -100,7 +93,7 @@ def machine_info() -> dict:
                              text=True, check=True)
         return json.loads(out.stdout)
     except (OSError, subprocess.CalledProcessError, ValueError):  # the benchmark goes on without its reference
-        return {"cpu": cpu_model(), "cores": cores(), "python": platform.python_version(), "opencv": None,
+        return {"cpu": cpu_model(), "cores": available_cores(), "python": platform.python_version(), "opencv": None,
                 "sift_ms": None, "python_ms": None}
 
 
@@ -112,7 +105,7 @@ def _measure(sift_repeats: int = SIFT_REPEATS, python_repeats: int = PYTHON_REPE
     except ImportError:
         opencv = None
     sift = _sift_ms(sift_repeats)
-    return {"cpu": cpu_model(), "cores": cores(), "python": platform.python_version(), "opencv": opencv,
+    return {"cpu": cpu_model(), "cores": available_cores(), "python": platform.python_version(), "opencv": opencv,
             "sift_ms": None if sift is None else round(sift, 2), "python_ms": round(_python_ms(python_repeats), 1)}
 
 
