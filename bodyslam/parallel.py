@@ -9,7 +9,9 @@ cores. (The testbed's renderer runs its own pool: :mod:`testbed.simulate`.)
 
 Every CLI process and every pool worker gives large freed arrays back to the system at once
 (:func:`return_large_frees`): a whole exam's arrays are freed and allocated again phase after phase, and the
-process's resident peak should count what it holds, not what it once held.
+process's resident peak should count what it holds, not what it once held. A chunk of frames keeps the heap's
+top while it runs (:func:`heap_top_kept`: SIFT's scale space is not faulted in again at every detection) and gives
+it back when it ends.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import os
 import sys
 from typing import Callable, Iterator, Sequence, TypeVar
 
-__all__ = ["available_cores", "imap_tasks", "return_large_frees", "shared_pool", "submit", "MMAP_THRESHOLD_BYTES"]
+__all__ = ["available_cores", "heap_top_kept", "imap_tasks", "return_large_frees", "shared_pool", "submit",
+           "MMAP_THRESHOLD_BYTES"]
 
 T = TypeVar("T")
 
@@ -43,19 +46,62 @@ MMAP_THRESHOLD_BYTES = 1 << 20
 _M_MMAP_THRESHOLD = -3  # mallopt's parameter number (glibc's malloc.h)
 
 
-def return_large_frees() -> bool:
-    """Fix glibc's mmap threshold at :data:`MMAP_THRESHOLD_BYTES` in this process (see there). True where set;
-    False where the C library is not glibc or the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
-    if "MALLOC_MMAP_THRESHOLD_" in os.environ or not sys.platform.startswith("linux"):
-        return False
+def _glibc():
+    """glibc's C library through ctypes, or None where the C library is another (or not Linux)."""
+    if not sys.platform.startswith("linux"):
+        return None
     import ctypes
 
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.gnu_get_libc_version  # glibc's, not another C library's
     except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def return_large_frees() -> bool:
+    """Fix glibc's mmap threshold at :data:`MMAP_THRESHOLD_BYTES` in this process (see there). True where set;
+    False where the C library is not glibc or the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
+    if "MALLOC_MMAP_THRESHOLD_" in os.environ:
         return False
-    return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+    libc = _glibc()
+    return libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+
+
+# Fixing the mmap threshold (above) also freezes glibc's trim threshold at its start, 128 KiB: whenever more than
+# that lies free at the heap's top it goes back to the system, and the next allocation takes it again page by page.
+# A SIFT detection allocates and frees its scale space (~20 MiB of heap blocks under 1 MiB) every call: ~6,300 minor
+# page faults a detection on a 320-px frame, 116-125 ms, against 80 faults and 90-95 ms with the heap's top kept
+# (trim threshold 128 MiB, top pad 16 MiB; 32 MiB alone: 908 faults, 90 ms; docs/RESULTS.md, session 80). A chunk
+# of frames keeps it (:func:`heap_top_kept`: 64 MiB and 16 MiB), and gives it all back when the chunk ends, so an
+# idle worker, and the whole-exam fusion that may run on it next, hold no more than before.
+HEAP_TRIM_THRESHOLD_BYTES = 64 << 20
+HEAP_TOP_PAD_BYTES = 16 << 20
+GLIBC_TRIM_THRESHOLD_BYTES = 128 << 10  # glibc's defaults (mallopt(3)), restored when a chunk ends
+GLIBC_TOP_PAD_BYTES = 128 << 10
+_M_TRIM_THRESHOLD, _M_TOP_PAD = -1, -2
+
+
+@contextlib.contextmanager
+def heap_top_kept() -> Iterator[bool]:
+    """Inside the block, glibc keeps up to :data:`HEAP_TRIM_THRESHOLD_BYTES` free at its heap's top (plus
+    :data:`HEAP_TOP_PAD_BYTES` of padding) instead of giving it back at once (see above); at the block's end its
+    defaults come back and ``malloc_trim`` gives the free heap back. Yields whether it applied: not where the C
+    library is not glibc, nor where the user set ``MALLOC_TRIM_THRESHOLD_`` or ``MALLOC_TOP_PAD_`` (theirs is
+    kept). Results never depend on it: only page faults, time and the memory held."""
+    libc = None if {"MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"} & set(os.environ) else _glibc()
+    if libc is None:
+        yield False
+        return
+    libc.mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_THRESHOLD_BYTES)
+    libc.mallopt(_M_TOP_PAD, HEAP_TOP_PAD_BYTES)
+    try:
+        yield True
+    finally:
+        libc.mallopt(_M_TRIM_THRESHOLD, GLIBC_TRIM_THRESHOLD_BYTES)
+        libc.mallopt(_M_TOP_PAD, GLIBC_TOP_PAD_BYTES)
+        libc.malloc_trim(0)
 
 
 def _init_worker(log_level: int | None = None, log_format: str | None = None) -> None:

@@ -495,11 +495,14 @@ def set_worker_threads() -> None:
 
 def chunk_task(task: dict) -> ChunkResult:
     """A worker's chunk: ``task`` holds the source subset, camera, settings, radius, mask, first and last."""
+    from bodyslam.parallel import heap_top_kept
+
     set_worker_threads()
     vo = engine_for(task["camera"], task["settings"], task["radius_m"], task["mask"], task.get("T_body_cam"))
     src: FrameSource = task["source"]
-    return vo.run(src.read(task["first"], task["last"]), task["first"], task.get("ring_every", 0),
-                  bridge=task.get("bridge_inside", False))
+    with heap_top_kept():  # SIFT's scale space reused from call to call, not faulted in again (bodyslam.parallel)
+        return vo.run(src.read(task["first"], task["last"]), task["first"], task.get("ring_every", 0),
+                      bridge=task.get("bridge_inside", False))
 
 
 def bridge_task(task: dict) -> StepMotion | None:
