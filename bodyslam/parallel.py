@@ -63,42 +63,54 @@ def _glibc():
 def return_large_frees() -> bool:
     """Fix glibc's mmap threshold at :data:`MMAP_THRESHOLD_BYTES` in this process (see there). True where set;
     False where the C library is not glibc or the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
+    global _LARGE_FREES
     if "MALLOC_MMAP_THRESHOLD_" in os.environ:
         return False
     libc = _glibc()
-    return libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+    _LARGE_FREES = libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+    return _LARGE_FREES
+
+
+_LARGE_FREES = False  # whether this process fixed its mmap threshold (return_large_frees)
 
 
 # Fixing the mmap threshold (above) also freezes glibc's trim threshold at its start, 128 KiB: whenever more than
 # that lies free at the heap's top it goes back to the system, and the next allocation takes it again page by page.
-# A SIFT detection allocates and frees its scale space (~20 MiB of heap blocks under 1 MiB) every call: ~6,300 minor
-# page faults a detection on a 320-px frame, 116-125 ms, against 80 faults and 90-95 ms with the heap's top kept
-# (trim threshold 128 MiB, top pad 16 MiB; 32 MiB alone: 908 faults, 90 ms; docs/RESULTS.md, session 80). A chunk
-# of frames keeps it (:func:`heap_top_kept`: 64 MiB and 16 MiB), and gives it all back when the chunk ends, so an
-# idle worker, and the whole-exam fusion that may run on it next, hold no more than before.
-HEAP_TRIM_THRESHOLD_BYTES = 64 << 20
+# A SIFT detection allocates and frees its scale space every call (~20 MiB on a 320-px frame, in blocks under 1 MiB;
+# ~70 MiB at 576 px, its upsampled first octave in blocks of 1.3-5 MiB, each mapped and unmapped on its own): 6,300
+# minor page faults a detection at 320 px, 20,600 at 576. A chunk of frames keeps what it frees (:func:`heap_top_kept`:
+# blocks up to 32 MiB from the heap, up to 128 MiB kept free at its top, 16 MiB of padding): 0 faults at either size,
+# ~20-40% off a detection's time (docs/RESULTS.md, sessions 80 and 81). When the chunk ends, the process's settings
+# come back and the free heap is given back, so an idle worker, and the whole-exam fusion that may run on it next,
+# hold no more than before.
+HEAP_MMAP_THRESHOLD_BYTES = 32 << 20  # glibc's own ceiling for its dynamic threshold on 64-bit
+HEAP_TRIM_THRESHOLD_BYTES = 128 << 20
 HEAP_TOP_PAD_BYTES = 16 << 20
-GLIBC_TRIM_THRESHOLD_BYTES = 128 << 10  # glibc's defaults (mallopt(3)), restored when a chunk ends
+GLIBC_TRIM_THRESHOLD_BYTES = 128 << 10  # glibc's defaults (mallopt(3)), frozen by the fixed mmap threshold
 GLIBC_TOP_PAD_BYTES = 128 << 10
 _M_TRIM_THRESHOLD, _M_TOP_PAD = -1, -2
 
 
 @contextlib.contextmanager
 def heap_top_kept() -> Iterator[bool]:
-    """Inside the block, glibc keeps up to :data:`HEAP_TRIM_THRESHOLD_BYTES` free at its heap's top (plus
-    :data:`HEAP_TOP_PAD_BYTES` of padding) instead of giving it back at once (see above); at the block's end its
-    defaults come back and ``malloc_trim`` gives the free heap back. Yields whether it applied: not where the C
-    library is not glibc, nor where the user set ``MALLOC_TRIM_THRESHOLD_`` or ``MALLOC_TOP_PAD_`` (theirs is
-    kept). Results never depend on it: only page faults, time and the memory held."""
-    libc = None if {"MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"} & set(os.environ) else _glibc()
+    """Inside the block, glibc serves blocks up to :data:`HEAP_MMAP_THRESHOLD_BYTES` from its heap and keeps up to
+    :data:`HEAP_TRIM_THRESHOLD_BYTES` free at its top (plus :data:`HEAP_TOP_PAD_BYTES` of padding) instead of giving
+    them back at once (see above); at the block's end the process's settings (:func:`return_large_frees`'s) come
+    back and ``malloc_trim`` gives the free heap back. Yields whether it applied: only in a process whose mmap
+    threshold :func:`return_large_frees` fixed (every CLI process and pool worker; not where the C library is not
+    glibc or the user set ``MALLOC_MMAP_THRESHOLD_``), and not where the user set ``MALLOC_TRIM_THRESHOLD_`` or
+    ``MALLOC_TOP_PAD_`` (theirs is kept). Results never depend on it: only page faults, time and the memory held."""
+    libc = _glibc() if _LARGE_FREES and not {"MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"} & set(os.environ) else None
     if libc is None:
         yield False
         return
+    libc.mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD_BYTES)
     libc.mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_THRESHOLD_BYTES)
     libc.mallopt(_M_TOP_PAD, HEAP_TOP_PAD_BYTES)
     try:
         yield True
     finally:
+        libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
         libc.mallopt(_M_TRIM_THRESHOLD, GLIBC_TRIM_THRESHOLD_BYTES)
         libc.mallopt(_M_TOP_PAD, GLIBC_TOP_PAD_BYTES)
         libc.malloc_trim(0)
