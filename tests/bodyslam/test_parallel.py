@@ -23,12 +23,13 @@ def test_pool_workers_keep_to_one_blas_thread_and_the_parent_is_untouched():
 
 
 SCRIPT = '''
-import sys, time
+import os, sys, time
 from bodyslam.cliutil import run_cli
 from bodyslam.parallel import imap_tasks
 
 
 def slow(x):
+    open(os.path.join(os.environ["READY_DIR"], str(x)), "w").close()  # this worker is in its task
     time.sleep(30)
     return x
 
@@ -54,13 +55,20 @@ def test_ctrl_c_stops_a_pool_cleanly(tmp_path):
     import time
 
     (tmp_path / "job.py").write_text(SCRIPT)
+    ready = tmp_path / "ready"
+    ready.mkdir()
     # SIGINT back to its default in the job: a shell without job control starts background commands with SIGINT
     # ignored, and a Python started so inherits that and never raises KeyboardInterrupt (a suite run with `&`)
     p = subprocess.Popen([sys.executable, str(tmp_path / "job.py")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, start_new_session=True,
+                         text=True, start_new_session=True, env={**os.environ, "READY_DIR": str(ready)},
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert p.stdout.readline().strip() == "started"
-    time.sleep(3.0)  # the two workers are spawned and sleeping in their task
+    # the two workers are spawned and sleeping in their task (each says so with a file: on a loaded machine, as
+    # with the suite on two processes, spawning them can take longer than a fixed wait)
+    t0 = time.monotonic()
+    while len(list(ready.iterdir())) < 2 and time.monotonic() - t0 < 60:
+        time.sleep(0.05)
+    assert len(list(ready.iterdir())) == 2, "the workers never reached their task"
     os.killpg(p.pid, signal.SIGINT)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
