@@ -9,9 +9,9 @@ cores. (The testbed's renderer runs its own pool: :mod:`testbed.simulate`.)
 
 Every CLI process and every pool worker gives large freed arrays back to the system at once
 (:func:`return_large_frees`): a whole exam's arrays are freed and allocated again phase after phase, and the
-process's resident peak should count what it holds, not what it once held. A chunk of frames keeps the heap's
-top while it runs (:func:`heap_top_kept`: SIFT's scale space is not faulted in again at every detection) and gives
-it back when it ends.
+process's resident peak should count what it holds, not what it once held. A chunk of frames keeps what it frees
+while it runs (:func:`heap_top_kept`: SIFT's scale space is not faulted in again at every detection) and gives it
+back when it ends.
 """
 
 from __future__ import annotations
@@ -60,6 +60,9 @@ def _glibc():
     return libc
 
 
+_LARGE_FREES = False  # whether this process fixed its mmap threshold (return_large_frees)
+
+
 def return_large_frees() -> bool:
     """Fix glibc's mmap threshold at :data:`MMAP_THRESHOLD_BYTES` in this process (see there). True where set;
     False where the C library is not glibc or the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
@@ -69,9 +72,6 @@ def return_large_frees() -> bool:
     libc = _glibc()
     _LARGE_FREES = libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
     return _LARGE_FREES
-
-
-_LARGE_FREES = False  # whether this process fixed its mmap threshold (return_large_frees)
 
 
 # Fixing the mmap threshold (above) also freezes glibc's trim threshold at its start, 128 KiB: whenever more than
