@@ -76,13 +76,13 @@ def return_large_frees() -> bool:
 
 # Fixing the mmap threshold (above) also freezes glibc's trim threshold at its start, 128 KiB: whenever more than
 # that lies free at the heap's top it goes back to the system, and the next allocation takes it again page by page.
-# A SIFT detection allocates and frees its scale space every call (~20 MiB on a 320-px frame, in blocks under 1 MiB;
-# ~70 MiB at 576 px, its upsampled first octave in blocks of 1.3-5 MiB, each mapped and unmapped on its own): 6,300
-# minor page faults a detection at 320 px, 20,600 at 576. A chunk of frames keeps what it frees (:func:`heap_top_kept`:
-# blocks up to 32 MiB from the heap, up to 128 MiB kept free at its top, 16 MiB of padding): 0 faults at either size,
-# ~20-40% off a detection's time (docs/RESULTS.md, sessions 80 and 81). When the chunk ends, the process's settings
-# come back and the free heap is given back, so an idle worker, and the whole-exam fusion that may run on it next,
-# hold no more than before.
+# (A block over the mmap threshold comes from the heap's top too where the top has room; where it has not, the block
+# is mapped on its own.) A SIFT detection allocates and frees its scale space every call, ~20 MiB on a 320-px frame
+# and ~70 MiB at 576 px: 6,300 minor page faults a detection at 320 px, 20,600 at 576. A chunk of frames keeps what
+# it frees (:func:`heap_top_kept`: up to 128 MiB kept free at the heap's top, 16 MiB of padding, blocks up to 32 MiB
+# from the heap): 0 faults at either size (900 at 576 px without the last), ~20-40% off a detection's time
+# (docs/RESULTS.md, sessions 80 and 81). When the chunk ends, the process's settings come back and the free heap is
+# given back, so an idle worker, and the whole-exam fusion that may run on it next, start from a trimmed heap.
 HEAP_MMAP_THRESHOLD_BYTES = 32 << 20  # glibc's own ceiling for its dynamic threshold on 64-bit
 HEAP_TRIM_THRESHOLD_BYTES = 128 << 20
 HEAP_TOP_PAD_BYTES = 16 << 20
